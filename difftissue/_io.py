@@ -1,0 +1,36 @@
+"""Small file helpers: atomic writes that never overwrite what a user gave us by accident."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+from pathlib import Path
+
+from .errors import OutputExistsError
+
+__all__ = ["atomic_output"]
+
+
+@contextlib.contextmanager
+def atomic_output(path, *, overwrite: bool = False):
+    """Yield a temporary path beside ``path``; on success move it onto ``path`` atomically.
+
+    The temporary file keeps the suffix of ``path`` so writers that infer the format from
+    the extension (meshio) still work. If the body raises, the temporary file is removed and
+    ``path`` is untouched. An existing ``path`` is refused unless ``overwrite`` is true.
+    """
+    path = Path(path)
+    if path.exists() and not overwrite:
+        raise OutputExistsError(f"{path} exists; refusing to overwrite it (choose another path or pass overwrite/--force)")
+    if not path.parent.exists():
+        raise OutputExistsError(f"directory {path.parent} does not exist")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.tmp-", suffix="".join(path.suffixes) or None, dir=path.parent)
+    os.close(fd)
+    tmp = Path(tmp)
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()

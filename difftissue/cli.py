@@ -1,0 +1,253 @@
+"""The ``difftissue`` command line.
+
+Every command is a thin shell over public functions of the package. Errors print one
+line ``error: ...`` on stderr and exit with status 1 (2 for usage errors); ``--debug``
+shows the traceback instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import warnings
+from pathlib import Path
+
+from ._version import __version__
+
+__all__ = ["main", "build_parser"]
+
+_UNITS = ("m", "cm", "mm", "um")
+
+
+class _UsageError(Exception):
+    """Bad command-line usage (exit status 2)."""
+
+
+def _length_factor(unit: str) -> float:
+    from .mesh import LENGTH_UNITS
+
+    return LENGTH_UNITS[unit]
+
+
+def _parse_layer(spec: str, factor: float):
+    """``name:thickness[:E[:nu[:cells]]]`` -> layer tuple (thickness in the CLI unit, E in Pa)."""
+    from .materials import Material
+
+    parts = spec.split(":")
+    if len(parts) < 2 or len(parts) > 5 or not parts[0]:
+        raise _UsageError(f"--layer {spec!r}: expected name:thickness[:E_Pa[:nu[:cells]]]")
+    try:
+        name, thickness = parts[0], float(parts[1]) * factor
+        E = float(parts[2]) if len(parts) > 2 else 1.0e5
+        nu = float(parts[3]) if len(parts) > 3 else 0.45
+        layer = (name, thickness, Material(E, nu))
+        if len(parts) > 4:
+            layer = layer + (int(parts[4]),)
+    except ValueError as e:
+        raise _UsageError(f"--layer {spec!r}: {e}") from None
+    return layer
+
+
+# ----------------------------------------------------------------------------- commands
+def _cmd_mesh(args) -> int:
+    from .mesh import block, layered_skin, write_mesh
+
+    f = _length_factor(args.unit)
+    if args.kind == "block":
+        mesh = block(tuple(v * f for v in args.size), tuple(args.resolution))
+        fields = {}
+    else:
+        layers = [_parse_layer(s, f) for s in args.layer] if args.layer else None
+        specimen = layered_skin(layers, size=tuple(v * f for v in args.size), resolution=tuple(args.resolution),
+                                cell_size=None if args.cell_size is None else args.cell_size * f)
+        mesh, fields = specimen.mesh, specimen.cell_fields()
+    path = write_mesh(args.out, mesh, cell_data=fields, overwrite=args.force)
+    print(f"wrote {path}: {mesh.n_nodes} nodes, {mesh.n_tets} tets, regions {list(mesh.region_names)} (coordinates in metres)")
+    return 0
+
+
+def _mesh_summary(mesh) -> dict:
+    import numpy as np
+
+    vol = mesh.volumes()
+    q = mesh.quality()
+    lengths = np.linalg.norm(mesh.points[mesh.edges[:, 0]] - mesh.points[mesh.edges[:, 1]], axis=1)
+    lo, hi = mesh.bounds()
+    counts = np.bincount(mesh.region_ids, minlength=len(mesh.region_names))
+    summary = {
+        "nodes": mesh.n_nodes,
+        "tets": mesh.n_tets,
+        "edges": int(len(mesh.edges)),
+        "boundary_faces": int(len(mesh.boundary_faces)),
+        "volume_m3": float(vol.sum()),
+        "bounds_m": {"lower": lo.tolist(), "upper": hi.tolist()},
+        "edge_length_m": {"min": float(lengths.min()), "max": float(lengths.max())},
+        "quality_mean_ratio": {"min": float(q.min()), "median": float(np.median(q)), "max": float(q.max())},
+        "regions": [
+            {"id": i, "name": n, "tets": int(counts[i]), "volume_m3": float(vol[mesh.region_ids == i].sum())}
+            for i, n in enumerate(mesh.region_names)
+        ],
+        "point_fields": sorted(mesh.point_data),
+        "cell_fields": sorted(mesh.cell_data),
+    }
+    if mesh.lattice is not None:
+        summary["lattice_springs"] = mesh.lattice.n_springs
+    return summary
+
+
+def _print_summary(title: str, summary: dict, findings, notes) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(highlight=False)
+    console.print(f"[bold]{title}[/bold]")
+    if summary:
+        t = Table(show_header=False, box=None, pad_edge=False)
+        t.add_row("nodes", str(summary["nodes"]))
+        t.add_row("tetrahedra", str(summary["tets"]))
+        t.add_row("edges", str(summary["edges"]))
+        t.add_row("boundary faces", str(summary["boundary_faces"]))
+        if "lattice_springs" in summary:
+            t.add_row("lattice springs", str(summary["lattice_springs"]))
+        t.add_row("volume", f"{summary['volume_m3']:.6g} m^3")
+        lo, hi = summary["bounds_m"]["lower"], summary["bounds_m"]["upper"]
+        t.add_row("bounds", f"[{', '.join(f'{v:.4g}' for v in lo)}] .. [{', '.join(f'{v:.4g}' for v in hi)}] m")
+        el = summary["edge_length_m"]
+        t.add_row("edge length", f"{el['min']:.4g} .. {el['max']:.4g} m")
+        q = summary["quality_mean_ratio"]
+        t.add_row("quality (mean ratio)", f"min {q['min']:.4f}  median {q['median']:.4f}  max {q['max']:.4f}")
+        if summary["point_fields"]:
+            t.add_row("point fields", ", ".join(summary["point_fields"]))
+        if summary["cell_fields"]:
+            t.add_row("cell fields", ", ".join(summary["cell_fields"]))
+        console.print(t)
+        r = Table(title="regions", title_justify="left")
+        for col in ("id", "name", "tets", "volume [m^3]"):
+            r.add_column(col)
+        for reg in summary["regions"]:
+            r.add_row(str(reg["id"]), reg["name"], str(reg["tets"]), f"{reg['volume_m3']:.6g}")
+        console.print(r)
+    for n in notes:
+        console.print(f"note: {n}")
+    if not findings:
+        console.print("validation: no problems found")
+    for f in findings:
+        console.print(f"{f.severity}: {f.kind.__name__}: {f.message}", markup=False)
+
+
+def _cmd_info(args) -> int:
+    from .mesh import inspect_file
+
+    mesh, findings, notes = inspect_file(args.file, length_unit=args.unit, reorient=args.reorient)
+    summary = _mesh_summary(mesh) if mesh is not None else None
+    if args.json:
+        print(json.dumps({"file": str(args.file), "summary": summary, "findings": [f.to_dict() for f in findings], "notes": notes}, indent=2))
+    else:
+        _print_summary(str(args.file), summary, findings, notes)
+    return 1 if any(f.severity == "error" for f in findings) else 0
+
+
+def _cmd_demo(args) -> int:
+    """Build the default layered skin specimen, validate it and write it with its materials."""
+    from ._io import atomic_output
+    from .materials import lattice_spring_constants
+    from .mesh import layered_skin, write_mesh
+
+    out = Path(args.out)
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise FileExistsError(f"{out} exists and is not empty; choose another --out or pass --force")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    specimen = layered_skin(size=(0.02, 0.02), resolution=(20, 20))
+    mesh = specimen.mesh
+    findings = mesh.validate()
+    vtu = write_mesh(out / "skin.vtu", mesh, cell_data=specimen.cell_fields(), overwrite=args.force)
+    summary = _mesh_summary(mesh)
+    summary["materials"] = {}
+    for name, mat in zip(mesh.region_names, specimen.materials):
+        cell = mesh.lattice.cell_size[mesh.lattice.cube_region_ids == mesh.region_names.index(name)][0]
+        k = lattice_spring_constants(mat, float(cell[0]))
+        summary["materials"][name] = {
+            **mat.to_dict(),
+            "lame_lambda_Pa": float(mat.lame[0]),
+            "shear_modulus_Pa": float(mat.shear_modulus),
+            "lattice_k_edge_N_per_m": float(k.k_edge),
+            "lattice_k_diag_N_per_m": float(k.k_diag),
+            "volume_term_modulus_Pa": float(k.volume_modulus),
+        }
+    summary["findings"] = [f.to_dict() for f in findings]
+    with atomic_output(out / "summary.json", overwrite=args.force) as tmp:
+        tmp.write_text(json.dumps(summary, indent=2))
+    _print_summary(f"layered skin specimen -> {vtu}", summary, findings, [])
+    print(f"demo finished in {time.perf_counter() - t0:.1f} s; open {vtu} in ParaView (cell fields: layer, youngs_modulus, poisson_ratio, ...)")
+    return 1 if any(f.severity == "error" for f in findings) else 0
+
+
+# ------------------------------------------------------------------------------ parser
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="difftissue",
+        description="Calibrate soft-tissue material models with differentiable simulation. Units are SI unless --unit says otherwise.",
+    )
+    p.add_argument("--version", action="version", version=f"difftissue {__version__}")
+    p.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
+    sub = p.add_subparsers(dest="command", metavar="COMMAND")
+
+    d = sub.add_parser("demo", help="build, validate and write the bundled layered skin specimen")
+    d.add_argument("--out", default="demo-output", help="output directory (default: demo-output)")
+    d.add_argument("--force", action="store_true", help="overwrite files in --out")
+    d.set_defaults(func=_cmd_demo)
+
+    m = sub.add_parser("mesh", help="generate a specimen mesh")
+    msub = m.add_subparsers(dest="kind", metavar="KIND", required=True)
+    mb = msub.add_parser("block", help="rectangular block of cubes, 6 tets per cube")
+    mb.add_argument("--size", type=float, nargs=3, required=True, metavar=("LX", "LY", "LZ"), help="edge lengths in --unit")
+    mb.add_argument("--resolution", type=int, nargs=3, required=True, metavar=("NX", "NY", "NZ"), help="cells per axis")
+    ms = msub.add_parser("skin", help="layered skin specimen (layers from the surface inwards)")
+    ms.add_argument("--size", type=float, nargs=2, default=[20.0, 20.0], metavar=("LX", "LY"), help="lateral size in --unit (default 20 20 mm)")
+    ms.add_argument("--resolution", type=int, nargs=2, default=[20, 20], metavar=("NX", "NY"), help="lateral cells (default 20 20)")
+    ms.add_argument("--layer", action="append", metavar="NAME:T[:E[:NU[:CELLS]]]",
+                    help="a layer, outermost first: thickness T in --unit, E in Pa; repeat per layer (default: epidermis/dermis/hypodermis)")
+    ms.add_argument("--cell-size", type=float, default=None, help="target cell height in --unit (default: lateral cell size)")
+    for sp in (mb, ms):
+        sp.add_argument("--unit", choices=_UNITS, default="mm", help="length unit of --size (default mm); files are written in metres")
+        sp.add_argument("--out", required=True, help="output file: .vtu, .msh, .xdmf or .mesh")
+        sp.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    m.set_defaults(func=_cmd_mesh)
+
+    i = sub.add_parser("info", help="summarise and validate a mesh file (any format meshio reads)")
+    i.add_argument("file")
+    i.add_argument("--unit", choices=_UNITS, default="m", help="length unit of the file's coordinates (default m)")
+    i.add_argument("--reorient", action="store_true", help="accept negatively ordered tets (renumbered) instead of reporting them as inverted")
+    i.add_argument("--json", action="store_true", help="print JSON instead of tables")
+    i.set_defaults(func=_cmd_info)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    from .errors import DifftissueError
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("default")
+            return int(args.func(args))
+    except _UsageError as e:
+        if args.debug:
+            raise
+        print(f"difftissue: error: {e}", file=sys.stderr)
+        return 2
+    except (DifftissueError, OSError) as e:
+        if args.debug:
+            raise
+        print(f"difftissue: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("difftissue: interrupted", file=sys.stderr)
+        return 130

@@ -1,0 +1,107 @@
+"""Named errors and warnings raised by difftissue.
+
+Every error a user can trigger with bad input derives from :class:`DifftissueError`
+(and from :class:`ValueError`, so generic handlers still work). The command line
+prints ``error: <message>`` for these and exits non-zero without a traceback.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "DifftissueError",
+    "DifftissueWarning",
+    "MeshError",
+    "NonFiniteCoordinatesError",
+    "IndexOutOfRangeError",
+    "InvertedElementError",
+    "DegenerateElementError",
+    "DuplicateElementError",
+    "EmptyMeshError",
+    "UnsupportedMeshError",
+    "UnusedNodesWarning",
+    "NonManifoldSurfaceWarning",
+    "MaterialError",
+    "ModelRangeError",
+    "SelectorError",
+    "OutputExistsError",
+]
+
+
+def _cite(indices, limit: int = 8) -> str:
+    """Format the first ``limit`` indices of a list, with the total count."""
+    idx = [int(i) for i in indices]
+    head = ", ".join(str(i) for i in idx[:limit])
+    more = f", ... ({len(idx)} in all)" if len(idx) > limit else ""
+    return f"[{head}{more}]"
+
+
+class DifftissueError(ValueError):
+    """Base class of all input errors raised by difftissue."""
+
+
+class DifftissueWarning(UserWarning):
+    """Base class of all warnings emitted by difftissue."""
+
+
+# --------------------------------------------------------------------------- meshes
+class MeshError(DifftissueError):
+    """A mesh is unusable. ``indices`` holds the offending node or element indices."""
+
+    def __init__(self, message: str, indices=()):
+        super().__init__(message)
+        self.indices = tuple(int(i) for i in indices)
+
+
+class EmptyMeshError(MeshError):
+    """The mesh has no nodes or no tetrahedra."""
+
+
+class NonFiniteCoordinatesError(MeshError):
+    """Some node coordinates are NaN or infinite (``indices`` are node indices)."""
+
+
+class IndexOutOfRangeError(MeshError):
+    """Some elements reference node indices outside ``[0, n_nodes)`` (``indices`` are element indices)."""
+
+
+class InvertedElementError(MeshError):
+    """Some tetrahedra have negative signed volume (``indices`` are element indices)."""
+
+
+class DegenerateElementError(MeshError):
+    """Some tetrahedra have (near-)zero volume or repeated nodes (``indices`` are element indices)."""
+
+
+class DuplicateElementError(MeshError):
+    """Some tetrahedra use the same four nodes as an earlier one (``indices`` are the later copies)."""
+
+
+class UnsupportedMeshError(MeshError):
+    """The file holds cells difftissue does not handle (e.g. quadratic tetrahedra)."""
+
+
+class UnusedNodesWarning(DifftissueWarning):
+    """Some nodes belong to no tetrahedron."""
+
+
+class NonManifoldSurfaceWarning(DifftissueWarning):
+    """Some boundary edges are shared by a number of boundary faces other than two."""
+
+
+# ------------------------------------------------------------------------ materials
+class MaterialError(DifftissueError):
+    """A material parameter is outside its physical range (E <= 0, nu outside (-1, 1/2), NaN, ...)."""
+
+
+class ModelRangeError(MaterialError):
+    """A material is valid but the chosen discrete model cannot represent it (e.g. a pure spring lattice at nu > 1/3)."""
+
+
+# ------------------------------------------------------------------------ selectors
+class SelectorError(DifftissueError):
+    """A node selector is malformed or selects no node."""
+
+
+# --------------------------------------------------------------------------- output
+class OutputExistsError(DifftissueError):
+    """Refusing to overwrite an existing file or directory."""
