@@ -181,7 +181,7 @@ def _cmd_demo(args) -> int:
     with atomic_output(out / "summary.json", overwrite=args.force) as tmp:
         tmp.write_text(json.dumps(summary, indent=2))
     _print_summary(f"layered skin specimen -> {vtu}", summary, findings, [])
-    print(f"demo finished in {time.perf_counter() - t0:.1f} s; open {vtu} in ParaView (cell fields: layer, youngs_modulus, poisson_ratio, ...)")
+    print(f"demo finished in {time.perf_counter() - t0:.1f} s; open {vtu} in ParaView (cell fields: region_id, youngs_modulus, poisson_ratio, ...)")
     return 1 if any(f.severity == "error" for f in findings) else 0
 
 

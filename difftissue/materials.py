@@ -92,10 +92,10 @@ class Material(eqx.Module):
     def __check_init__(self):
         checks = (
             ("youngs_modulus", "Pa", lambda v: v > 0, "must be > 0"),
-            ("poisson_ratio", "-", lambda v: -1.0 < v < 0.5, "must lie in (-1, 0.5)"),
-            ("cubic_coefficient", "-", lambda v: True, ""),
+            ("poisson_ratio", "", lambda v: -1.0 < v < 0.5, "must lie in (-1, 0.5)"),
+            ("cubic_coefficient", "", lambda v: True, ""),
             ("density", "kg/m^3", lambda v: v > 0, "must be > 0"),
-            ("pre_stretch", "-", lambda v: v > 0, "must be > 0"),
+            ("pre_stretch", "", lambda v: v > 0, "must be > 0"),
         )
         for name, unit, ok, rule in checks:
             value = getattr(self, name)
@@ -109,7 +109,7 @@ class Material(eqx.Module):
                     extra = ""
                     if name == "poisson_ratio" and v >= 0.5:
                         extra = " (0.5 is the incompressible limit, where the bulk modulus is infinite; use e.g. 0.49 or 0.499)"
-                    raise MaterialError(f"{name} = {float(v):g} {unit} {rule}{extra}")
+                    raise MaterialError(f"{name} = {float(v):g}{' ' + unit if unit else ''} {rule}{extra}")
 
     # Convenience views -----------------------------------------------------------
     @property

@@ -11,7 +11,9 @@ only ``points`` is meant to be differentiated. See ``docs/meshes.md``.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
+import io
 import itertools
 import warnings
 from pathlib import Path
@@ -578,8 +580,8 @@ def layered_skin(
             lateral cell size. Each layer gets ``max(1, round(thickness / cell_size))`` cells.
 
     Returns:
-        A :class:`Specimen` whose mesh has region names = layer names, cell field
-        ``layer`` (the region id) and a :class:`CubeLattice`.
+        A :class:`Specimen` whose mesh has region names = layer names (region id = layer
+        index, outermost 0) and a :class:`CubeLattice`.
     """
     layers = list(default_skin_layers() if layers is None else layers)
     if not layers:
@@ -617,7 +619,6 @@ def layered_skin(
         cube_layer.extend([idx] * ncells[idx])
     cube_ids = np.repeat(np.asarray(cube_layer, dtype=np.int32), nx * ny)
     mesh = structured_grid(np.linspace(0, Lx, nx + 1), np.linspace(0, Ly, ny + 1), np.asarray(zs), cube_region_ids=cube_ids, region_names=names)
-    mesh = eqx.tree_at(lambda m: m.cell_data, mesh, {"layer": mesh.region_ids.copy()})
     return Specimen(mesh, tuple(mats))
 
 
@@ -802,14 +803,17 @@ def _read_meshio(path):
     path = Path(path)
     if not path.is_file():
         raise MeshError(f"no such mesh file: {path}")
+    captured = io.StringIO()
     try:
-        with warnings.catch_warnings():
+        # meshio prints to stderr and calls sys.exit when no reader accepts a file.
+        with warnings.catch_warnings(), contextlib.redirect_stderr(captured), contextlib.redirect_stdout(captured):
             warnings.simplefilter("ignore")
             return meshio.read(path)
     except meshio.ReadError as e:
         raise MeshError(f"cannot read {path}: {e}") from None
-    except (KeyError, ValueError) as e:
-        raise MeshError(f"cannot read {path} ({type(e).__name__}: {e}); check the file format and suffix") from None
+    except (SystemExit, Exception) as e:
+        detail = captured.getvalue().strip().replace("\n", " ") or f"{type(e).__name__}: {e}"
+        raise MeshError(f"cannot read {path} ({detail}); check the file format and suffix") from None
 
 
 def inspect_file(path, *, length_unit: str = "m", reorient: bool = False) -> tuple[TetMesh | None, list[Finding], list[str]]:
