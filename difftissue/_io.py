@@ -7,7 +7,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from .errors import OutputExistsError
+from .errors import OutputError, OutputExistsError
 
 __all__ = ["atomic_output"]
 
@@ -23,11 +23,15 @@ def atomic_output(path, *, overwrite: bool = False):
     path = Path(path)
     if path.exists() and not overwrite:
         raise OutputExistsError(f"{path} exists; refusing to overwrite it (choose another path or pass overwrite/--force)")
-    if not path.parent.exists():
-        raise OutputExistsError(f"directory {path.parent} does not exist")
+    if not path.parent.is_dir():
+        raise OutputError(f"directory {path.parent} does not exist; create it first")
     fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.tmp-", suffix="".join(path.suffixes) or None, dir=path.parent)
     os.close(fd)
     tmp = Path(tmp)
+    # mkstemp creates the file 0600; give it the permissions a normal open() would.
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o666 & ~umask)
     try:
         yield tmp
         os.replace(tmp, path)

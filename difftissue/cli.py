@@ -55,6 +55,8 @@ def _cmd_mesh(args) -> int:
     from .mesh import block, layered_skin, write_mesh
 
     f = _length_factor(args.unit)
+    if any(not (v > 0) for v in args.size):
+        raise _UsageError(f"--size must be positive lengths in {args.unit}, got {args.size}")
     if args.kind == "block":
         mesh = block(tuple(v * f for v in args.size), tuple(args.resolution))
         fields = {}
@@ -63,6 +65,9 @@ def _cmd_mesh(args) -> int:
         specimen = layered_skin(layers, size=tuple(v * f for v in args.size), resolution=tuple(args.resolution),
                                 cell_size=None if args.cell_size is None else args.cell_size * f)
         mesh, fields = specimen.mesh, specimen.cell_fields()
+        if Path(args.out).suffix.lower() == ".mesh":
+            print("note: Medit .mesh files cannot hold the layers' material fields; writing geometry and regions only")
+            fields = {}
     path = write_mesh(args.out, mesh, cell_data=fields, overwrite=args.force)
     print(f"wrote {path}: {mesh.n_nodes} nodes, {mesh.n_tets} tets, regions {list(mesh.region_names)} (coordinates in metres)")
     return 0
@@ -99,10 +104,11 @@ def _mesh_summary(mesh) -> dict:
 
 def _print_summary(title: str, summary: dict, findings, notes) -> None:
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     console = Console(highlight=False)
-    console.print(f"[bold]{title}[/bold]")
+    console.print(f"[bold]{escape(title)}[/bold]")
     if summary:
         t = Table(show_header=False, box=None, pad_edge=False)
         t.add_row("nodes", str(summary["nodes"]))
@@ -113,24 +119,24 @@ def _print_summary(title: str, summary: dict, findings, notes) -> None:
             t.add_row("lattice springs", str(summary["lattice_springs"]))
         t.add_row("volume", f"{summary['volume_m3']:.6g} m^3")
         lo, hi = summary["bounds_m"]["lower"], summary["bounds_m"]["upper"]
-        t.add_row("bounds", f"[{', '.join(f'{v:.4g}' for v in lo)}] .. [{', '.join(f'{v:.4g}' for v in hi)}] m")
+        t.add_row("bounds", escape(f"[{', '.join(f'{v:.4g}' for v in lo)}] .. [{', '.join(f'{v:.4g}' for v in hi)}] m"))
         el = summary["edge_length_m"]
         t.add_row("edge length", f"{el['min']:.4g} .. {el['max']:.4g} m")
         q = summary["quality_mean_ratio"]
         t.add_row("quality (mean ratio)", f"min {q['min']:.4f}  median {q['median']:.4f}  max {q['max']:.4f}")
         if summary["point_fields"]:
-            t.add_row("point fields", ", ".join(summary["point_fields"]))
+            t.add_row("point fields", escape(", ".join(summary["point_fields"])))
         if summary["cell_fields"]:
-            t.add_row("cell fields", ", ".join(summary["cell_fields"]))
+            t.add_row("cell fields", escape(", ".join(summary["cell_fields"])))
         console.print(t)
         r = Table(title="regions", title_justify="left")
         for col in ("id", "name", "tets", "volume [m^3]"):
-            r.add_column(col)
+            r.add_column(escape(col))
         for reg in summary["regions"]:
-            r.add_row(str(reg["id"]), reg["name"], str(reg["tets"]), f"{reg['volume_m3']:.6g}")
+            r.add_row(str(reg["id"]), escape(reg["name"]), str(reg["tets"]), f"{reg['volume_m3']:.6g}")
         console.print(r)
     for n in notes:
-        console.print(f"note: {n}")
+        console.print(f"note: {n}", markup=False)
     if not findings:
         console.print("validation: no problems found")
     for f in findings:
@@ -152,7 +158,6 @@ def _cmd_info(args) -> int:
 def _cmd_demo(args) -> int:
     """Build the default layered skin specimen, validate it and write it with its materials."""
     from ._io import atomic_output
-    from .materials import lattice_spring_constants
     from .mesh import layered_skin, write_mesh
 
     out = Path(args.out)
@@ -166,16 +171,14 @@ def _cmd_demo(args) -> int:
     vtu = write_mesh(out / "skin.vtu", mesh, cell_data=specimen.cell_fields(), overwrite=args.force)
     summary = _mesh_summary(mesh)
     summary["materials"] = {}
-    for name, mat in zip(mesh.region_names, specimen.materials):
-        cell = mesh.lattice.cell_size[mesh.lattice.cube_region_ids == mesh.region_names.index(name)][0]
-        k = lattice_spring_constants(mat, float(cell[0]))
+    for i, (name, mat) in enumerate(zip(mesh.region_names, specimen.materials)):
+        cells = mesh.lattice.cell_size[mesh.lattice.cube_region_ids == i]
         summary["materials"][name] = {
             **mat.to_dict(),
             "lame_lambda_Pa": float(mat.lame[0]),
             "shear_modulus_Pa": float(mat.shear_modulus),
-            "lattice_k_edge_N_per_m": float(k.k_edge),
-            "lattice_k_diag_N_per_m": float(k.k_diag),
-            "volume_term_modulus_Pa": float(k.volume_modulus),
+            "bulk_modulus_Pa": float(mat.bulk_modulus),
+            "cell_size_m": cells[0].tolist(),
         }
     summary["findings"] = [f.to_dict() for f in findings]
     with atomic_output(out / "summary.json", overwrite=args.force) as tmp:
@@ -195,7 +198,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
-    d = sub.add_parser("demo", help="build, validate and write the bundled layered skin specimen")
+    d = sub.add_parser("demo", help="build, validate and write the default layered skin specimen (the fit of bundled data comes with the fitting module)")
     d.add_argument("--out", default="demo-output", help="output directory (default: demo-output)")
     d.add_argument("--force", action="store_true", help="overwrite files in --out")
     d.set_defaults(func=_cmd_demo)
@@ -206,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     mb.add_argument("--size", type=float, nargs=3, required=True, metavar=("LX", "LY", "LZ"), help="edge lengths in --unit")
     mb.add_argument("--resolution", type=int, nargs=3, required=True, metavar=("NX", "NY", "NZ"), help="cells per axis")
     ms = msub.add_parser("skin", help="layered skin specimen (layers from the surface inwards)")
-    ms.add_argument("--size", type=float, nargs=2, default=[20.0, 20.0], metavar=("LX", "LY"), help="lateral size in --unit (default 20 20 mm)")
+    ms.add_argument("--size", type=float, nargs=2, default=[20.0, 20.0], metavar=("LX", "LY"), help="lateral size in --unit (default 20 20, i.e. 20 mm with the default unit)")
     ms.add_argument("--resolution", type=int, nargs=2, default=[20, 20], metavar=("NX", "NY"), help="lateral cells (default 20 20)")
     ms.add_argument("--layer", action="append", metavar="NAME:T[:E[:NU[:CELLS]]]",
                     help="a layer, outermost first: thickness T in --unit, E in Pa; repeat per layer (default: epidermis/dermis/hypodermis)")

@@ -23,7 +23,12 @@ __all__ = [
     "MaterialError",
     "ModelRangeError",
     "SelectorError",
+    "OutputError",
     "OutputExistsError",
+    "BoundaryConditionError",
+    "RigidModeError",
+    "ModelError",
+    "ConvergenceError",
 ]
 
 
@@ -103,5 +108,27 @@ class SelectorError(DifftissueError):
 
 
 # --------------------------------------------------------------------------- output
-class OutputExistsError(DifftissueError):
+class OutputError(DifftissueError):
+    """An output cannot be written where it was asked for."""
+
+
+class OutputExistsError(OutputError):
     """Refusing to overwrite an existing file or directory."""
+
+
+# ------------------------------------------------------------------ boundary conditions
+class BoundaryConditionError(DifftissueError):
+    """Boundary conditions are malformed (wrong size, NaN values, unknown components)."""
+
+
+class RigidModeError(BoundaryConditionError):
+    """The prescribed displacements leave a rigid-body mode free: a static solve would be singular."""
+
+
+# ------------------------------------------------------------------------ models/solvers
+class ModelError(DifftissueError):
+    """A model cannot be built for this mesh or these options (e.g. springs need a cube lattice)."""
+
+
+class ConvergenceError(DifftissueError):
+    """A solver did not converge (raised only when the solver is asked to throw)."""

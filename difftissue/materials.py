@@ -28,7 +28,7 @@ __all__ = [
     "shear_modulus",
     "bulk_modulus",
     "p_wave_modulus",
-    "plane_stress_modulus",
+    "indentation_modulus",
     "youngs_poisson_from_lame",
     "LatticeSpringConstants",
     "lattice_spring_constants",
@@ -175,7 +175,7 @@ def p_wave_modulus(youngs_modulus, poisson_ratio):
     return E * (1.0 - nu) / ((1.0 + nu) * (1.0 - 2.0 * nu))
 
 
-def plane_stress_modulus(youngs_modulus, poisson_ratio):
+def indentation_modulus(youngs_modulus, poisson_ratio):
     """Indentation (plane-strain) modulus ``E* = E / (1 - nu^2)`` [Pa] used by Hertz/Sneddon."""
     return youngs_modulus / (1.0 - poisson_ratio**2)
 
@@ -305,7 +305,7 @@ def distance_compliance(stiffness):
 
 
 def volume_compliance(rest_volume, bulk_stiffness):
-    """XPBD compliance ``alpha = V0 / K`` [1/(Pa m^3)] of ``C = V - V0`` (energy ``K (V - V0)^2 / (2 V0)``).
+    """XPBD compliance ``alpha = V0 / K`` [m^3/Pa] of ``C = V - V0`` [m^3] (energy ``K (V - V0)^2 / (2 V0)``).
 
     Args:
         rest_volume: tetrahedron rest volume ``V0`` [m^3].

@@ -523,9 +523,10 @@ def default_skin_layers() -> list[tuple[str, float, Material]]:
     """Illustrative three-layer skin, outermost first: ``(name, thickness [m], Material)``.
 
     Epidermis 0.1 mm (E = 1 MPa), dermis 1.5 mm (E = 200 kPa), hypodermis 5 mm (E = 5 kPa);
-    nu = 0.48-0.49, density 1100 / 1100 / 970 kg/m^3. Values sit inside the literature ranges
-    collected in DESIGN.md §3.7 (dermis 0.1-1 MPa at low strain, hypodermis a few kPa); they
-    are a starting point to be fitted, not measured values.
+    nu = 0.48-0.49, density 1100 / 1100 / 970 kg/m^3. Dermis and hypodermis sit inside the
+    literature ranges collected in DESIGN.md §3.7 (dermis 0.1-1 MPa at low strain, hypodermis a
+    few kPa); the epidermis is simply taken stiffer than the dermis. They are a starting point
+    to be fitted, not measured values.
     """
     return [
         ("epidermis", 1.0e-4, Material(1.0e6, 0.48, density=1100.0)),
@@ -577,7 +578,7 @@ def layered_skin(
         size: lateral size ``(Lx, Ly)`` [m].
         resolution: lateral number of cells ``(nx, ny)``.
         cell_size: target cell height [m] for layers without a cell count; default the mean
-            lateral cell size. Each layer gets ``max(1, round(thickness / cell_size))`` cells.
+            lateral cell size. Each layer gets ``max(1, floor(thickness / cell_size + 1/2))`` cells.
 
     Returns:
         A :class:`Specimen` whose mesh has region names = layer names (region id = layer
@@ -604,7 +605,7 @@ def layered_skin(
             mat = Material(**mat)
         if not isinstance(mat, Material):
             raise MaterialError(f"layer {name!r}: material must be a Material or a dict of its fields, got {type(mat).__name__}")
-        n = int(entry[3]) if len(entry) == 4 else max(1, int(round(t / h)))
+        n = int(entry[3]) if len(entry) == 4 else max(1, int(np.floor(t / h + 0.5)))
         if n < 1:
             raise MeshError(f"layer {name!r}: needs at least one cell through its thickness")
         names.append(str(name))
@@ -678,8 +679,10 @@ def write_mesh(path, mesh: TetMesh, *, point_data: dict | None = None, cell_data
     """Write a mesh atomically: VTU (``.vtu``), Gmsh 2.2 binary (``.msh``), XDMF (``.xdmf``, inline XML) or Medit (``.mesh``).
 
     Region ids are stored as ``region_id`` cell data (VTU, XDMF), Gmsh physical tags
-    ``region_id + 1`` (msh) or Medit references ``region_id + 1``; region names as field
-    data. VTU and msh round-trip points, tets, regions and float fields bit-exactly.
+    ``region_id + 1`` (msh) or Medit references ``region_id + 1``. Region names are kept by
+    VTU (a VTK ``FieldData`` block) and msh (physical names) only; XDMF and Medit files come
+    back with ``region_<id>`` names. VTU and msh round-trip points, tets, regions and float
+    fields bit-exactly; XDMF (inline XML) to ~1e-15 relative.
     An existing file is refused unless ``overwrite``.
     """
     import meshio

@@ -97,9 +97,19 @@ def test_demo_writes_specimen_and_summary(tmp_path, capsys):
     summary = json.loads((out / "summary.json").read_text())
     assert summary["tets"] == 19200 and [r["name"] for r in summary["regions"]] == ["epidermis", "dermis", "hypodermis"]
     derm = summary["materials"]["dermis"]
-    assert derm["lattice_k_edge_N_per_m"] == pytest.approx(derm["shear_modulus_Pa"] * 1e-3 / 4)
+    assert derm["shear_modulus_Pa"] == pytest.approx(2e5 / (2 * 1.48))
+    assert summary["materials"]["epidermis"]["cell_size_m"] == pytest.approx([1e-3, 1e-3, 1e-4])
     mesh = read_mesh(out / "skin.vtu")
     assert mesh.n_tets == 19200
     assert main(["demo", "--out", str(out)]) == 1  # refuses to overwrite
     assert "not empty" in capsys.readouterr().err
     assert main(["demo", "--out", str(out), "--force"]) == 0
+
+
+def test_mesh_skin_to_medit_keeps_geometry_and_says_so(tmp_path, capsys):
+    out = tmp_path / "skin.mesh"
+    assert main(["mesh", "skin", "--size", "2", "2", "--resolution", "2", "2", "--out", str(out)]) == 0
+    assert "cannot hold the layers' material fields" in capsys.readouterr().out
+    assert read_mesh(out).n_tets > 0
+    assert main(["mesh", "block", "--size", "1", "0", "1", "--resolution", "1", "1", "1", "--out", str(tmp_path / "b.vtu")]) == 2
+    assert "positive lengths in mm" in capsys.readouterr().err
