@@ -132,3 +132,88 @@ class ModelError(DifftissueError):
 
 class ConvergenceError(DifftissueError):
     """A solver did not converge (raised only when the solver is asked to throw)."""
+
+
+# =========================================================================== data
+# (appended block: errors of difftissue.data -- loaders of measured data)
+__all__ += [
+    "DataError",
+    "EmptyDataError",
+    "MalformedDataError",
+    "HeaderError",
+    "MissingColumnError",
+    "MissingFieldError",
+    "NonFiniteDataError",
+    "UnitError",
+    "ImplausibleMagnitudeError",
+    "NonMonotonicError",
+    "InconsistentDataError",
+    "InconsistentDataWarning",
+    "ContactPointError",
+]
+
+
+class DataError(DifftissueError):
+    """A measured-data file or dataset is unusable.
+
+    ``rows`` holds the offending data-row indices (0-based, counted from the first data row)
+    where that makes sense; ``lines`` the matching 1-based line numbers in the file.
+    """
+
+    def __init__(self, message: str, rows=(), lines=()):
+        super().__init__(message)
+        self.rows = tuple(int(i) for i in rows)
+        self.lines = tuple(int(i) for i in lines)
+
+
+class EmptyDataError(DataError):
+    """The file is empty, or has a header but no data rows."""
+
+
+class MalformedDataError(DataError):
+    """A data row cannot be parsed (a token that is not a number, too few fields)."""
+
+
+class HeaderError(DataError):
+    """A metadata header is missing, truncated, or lacks a required entry (e.g. the tip radius)."""
+
+
+class MissingColumnError(DataError):
+    """A declared column is not in the file. ``column`` is its name, ``available`` the file's columns."""
+
+    def __init__(self, message: str, column: str = "", available=()):
+        super().__init__(message)
+        self.column = column
+        self.available = tuple(available)
+
+
+class MissingFieldError(DataError):
+    """A mesh result file lacks the expected point field (e.g. ``displacement``) or it has the wrong shape."""
+
+
+class NonFiniteDataError(DataError):
+    """Some values are NaN, infinite or empty (``rows`` and ``lines`` say where)."""
+
+
+class UnitError(DataError):
+    """A unit is unknown, of the wrong kind for the quantity, or contradicts the file's header."""
+
+
+class ImplausibleMagnitudeError(UnitError):
+    """Values are implausibly large or small for the declared unit (most often a wrong unit)."""
+
+
+class NonMonotonicError(DataError):
+    """Depth (or displacement) decreases inside a loading segment that was asked to be monotonic."""
+
+
+class InconsistentDataError(DataError):
+    """Redundant columns of a file disagree (e.g. stress != force / area with the header's diameter)."""
+
+
+class InconsistentDataWarning(DifftissueWarning):
+    """Redundant columns or header entries of a file disagree, within limits where it is only reported."""
+
+
+class ContactPointError(DataError):
+    """No contact point can be found in a force-depth curve (too few points, no force rise)."""
