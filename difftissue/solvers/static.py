@@ -1,0 +1,364 @@
+"""Static equilibrium: minimise the total potential energy by Newton-Krylov, differentiate
+the minimiser implicitly.
+
+The unknowns are the nodal displacements ``u`` (N, 3) [m]; prescribed components take the
+boundary values; the potential energy is ``Pi(u) = U(X + u; material) - f . u``. Newton
+steps use element Hessians (``jax.hessian`` of each element's energy, vmapped), assembled
+into a dense matrix and factorised by Cholesky for small problems or applied matrix-free in
+Jacobi-preconditioned conjugate gradients (lineax) for large ones, with a backtracking line
+search that rejects steps which invert an element or raise the energy. The stopping rule is
+residual-based: ``|grad Pi|_free <= max(atol, rtol * |grad Pi at the undeformed start|)``,
+or a full Newton correction below ``xtol`` relative (round-off level).
+
+Derivatives of the solution with respect to the material, the prescribed displacements and
+the forces come from the implicit function theorem (a custom JVP with one linear solve with
+the same Hessian), never from backpropagating through the Newton iterations; reverse mode
+transposes that solve (one adjoint solve). See ``docs/theory.md``.
+"""
+
+from __future__ import annotations
+
+import enum
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+
+from ..boundary import BoundaryConditions, _validate_values, check_rigid_modes
+from ..errors import ConvergenceError, ModelError
+from ..materials import Material
+from ..models import ElasticModel
+
+__all__ = ["StaticSolution", "StaticResult", "solve_static", "element_hessian_operator"]
+
+
+class StaticResult(enum.IntEnum):
+    """Why the Newton loop stopped."""
+
+    successful = 0
+    max_steps_reached = 1
+    line_search_failed = 2
+    inverted_elements = 3
+    nonfinite = 4
+
+
+_MESSAGES = (
+    "",
+    "static solve did not converge within max_steps Newton steps (raise max_steps, or apply the load in increments)",
+    "static solve: the line search found no step that lowers the energy without inverting an element (load too large for one step?)",
+    "static solve: an element is inverted in the solution",
+    "static solve produced NaN or infinite values",
+)
+
+
+class StaticSolution(eqx.Module):
+    """Result of :func:`solve_static`.
+
+    Attributes:
+        displacement: ``(N, 3)`` nodal displacements [m] (prescribed values included).
+        reaction: ``(N, 3)`` reaction forces [N] on prescribed components: internal elastic
+            force minus applied force there (zero on free components).
+        energy: total potential energy at the solution [J].
+        residual_norm: 2-norm of the free-component residual [N].
+        steps: Newton steps taken.
+        result: a :class:`StaticResult` code (0 = successful).
+        min_volume_ratio: smallest element volume ratio ``V / V0`` [-].
+    """
+
+    displacement: jax.Array
+    reaction: jax.Array
+    energy: jax.Array
+    residual_norm: jax.Array
+    steps: jax.Array
+    result: jax.Array
+    min_volume_ratio: jax.Array
+
+    @property
+    def converged(self) -> jax.Array:
+        """True when the residual reached its tolerance with no inverted element."""
+        return self.result == StaticResult.successful
+
+
+# ----------------------------------------------------------------- linear algebra
+def _element_data(model: ElasticModel, x, material):
+    """Per-term element Hessians ``(E, 3k, 3k)`` and DOF indices ``(E, 3k)``."""
+    out = []
+    for term in model.terms(material):
+        k = term.nodes.shape[1]
+        hess = jax.vmap(jax.hessian(term.energy))(x[term.nodes], *term.params)
+        hess = hess.reshape(hess.shape[0], 3 * k, 3 * k)
+        dofs = (3 * jnp.asarray(term.nodes)[:, :, None] + jnp.arange(3)).reshape(-1, 3 * k)
+        out.append((hess, dofs))
+    return out
+
+
+def element_hessian_operator(model: ElasticModel, x, material):
+    """Matrix-free Hessian ``v -> H v`` of the elastic energy at ``x`` and its diagonal.
+
+    Args:
+        x: ``(N, 3)`` positions [m].
+
+    Returns:
+        ``(matvec, diagonal)``: ``matvec`` maps flat ``(3N,)`` vectors, ``diagonal`` is ``(3N,)``.
+    """
+    data = _element_data(model, x, material)
+    n3 = 3 * model.n_nodes
+
+    def matvec(v):
+        y = jnp.zeros(n3, dtype=v.dtype)
+        for hess, dofs in data:
+            y = y.at[dofs].add(jnp.einsum("eij,ej->ei", hess, v[dofs]))
+        return y
+
+    diag = jnp.zeros(n3)
+    for hess, dofs in data:
+        diag = diag.at[dofs].add(jnp.diagonal(hess, axis1=1, axis2=2))
+    return matvec, diag
+
+
+def _dense_hessian(model, x, material):
+    n3 = 3 * model.n_nodes
+    H = jnp.zeros((n3, n3))
+    for hess, dofs in _element_data(model, x, material):
+        H = H.at[dofs[:, :, None], dofs[:, None, :]].add(hess)
+    return H
+
+
+class _Options(eqx.Module):
+    rtol: float
+    atol: float
+    xtol: float
+    max_steps: int
+    linear_solver: str
+    cg_rtol: float
+    cg_max_steps: int
+
+
+def _projected_operator(model, u, material, free, options: _Options):
+    """The SPD operator ``P H P + (I - P)`` on flat vectors, as a lineax operator + solver."""
+    x = jnp.asarray(model.rest_points) + u
+    P = free.reshape(-1)
+    if options.linear_solver == "dense":
+        H = _dense_hessian(model, x, material)
+        A = H * P[:, None] * P[None, :] + jnp.diag(1.0 - P)
+        return lx.MatrixLinearOperator(A, (lx.symmetric_tag, lx.positive_semidefinite_tag)), lx.Cholesky(), {}
+    matvec, diag = element_hessian_operator(model, x, material)
+    struct = jax.ShapeDtypeStruct((3 * model.n_nodes,), u.dtype)
+    op = lx.FunctionLinearOperator(lambda v: P * matvec(P * v) + (1.0 - P) * v, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
+    d = P * diag + (1.0 - P)
+    d = jnp.where(d > 0, d, 1.0)
+    precond = lx.DiagonalLinearOperator(1.0 / d)
+    precond = lx.TaggedLinearOperator(precond, (lx.symmetric_tag, lx.positive_semidefinite_tag))
+    solver = lx.CG(rtol=options.cg_rtol, atol=0.0, max_steps=options.cg_max_steps)
+    return op, solver, {"preconditioner": precond}
+
+
+def _potential(model, u, material, force):
+    return model.energy(jnp.asarray(model.rest_points) + u, material) - jnp.sum(force * u)
+
+
+def _full_gradient(model, u, material, force):
+    return jax.grad(_potential, argnums=1)(model, u, material, force)
+
+
+# ------------------------------------------------------------------------- Newton
+def _newton(model: ElasticModel, material, displacement, force, free, u_init, options: _Options):
+    Pf = free.astype(u_init.dtype)
+    fixed_part = (1.0 - Pf) * displacement
+
+    def residual(u):
+        return Pf * _full_gradient(model, u, material, force)
+
+    def potential(u):
+        e = _potential(model, u, material, force)
+        ok = model.min_volume_ratio(jnp.asarray(model.rest_points) + u) > 0
+        return jnp.where(ok & jnp.isfinite(e), e, jnp.inf)
+
+    u0 = fixed_part + Pf * u_init
+    cold = fixed_part
+    tol = jnp.maximum(options.atol, options.rtol * jnp.linalg.norm(residual(cold)))
+
+    def cond(state):
+        u, g, step, code, done = state
+        return ~done
+
+    def body(state):
+        u, g, step, code, _ = state
+        op, solver, opts = _projected_operator(model, u, material, free, options)
+        sol = lx.linear_solve(op, -g.reshape(-1), solver, options=opts, throw=False)
+        d = sol.value.reshape(u.shape)
+        gd = jnp.vdot(g, d)
+        bad = ~jnp.all(jnp.isfinite(d)) | (gd >= 0)
+        # Fall back to a Jacobi-scaled gradient step if the Newton direction is unusable.
+        scale = jnp.linalg.norm(g) / jnp.maximum(jnp.linalg.norm(op.mv(g.reshape(-1))), 1e-300)
+        d = jnp.where(bad, -g * scale, d)
+        gd = jnp.vdot(g, d)
+        e0 = potential(u)
+
+        def ls_cond(s):
+            alpha, accepted, tries = s
+            return (~accepted) & (tries < 40)
+
+        def ls_body(s):
+            alpha, _, tries = s
+            e1 = potential(u + alpha * d)
+            slack = 64 * jnp.finfo(u.dtype).eps * (jnp.abs(e0) + jnp.abs(e1))
+            ok = jnp.isfinite(e1) & (e1 <= e0 + 1e-4 * alpha * gd + slack)
+            return jnp.where(ok, alpha, 0.5 * alpha), ok, tries + 1
+
+        alpha, accepted, _ = jax.lax.while_loop(ls_cond, ls_body, (jnp.asarray(1.0, u.dtype), jnp.asarray(False), 0))
+        u_new = jnp.where(accepted, u + alpha * d, u)
+        g_new = residual(u_new)
+        rn = jnp.linalg.norm(g_new)
+        step = step + 1
+        finite = jnp.all(jnp.isfinite(u_new)) & jnp.isfinite(rn)
+        # Converged: residual below tolerance, or a full Newton step that no longer moves the
+        # solution (a displacement correction at round-off level: the residual of an
+        # ill-conditioned problem cannot drop further).
+        small_step = accepted & ~bad & (jnp.linalg.norm(d) <= options.xtol * jnp.linalg.norm(u_new))
+        ok = (rn <= tol) | small_step
+        code = jnp.where(
+            ~finite,
+            StaticResult.nonfinite,
+            jnp.where(~accepted, StaticResult.line_search_failed, jnp.where(ok, StaticResult.successful, StaticResult.max_steps_reached)),
+        ).astype(jnp.int32)
+        done = (code != StaticResult.max_steps_reached) | (step >= options.max_steps)
+        return u_new, g_new, step, code, done
+
+    g0 = residual(u0)
+    done0 = jnp.linalg.norm(g0) <= tol
+    code0 = jnp.where(done0, StaticResult.successful, StaticResult.max_steps_reached)
+    state = (u0, g0, jnp.asarray(0, jnp.int32), code0.astype(jnp.int32), done0 | (options.max_steps <= 0))
+    u, g, step, code, _ = jax.lax.while_loop(cond, body, state)
+    inverted = model.min_volume_ratio(jnp.asarray(model.rest_points) + u) <= 0
+    code = jnp.where((code == StaticResult.successful) & inverted, StaticResult.inverted_elements, code)
+    return u, jnp.linalg.norm(g), step, code
+
+
+@eqx.filter_custom_jvp
+def _equilibrium(material, displacement, force, *, model, free, u_init, options):
+    u, rn, steps, code = _newton(model, material, displacement, force, free, u_init, options)
+    # Diagnostics as floats so they can carry (zero) tangents.
+    return u, jnp.stack([rn, steps.astype(u.dtype), code.astype(u.dtype)])
+
+
+@_equilibrium.def_jvp
+def _equilibrium_jvp(primals, tangents, *, model, free, u_init, options):
+    material, displacement, force = primals
+    t_material, t_displacement, t_force = tangents
+    u, info = _equilibrium(material, displacement, force, model=model, free=free, u_init=u_init, options=options)
+
+    def fill(t, p):
+        return jax.tree_util.tree_map(lambda tt, pp: jnp.zeros_like(jnp.asarray(pp, dtype=u.dtype)) if tt is None else tt, t, p, is_leaf=lambda z: z is None)
+
+    P = free.astype(u.dtype)
+    t_material = fill(t_material, material) if t_material is not None else jax.tree_util.tree_map(lambda p: jnp.zeros_like(jnp.asarray(p, dtype=u.dtype)), material)
+    t_disp = jnp.zeros_like(u) if t_displacement is None else t_displacement
+    t_f = jnp.zeros_like(u) if t_force is None else t_force
+    material_f = jax.tree_util.tree_map(lambda p: jnp.asarray(p, dtype=u.dtype), material)
+    t_u_fixed = (1.0 - P) * t_disp
+    _, dgrad = jax.jvp(lambda uu, mm, ff: _full_gradient(model, uu, mm, ff), (u, material_f, force), (t_u_fixed, t_material, t_f))
+    op, solver, opts = _projected_operator(model, u, material_f, free, options)
+    w = lx.linear_solve(op, (-P * dgrad).reshape(-1), solver, options=opts).value.reshape(u.shape)
+    t_u = P * w + t_u_fixed
+    return (u, info), (t_u, jnp.zeros_like(info))
+
+
+# --------------------------------------------------------------------------- entry
+@eqx.filter_jit
+def _solve(model, material, bc, u_init, options: _Options):
+    free = jnp.asarray(bc.free_mask)
+    u, info = _equilibrium(material, bc.displacement, bc.force, model=model, free=free, u_init=u_init, options=options)
+    code = info[2].astype(jnp.int32)
+    x = jnp.asarray(model.rest_points) + u
+    grad = _full_gradient(model, u, material, bc.force)
+    reaction = (1.0 - free.astype(u.dtype)) * grad
+    return StaticSolution(
+        displacement=u,
+        reaction=reaction,
+        energy=_potential(model, u, material, bc.force),
+        residual_norm=info[0],
+        steps=info[1].astype(jnp.int32),
+        result=code,
+        min_volume_ratio=model.min_volume_ratio(x),
+    )
+
+
+def solve_static(
+    model: ElasticModel,
+    material: Material,
+    bc: BoundaryConditions,
+    *,
+    rtol: float = 1e-10,
+    atol: float = 0.0,
+    xtol: float = 1e-8,
+    max_steps: int = 50,
+    linear_solver: str = "auto",
+    cg_rtol: float = 1e-12,
+    cg_max_steps: int | None = None,
+    initial_displacement=None,
+    load_steps: int = 1,
+    throw: bool = True,
+) -> StaticSolution:
+    """Static equilibrium of ``model`` under ``bc``, differentiable in ``material`` and ``bc``.
+
+    Args:
+        model: an :class:`~difftissue.models.ElasticModel` (see :func:`~difftissue.models.make_model`).
+        material: a :class:`~difftissue.materials.Material` (scalars or one value per region).
+        bc: prescribed displacements [m] and nodal forces [N]; they must remove every
+            rigid-body mode (checked when values are concrete: :class:`RigidModeError`).
+        rtol, atol: residual tolerance ``|grad Pi|_free <= max(atol [N], rtol * |grad Pi|_start)``.
+        xtol: also converged when the Newton correction is below ``xtol * |u|`` (2-norms):
+            the residual of an ill-conditioned problem stalls at round-off level, and with
+            Newton's quadratic convergence the remaining error is far below that correction.
+        max_steps: Newton steps allowed.
+        linear_solver: ``"dense"`` (Cholesky of the assembled Hessian), ``"cg"``
+            (matrix-free Jacobi-preconditioned CG) or ``"auto"`` (dense up to 3000 unknowns).
+        cg_rtol, cg_max_steps: CG tolerance and step limit (default 10 x unknowns).
+        initial_displacement: ``(N, 3)`` starting guess [m] for the free components.
+        load_steps: apply the prescribed displacements and forces in this many equal
+            increments, each solve starting from the previous one (for large deformations
+            whose first guess would invert elements). Only the last equilibrium is
+            differentiated; the intermediate ones just provide its starting guess.
+        throw: raise :class:`~difftissue.errors.ConvergenceError` (outside jit) or an
+            ``equinox`` runtime error (inside jit) when the solve fails; with
+            ``throw=False`` inspect ``result`` / ``converged`` instead.
+
+    Returns:
+        A :class:`StaticSolution`. ``jax.grad`` / ``jax.jvp`` through ``displacement``,
+        ``reaction`` and ``energy`` use one extra linear solve (implicit differentiation).
+    """
+    if not isinstance(model, ElasticModel):
+        raise ModelError(f"model must be an ElasticModel (see difftissue.models.make_model), got {type(model).__name__}")
+    n = model.n_nodes
+    _validate_values(bc, n)
+    if not isinstance(bc.fixed, jax.core.Tracer):
+        check_rigid_modes(model.rest_points, bc.fixed)
+    model.region_values(material)  # range checks (raise now when concrete)
+    if linear_solver == "auto":
+        linear_solver = "dense" if 3 * n <= 3000 else "cg"
+    if linear_solver not in ("dense", "cg"):
+        raise ModelError(f"linear_solver must be 'auto', 'dense' or 'cg', got {linear_solver!r}")
+    options = _Options(float(rtol), float(atol), float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or 10 * 3 * n))
+    # Python floats would be static under jit (a recompile per value): make every leaf an array.
+    material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+    u_init = jnp.zeros((n, 3)) if initial_displacement is None else jnp.asarray(initial_displacement, dtype=float)
+    if int(load_steps) < 1:
+        raise ModelError(f"load_steps must be >= 1, got {load_steps}")
+    for k in range(1, int(load_steps)):
+        frac = k / int(load_steps)
+        partial = BoundaryConditions(bc.fixed, bc.displacement * frac, bc.force * frac)
+        step = _solve(model, material, jax.lax.stop_gradient(partial), u_init, options)
+        if throw and not isinstance(step.result, jax.core.Tracer) and int(step.result) != 0:
+            raise ConvergenceError(f"load increment {k}/{load_steps}: {_MESSAGES[int(step.result)]}")
+        u_init = jax.lax.stop_gradient(step.displacement)
+    sol = _solve(model, material, bc, u_init, options)
+    if throw:
+        code = sol.result
+        if isinstance(code, jax.core.Tracer):
+            sol = eqx.tree_at(lambda s: s.displacement, sol, eqx.branched_error_if(sol.displacement, code != 0, code, _MESSAGES))
+        elif int(code) != 0:
+            raise ConvergenceError(f"{_MESSAGES[int(code)]} (steps {int(sol.steps)}, residual {float(sol.residual_norm):.3g} N, min V/V0 {float(sol.min_volume_ratio):.3g})")
+    return sol

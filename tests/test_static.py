@@ -1,0 +1,233 @@
+"""Static solver and models: verified against closed-form elasticity, Timoshenko, and finite differences."""
+
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from difftissue import errors
+from difftissue.boundary import BoundaryConditions
+from difftissue.materials import Material, lattice_spring_constants
+from difftissue.mesh import TetMesh, block
+from difftissue.models import make_model
+from difftissue.solvers import StaticResult, solve_static
+
+E0 = 1.0e3
+
+
+@pytest.fixture(scope="module")
+def column():
+    """A 1 x 1 x 2 block of 2 x 2 x 4 cubes (unit cells)."""
+    return block((1.0, 1.0, 2.0), (2, 2, 4))
+
+
+def _symmetric_bc(mesh):
+    """Roller symmetry planes x=0, y=0, z=0: lateral faces x=Lx, y=Ly are traction-free."""
+    return (
+        BoundaryConditions.free(mesh)
+        .fix(mesh, {"face": "x-min"}, "x")
+        .fix(mesh, {"face": "y-min"}, "y")
+        .fix(mesh, {"face": "z-min"}, "z")
+    )
+
+
+@pytest.mark.parametrize("kind", ["springs_volume", "fem_linear"])
+def test_uniaxial_tension_and_compression_recover_E_and_nu(column, kind):
+    model = make_model(column, kind)
+    top = column.points[:, 2] == 2.0
+    side = column.points[:, 0] == 1.0
+    for nu in (0.3, 0.45, 0.49):
+        for strain in (1e-4, -1e-4):
+            bc = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0.0, 0.0, 2.0 * strain))
+            sol = solve_static(model, Material(E0, nu), bc)
+            stress = float(jnp.sum(sol.reaction[:, 2] * top)) / 1.0
+            lateral = float(jnp.mean(sol.displacement[side, 0])) / 1.0
+            assert stress / strain == pytest.approx(E0, rel=0.01), (kind, nu, strain)
+            assert -lateral / strain == pytest.approx(nu, abs=0.01), (kind, nu, strain)
+            if kind == "fem_linear":  # exact for linear tets
+                assert stress / strain == pytest.approx(E0, rel=1e-8)
+                assert -lateral / strain == pytest.approx(nu, rel=1e-8)
+
+
+@pytest.mark.parametrize("kind", ["springs_volume", "fem_linear", "stable_neo_hookean"])
+def test_confined_compression_gives_p_wave_modulus(column, kind):
+    strain = -1e-5
+    bc = (
+        BoundaryConditions.free(column)
+        .fix(column, {"any_of": [{"face": "x-min"}, {"face": "x-max"}]}, "x")
+        .fix(column, {"any_of": [{"face": "y-min"}, {"face": "y-max"}]}, "y")
+        .fix(column, {"face": "z-min"}, "z")
+        .fix(column, {"face": "z-max"}, "z", (0, 0, 2.0 * strain))
+    )
+    top = column.points[:, 2] == 2.0
+    for nu in (0.3, 0.45):
+        mat = Material(E0, nu)
+        lam, mu = mat.lame
+        sol = solve_static(make_model(column, kind), mat, bc)
+        stress = float(jnp.sum(sol.reaction[:, 2] * top))
+        assert stress / strain == pytest.approx(lam + 2 * mu, rel=2e-4)
+
+
+@pytest.mark.parametrize("kind", ["springs_volume", "fem_linear", "stable_neo_hookean", "fem_neo_hookean"])
+def test_patch_test_affine_boundary_reproduced_in_interior(kind):
+    mesh = block(1.0, 3)
+    X = mesh.points
+    A = np.array([[0.05, 0.02, -0.01], [0.00, -0.03, 0.04], [0.01, 0.02, 0.06]])
+    affine = X @ A.T + np.array([0.1, -0.2, 0.05])
+    boundary = np.unique(mesh.boundary_faces)
+    interior = np.setdiff1d(np.arange(mesh.n_nodes), boundary)
+    assert interior.size == 8
+    bc = BoundaryConditions.free(mesh).fix(mesh, boundary, "xyz", affine[boundary])
+    sol = solve_static(make_model(mesh, kind), Material(E0, 0.45, cubic_coefficient=3.0), bc, load_steps=4)
+    err = np.abs(np.asarray(sol.displacement)[interior] - affine[interior]).max()
+    assert err <= 1e-9 * np.abs(affine).max(), err
+
+
+def test_cantilever_matches_timoshenko():
+    """Springs + volume model, 40 x 5 x 5 unit-aspect cells, L/h = 8, nu = 0.3, tip shear load."""
+    E, nu, L, h, P = 1e4, 0.3, 8.0, 1.0, -1e-2
+    mesh = block((L, h, h), (40, 5, 5))
+    bc = BoundaryConditions.free(mesh).fix(mesh, {"face": "x-min"}).add_force(mesh, {"face": "x-max"}, (0, 0, P), distribute="area")
+    sol = solve_static(make_model(mesh, "springs_volume"), Material(E, nu), bc, linear_solver="dense")
+    tip = float(jnp.mean(sol.displacement[mesh.points[:, 0] == L, 2]))
+    G, I, A = E / (2 * (1 + nu)), h**4 / 12, h * h
+    kappa = 10 * (1 + nu) / (12 + 11 * nu)  # Cowper's shear coefficient, rectangle
+    timoshenko = P * L**3 / (3 * E * I) + P * L / (kappa * G * A)
+    assert tip / timoshenko == pytest.approx(1.0, abs=0.05)
+
+
+def test_incompressible_neo_hookean_uniaxial_closed_form(column):
+    """Nominal stress of an incompressible neo-Hookean bar: P = mu (l - 1/l^2)."""
+    model = make_model(column, "fem_neo_hookean")
+    mat = Material(E0, 0.499)
+    top = column.points[:, 2] == 2.0
+    for stretch in (1.3, 0.8):
+        bc = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0, 0, 2.0 * (stretch - 1)))
+        sol = solve_static(model, mat, bc, load_steps=5)
+        nominal = float(jnp.sum(sol.reaction[:, 2] * top))
+        assert nominal == pytest.approx(mat.shear_modulus * (stretch - stretch**-2), rel=0.01)
+
+
+def test_spring_constants_assemble_per_cube(column):
+    model = make_model(column, "springs_volume")
+    mat = Material(E0, 0.45, cubic_coefficient=2.0)
+    k, a = model.spring_constants(mat)
+    per_cube = lattice_spring_constants(mat, 0.5)
+    mult = column.lattice.multiplicity
+    edge = column.lattice.spring_kind == 0
+    np.testing.assert_allclose(np.asarray(k)[edge], mult[edge] * float(per_cube.k_edge), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(k)[~edge], mult[~edge] * float(per_cube.k_diag), rtol=1e-12)
+    np.testing.assert_allclose(np.asarray(a)[edge], mult[edge] * float(per_cube.a_edge), rtol=1e-12)
+
+
+# --------------------------------------------------------------------- gradients
+@pytest.mark.parametrize("kind", ["springs_volume", "fem_neo_hookean"])
+def test_implicit_gradient_matches_finite_differences(kind):
+    mesh = block(1.0, 2)
+    model = make_model(mesh, kind)
+    top = mesh.points[:, 2] == 1.0
+    base_bc = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"}).fix(mesh, {"face": "z-max"}, "xy", (0.03, 0.0, 0.0))
+
+    def output(p):
+        E, nu, b, depth = p
+        bc = base_bc.fix(mesh, {"face": "z-max"}, "z", (0.0, 0.0, depth))
+        sol = solve_static(model, Material(E, nu, cubic_coefficient=b), bc)
+        return jnp.sum(sol.reaction[:, 2] * top) + 1e3 * jnp.sum(sol.displacement[:, 0] ** 2)
+
+    p0 = jnp.array([1.0e3, 0.45, 4.0, -0.08])
+    reverse = np.asarray(jax.grad(output)(p0))
+    forward = np.asarray(jax.jacfwd(output)(p0))
+    for i in range(4):
+        h = 1e-6 * abs(float(p0[i]))
+        e = jnp.zeros(4).at[i].set(h)
+        fd = float((output(p0 + e) - output(p0 - e)) / (2 * h))
+        if kind == "fem_neo_hookean" and i == 2:
+            assert fd == 0.0 and reverse[i] == 0.0  # the FEM has no cubic coefficient
+            continue
+        assert reverse[i] == pytest.approx(fd, rel=1e-5), (i, reverse[i], fd)
+        assert forward[i] == pytest.approx(reverse[i], rel=1e-9)
+
+
+def test_gradient_with_respect_to_nodal_force():
+    mesh = block(1.0, 2)
+    model = make_model(mesh, "fem_linear")
+    bc = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"})
+
+    def tip(fz):
+        sol = solve_static(model, Material(E0, 0.3), bc.add_force(mesh, {"face": "z-max"}, (0.0, 0.0, fz)))
+        return jnp.mean(sol.displacement[:, 2])
+
+    g = float(jax.grad(tip)(-1.0))
+    # Linear: the output is proportional to the force.
+    assert g == pytest.approx(float(tip(-1.0)) / -1.0, rel=1e-9)
+
+
+def test_no_recompile_on_second_call_with_new_values(column, caplog):
+    model = make_model(column, "springs_volume")
+    bc = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0, 0, 1e-3))
+    solve_static(model, Material(E0, 0.3), bc)
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        caplog.clear()
+        bc2 = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0, 0, -2e-3))
+        solve_static(model, Material(2 * E0, 0.41, cubic_coefficient=1.0), bc2)
+    compiled = [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()]
+    assert compiled == [], compiled
+
+
+# ------------------------------------------------------------------- bad input
+def test_bad_inputs_are_refused_with_named_errors(column):
+    springs = make_model(column, "springs_volume")
+    bc = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0, 0, 1e-3))
+    with pytest.raises(errors.ModelRangeError, match="1/4"):
+        solve_static(springs, Material(E0, 0.2), bc)
+    with pytest.raises(errors.MaterialError, match="youngs_modulus"):
+        solve_static(springs, Material(-1.0, 0.3), bc)
+    with pytest.raises(errors.MaterialError, match="not finite"):
+        Material(float("nan"), 0.3)
+    two = make_model(column, "fem_linear")
+    with pytest.raises(errors.MaterialError, match="one value per region"):
+        solve_static(two, Material(jnp.array([1e3, 2e3]), 0.3), bc)
+    # NaN parameters inside jit: a runtime error, not a silent NaN.
+    with pytest.raises(Exception, match="NaN"):
+        jax.jit(lambda E: solve_static(two, Material(E, 0.3), bc).displacement)(jnp.nan)
+    # Rigid modes.
+    only_z = BoundaryConditions.free(column).fix(column, {"face": "z-min"}, "z")
+    with pytest.raises(errors.RigidModeError, match="leave 3 rigid-body mode") as info:
+        solve_static(two, Material(E0, 0.3), only_z)
+    for mode in ("translation x", "translation y", "rotation about z"):
+        assert mode in str(info.value)
+    with pytest.raises(errors.RigidModeError, match="no displacement is prescribed"):
+        solve_static(two, Material(E0, 0.3), BoundaryConditions.free(column))
+    with pytest.raises(errors.BoundaryConditionError, match="NaN"):
+        solve_static(two, Material(E0, 0.3), bc.fix(column, [0], "x", (jnp.nan, 0, 0)))
+    with pytest.raises(errors.BoundaryConditionError, match="components"):
+        bc.fix(column, [0], "w")
+
+
+def test_models_refuse_what_they_cannot_represent():
+    p = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    inverted = TetMesh(p, np.array([[0, 2, 1, 3]]), validate=False)
+    with pytest.raises(errors.InvertedElementError, match="non-positive rest volume"):
+        make_model(inverted, "fem_linear")
+    with pytest.raises(errors.ModelError, match="cube lattice"):
+        make_model(TetMesh(p, np.array([[0, 1, 2, 3]])), "springs_volume")
+    with pytest.raises(errors.ModelError, match="too elongated"):
+        make_model(block((1.0, 1.0, 1.0), (1, 1, 3)), "springs_volume")
+    with pytest.raises(errors.ModelError, match="unknown model"):
+        make_model(block(1.0, 1), "mass_spring")
+
+
+def test_non_convergence_and_inversion_are_reported(column):
+    model = make_model(column, "fem_neo_hookean")
+    bc = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0, 0, 1.0))
+    with pytest.raises(errors.ConvergenceError, match="max_steps"):
+        solve_static(model, Material(E0, 0.45), bc, max_steps=1)
+    sol = solve_static(model, Material(E0, 0.45), bc, max_steps=1, throw=False)
+    assert int(sol.result) == StaticResult.max_steps_reached and not bool(sol.converged)
+    # Pushing the top below the base: no admissible (non-inverted) equilibrium exists.
+    linear = make_model(column, "fem_linear")
+    crush = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0, 0, -2.5))
+    with pytest.raises(errors.ConvergenceError, match="invert"):
+        solve_static(linear, Material(E0, 0.3), crush)
