@@ -1,7 +1,16 @@
 """Solvers: static equilibrium (Newton-Krylov, implicit gradients), XPBD, damped dynamics."""
 
-from .dynamics import ADJOINTS, SOLVERS, DynamicsSolution, ramp, simulate_dynamics  # noqa: F401
 from .static import StaticResult, StaticSolution, solve_static
-from .xpbd import XPBDSettings, XPBDState, XPBDQuasiStaticSolution, xpbd_constraints, xpbd_quasi_static, xpbd_simulate  # noqa: F401
+from .xpbd import XPBDQuasiStaticSolution, XPBDSettings, XPBDState, xpbd_constraints, xpbd_quasi_static, xpbd_simulate
 
-__all__ = ["StaticResult", "StaticSolution", "solve_static"]
+__all__ = [
+    "StaticResult",
+    "StaticSolution",
+    "solve_static",
+    "XPBDSettings",
+    "XPBDState",
+    "XPBDQuasiStaticSolution",
+    "xpbd_constraints",
+    "xpbd_simulate",
+    "xpbd_quasi_static",
+]
