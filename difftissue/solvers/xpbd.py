@@ -546,6 +546,9 @@ class XPBDSettings(eqx.Module):
             ``M (x - x~) = sum grad C^T lambda``). Standard XPBD (False) resets them at
             every substep; with True a quasi-static rest state is the exact energy minimum
             for any iteration budget (static).
+        checkpoint: rematerialise each iteration and substep in reverse mode
+            (``jax.checkpoint``): memory independent of the iteration count at the price of
+            recomputation. False stores every iteration's intermediates (static).
     """
 
     dt: jax.Array = eqx.field(default=1.0 / 60.0, converter=_as_float_array)
@@ -555,6 +558,7 @@ class XPBDSettings(eqx.Module):
     relaxation: jax.Array = eqx.field(default=1.0, converter=_as_float_array)
     damping: jax.Array = eqx.field(default=0.0, converter=_as_float_array)
     warm_start: bool = eqx.field(default=False, static=True)
+    checkpoint: bool = eqx.field(default=True, static=True)
     # Test-only: the known bug of resetting the multipliers at every iteration.
     _reset_each_iteration: bool = eqx.field(default=False, static=True)
 
@@ -809,7 +813,10 @@ def _substep(prob: _Problem, settings: XPBDSettings, P, V, lams, h, zero_velocit
         return _iteration(Pc, lc, prob.prepared, h2, settings.relaxation, prob.W4, settings.method, settings._reset_each_iteration)
 
     if n_iter is None:  # unrolled, reverse-mode differentiable
-        (Pn, lams), _ = jax.lax.scan(jax.checkpoint(lambda c, _: (iterate(c), None)), (pred, lams), None, length=settings.iterations)
+        body = lambda c, _: (iterate(c), None)  # noqa: E731
+        if settings.checkpoint:
+            body = jax.checkpoint(body)
+        (Pn, lams), _ = jax.lax.scan(body, (pred, lams), None, length=settings.iterations)
     else:  # traced iteration count (quasi-static driver: no recompilation per budget)
         Pn, lams = jax.lax.fori_loop(0, n_iter, lambda i, c: iterate(c), (pred, lams))
     damp = settings.damping
@@ -824,9 +831,11 @@ def _frame(prob, settings, P, V, lams, zero_velocity, n_iter=None):
     if settings.substeps == 1:
         return _substep(prob, settings, P, V, lams, h, zero_velocity, n_iter)
 
-    @jax.checkpoint
     def sub(carry, _):
         return _substep(prob, settings, *carry, h, zero_velocity, n_iter), None
+
+    if settings.checkpoint:
+        sub = jax.checkpoint(sub)
 
     (P, V, lams), _ = jax.lax.scan(sub, (P, V, lams), None, length=settings.substeps)
     return P, V, lams
