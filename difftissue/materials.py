@@ -276,7 +276,7 @@ def lattice_spring_constants(material: Material, cell_size, model: str = "isotro
             "poisson_ratio = {nu:g} is outside (0, 1/3] for a pure spring lattice: its edge springs "
             "k_edge = (2 mu - lambda) h / 4 turn negative above nu = 1/3 (the lattice is unstable) and its "
             "diagonal springs k_diag = lambda h / 2 vanish at nu <= 0. Tissue-like nu (0.45-0.5) needs the "
-            "volume term: use model='isotropic_volume' (isotropic springs + tetrahedral volume constraints).",
+            "volume term: use model='isotropic_volume' (isotropic springs + volume constraints).",
         )
         k_edge = (2.0 * mu - lam) * h / 4.0
         k_diag = lam * h / 2.0
