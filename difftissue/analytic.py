@@ -85,7 +85,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import DifftissueError, MaterialError
-from .materials import indentation_modulus
+from .materials import _is_concrete, indentation_modulus
 
 __all__ = [
     "BASES",
@@ -129,10 +129,6 @@ _DEFAULT_NODES = 32
 
 
 # ------------------------------------------------------------------------ validation
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
 def _check(name, value, ok, rule, unit="", error=DifftissueError):
     """Raise ``error`` if a concrete ``value`` is not finite or fails ``ok`` anywhere."""
     if value is None or not _is_concrete(value):

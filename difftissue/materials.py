@@ -54,9 +54,13 @@ __all__ = [
 LATTICE_MODELS = ("isotropic_volume", "pure_lattice")
 
 
-def _is_concrete(x) -> bool:
-    """True when ``x`` has a value now (not a tracer inside jit/grad/vmap)."""
-    return not isinstance(x, jax.core.Tracer)
+def _is_concrete(tree) -> bool:
+    """True when every leaf of ``tree`` has a value now (no tracer inside jit/grad/vmap).
+
+    The one helper the package uses to decide between Python-side checks with clear errors
+    (concrete values) and ``equinox.error_if`` (traced values).
+    """
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
 
 
 class Material(eqx.Module):

@@ -34,7 +34,7 @@ from .energies.fem import linear_elastic_energy_density, neo_hookean_energy_dens
 from .energies.neo_hookean import deformation_gradient, det3, rest_shape, stable_neo_hookean_energy_density
 from .energies.springs import cubic_spring_energy
 from .errors import InvertedElementError, MaterialError, ModelError, ModelRangeError
-from .materials import Material, lame_parameters
+from .materials import Material, _is_concrete, lame_parameters
 from .mesh import _CUBE_DIAGONALS, _CUBE_EDGES, _CUBE_CORNERS, TetMesh
 
 __all__ = [
@@ -146,10 +146,6 @@ def _stable_neo_hookean_energy(x, Dm_inv, V0, mu, lam_shift):
 
 
 # ------------------------------------------------------------------------------ models
-def _is_concrete(tree) -> bool:
-    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
-
-
 class ElasticModel(eqx.Module):
     """Common data and methods of the elastic models.
 

@@ -47,7 +47,7 @@ import numpy as np
 
 from ..boundary import BoundaryConditions, _validate_values
 from ..errors import ConvergenceError, ModelError
-from ..materials import Material, lame_parameters
+from ..materials import Material, _is_concrete, lame_parameters
 from ..models import ElasticModel, SpringVolumeModel, StableNeoHookeanModel, hexahedron_volume
 
 __all__ = [
@@ -152,14 +152,6 @@ def color_constraints(nodes) -> np.ndarray:
         _COLOR_CACHE.clear()
     _COLOR_CACHE[key] = table
     return table
-
-
-def _is_concrete(x) -> bool:
-    return not isinstance(x, jax.core.Tracer)
-
-
-def _all_concrete(tree) -> bool:
-    return all(_is_concrete(leaf) for leaf in jax.tree_util.tree_leaves(tree))
 
 
 def _maybe_colors(nodes):
@@ -970,9 +962,9 @@ def _model_problem(model, material, bc, settings):
     if not isinstance(model, (SpringVolumeModel, StableNeoHookeanModel)):
         raise _unsupported(model)
     _validate_values(bc, model.n_nodes)
-    if _all_concrete(material):
+    if _is_concrete(material):
         model.region_values(material)  # range checks with clear errors now
-    colors = _model_colors(model) if settings.method == "gauss_seidel" and _all_concrete(model) else None
+    colors = _model_colors(model) if settings.method == "gauss_seidel" and _is_concrete(model) else None
     # Python floats would be static under jit (a recompile per value): make every leaf an array.
     material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=_float_dtype()), material)
     return _ModelProblem(model, material, colors)
