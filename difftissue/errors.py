@@ -217,3 +217,30 @@ class InconsistentDataWarning(DifftissueWarning):
 
 class ContactPointError(DataError):
     """No contact point can be found in a force-depth curve (too few points, no force rise)."""
+
+
+# =========================================================================== fitting
+# (appended block: errors and warnings of difftissue.fit)
+__all__ += [
+    "FitError",
+    "CheckpointError",
+    "CheckpointMismatchError",
+    "IdentifiabilityWarning",
+]
+
+
+class FitError(DifftissueError):
+    """A fit cannot be set up or run (bad scenarios, unknown method or loss, inconsistent options)."""
+
+
+class CheckpointError(FitError):
+    """A fit checkpoint cannot be read or written (unreadable file, existing file without ``resume``)."""
+
+
+class CheckpointMismatchError(CheckpointError):
+    """A checkpoint belongs to a different fit problem (fields, transforms, data, method or starts differ)."""
+
+
+class IdentifiabilityWarning(DifftissueWarning):
+    """A fitted parameter is not determined by the data (singular or ill-conditioned J^T J,
+    relative standard error above 100 %, or a correlation above 0.99 in magnitude)."""

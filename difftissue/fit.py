@@ -1,0 +1,1220 @@
+"""Fitting material parameters to measured curves: weighted (robust) least squares.
+
+The fit works on a vector ``u`` of unconstrained reals; a
+:class:`~difftissue.materials.MaterialParameterization` maps it through bounded transforms to
+the fitted fields of a :class:`~difftissue.materials.Material`. Each scenario (one experiment:
+an indentation curve, a compression curve, a displacement field, ...) predicts its observable
+from the material; the residual vector is
+
+    r(u) = concat_s (predict_s(material(u)) - observed_s) / sigma_s        [-]
+
+and the loss is ``0.5 * f_scale^2 * sum(rho((r / f_scale)^2))`` with ``rho(z) = z`` (linear),
+``2 (sqrt(1 + z) - 1)`` (soft_l1) or the Huber function (``z`` for ``z <= 1``, else
+``2 sqrt(z) - 1``) -- the definitions of ``scipy.optimize.least_squares``.
+
+Optimisers: optimistix Levenberg--Marquardt and Gauss--Newton on the (robustified) residual
+vector, optax Adam and L-BFGS on the scalar loss. All starts of a multi-start fit run batched
+with ``jax.vmap`` inside ONE jitted step function; a Python loop calls it once per step, so a
+progress bar can be shown and checkpoints written, without recompiling.
+
+After the fit, a Gauss--Newton covariance of the physical parameters, standard errors,
+correlations and identifiability diagnostics are computed at the best start. See
+``docs/fitting.md`` for the formulas and rules.
+
+Units: the residuals and the loss are dimensionless (residuals are divided by ``sigma``, which
+carries the unit of the observable); every parameter value and standard error is in SI
+(:data:`UNITS`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import importlib.metadata
+import json
+import math
+import os
+import time
+import warnings
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple, Protocol, runtime_checkable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._io import atomic_output
+from .errors import (
+    CheckpointError,
+    CheckpointMismatchError,
+    FitError,
+    IdentifiabilityWarning,
+    OutputError,
+    OutputExistsError,
+)
+from .materials import Material, MaterialParameterization
+
+__all__ = [
+    "Scenario",
+    "FitProblem",
+    "FitProgress",
+    "FitResult",
+    "ScenarioFit",
+    "fit",
+    "parameter_statistics",
+    "identifiability_diagnostics",
+    "write_fit_outputs",
+    "package_versions",
+    "UNITS",
+    "METHODS",
+    "LOSSES",
+    "OUTPUT_FILES",
+]
+
+#: SI unit of every material field ("1" for dimensionless).
+UNITS: dict[str, str] = {
+    "youngs_modulus": "Pa",
+    "poisson_ratio": "1",
+    "cubic_coefficient": "1",
+    "density": "kg/m^3",
+    "pre_stretch": "1",
+    "surface_tension": "N/m",
+}
+
+#: Optimisers understood by :func:`fit`.
+METHODS = ("levenberg_marquardt", "gauss_newton", "adam", "lbfgs")
+#: Loss functions understood by :func:`fit` (scipy.optimize.least_squares names).
+LOSSES = ("linear", "soft_l1", "huber")
+#: Files written by :func:`write_fit_outputs`.
+OUTPUT_FILES = ("fit.json", "fit.png", "loss.png", "report.md")
+
+#: Floors of the parameter scale used for relative standard errors and the scaled J^T J:
+#: ``scale = max(|value|, floor)``. Parameters that may sit at zero get a natural unit.
+_SCALE_FLOOR = {"poisson_ratio": 0.1, "cubic_coefficient": 1.0}
+
+#: Identifiability thresholds (see docs/fitting.md).
+CONDITION_LIMIT = 1e8
+RELATIVE_SE_LIMIT = 1.0
+CORRELATION_LIMIT = 0.99
+#: Eigenvalues of the scaled J^T J below this fraction of the largest are treated as exactly
+#: zero (no information at all): the standard errors of the parameters in that direction are inf.
+_SINGULAR_FRACTION = 1e-13
+
+
+# ============================================================================ protocol
+@runtime_checkable
+class Scenario(Protocol):
+    """One experiment to fit: what it measured and how the model predicts it.
+
+    Attributes:
+        name: unique name of the scenario (used in outputs and plots).
+        observed: measured values, shape ``(n,)``, SI units (N, m, Pa, ...).
+        sigma: measurement scale, shape ``(n,)``, same unit as ``observed``; residuals are
+            divided by it (weight ``1 / sigma``). Use the noise standard deviation when known.
+        abscissa: x values for plots, shape ``(n,)``, SI units (e.g. depth in m).
+        x_label: axis label of ``abscissa`` including its unit, e.g. ``"depth [m]"``.
+        y_label: axis label of ``observed`` including its unit, e.g. ``"force [N]"``.
+
+    Methods:
+        predict(material): model prediction, shape ``(n,)``, same unit as ``observed``. Must be
+            pure, jittable and differentiable in the material's fields.
+    """
+
+    name: str
+    observed: np.ndarray
+    sigma: np.ndarray
+    abscissa: np.ndarray
+    x_label: str
+    y_label: str
+
+    def predict(self, material: Material) -> jax.Array: ...
+
+
+# ============================================================================ problem
+def _robust_weight(z, loss: str):
+    """``sqrt(rho(z) / z)`` for the robust loss ``rho``: smooth, positive, 1 at ``z = 0``."""
+    if loss == "linear":
+        return jnp.ones_like(z)
+    if loss == "soft_l1":
+        return jnp.sqrt(2.0 / (1.0 + jnp.sqrt(1.0 + z)))
+    if loss == "huber":
+        z_big = jnp.where(z <= 1.0, 1.0, z)
+        return jnp.where(z <= 1.0, 1.0, jnp.sqrt((2.0 * jnp.sqrt(z_big) - 1.0) / z_big))
+    raise FitError(f"unknown loss {loss!r}; choose one of {LOSSES}")
+
+
+class FitProblem:
+    """The residuals and loss of a fit, as pure functions of the unconstrained vector ``u``.
+
+    Args:
+        scenarios: one or more objects following :class:`Scenario` (names must be unique).
+        parameterization: which material fields are fitted and through which transforms.
+        base: the material whose non-fitted fields (e.g. density) are kept.
+        loss: ``"linear"``, ``"soft_l1"`` or ``"huber"``.
+        f_scale: residual scale of the robust loss [-] (residuals are already divided by sigma,
+            so ``f_scale = 3`` down-weights points more than 3 sigma off).
+    """
+
+    def __init__(self, scenarios, parameterization: MaterialParameterization, base: Material, *, loss: str = "linear", f_scale: float = 1.0):
+        if not isinstance(parameterization, MaterialParameterization):
+            raise FitError(f"parameterization must be a MaterialParameterization, got {type(parameterization).__name__}")
+        if not isinstance(base, Material):
+            raise FitError(f"the initial material must be a Material, got {type(base).__name__}")
+        if loss not in LOSSES:
+            raise FitError(f"unknown loss {loss!r}; choose one of {LOSSES}")
+        if not (isinstance(f_scale, (int, float)) and math.isfinite(f_scale) and f_scale > 0):
+            raise FitError(f"f_scale must be a finite number > 0, got {f_scale!r}")
+        if isinstance(scenarios, (str, bytes)) or not isinstance(scenarios, Sequence):
+            scenarios = (scenarios,)
+        scenarios = tuple(scenarios)
+        if not scenarios:
+            raise FitError("no scenario to fit")
+        names = []
+        observed, sigma = [], []
+        for i, sc in enumerate(scenarios):
+            name = getattr(sc, "name", None)
+            if not isinstance(name, str) or not name:
+                raise FitError(f"scenario {i} has no name (a non-empty str attribute 'name')")
+            if name in names:
+                raise FitError(f"two scenarios are named {name!r}; scenario names must be unique")
+            if not callable(getattr(sc, "predict", None)):
+                raise FitError(f"scenario {name!r} has no predict(material) method")
+            obs = np.asarray(getattr(sc, "observed", None), dtype=float)
+            sig = np.asarray(getattr(sc, "sigma", None), dtype=float)
+            if obs.ndim != 1 or obs.size == 0:
+                raise FitError(f"scenario {name!r}: observed must be a non-empty 1-D array, got shape {obs.shape}")
+            if sig.shape != obs.shape:
+                raise FitError(f"scenario {name!r}: sigma has shape {sig.shape}, observed has {obs.shape}; they must match")
+            if not np.all(np.isfinite(obs)):
+                raise FitError(f"scenario {name!r}: observed holds {int(np.sum(~np.isfinite(obs)))} non-finite value(s)")
+            if not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
+                raise FitError(f"scenario {name!r}: every sigma must be finite and > 0 (same unit as observed)")
+            names.append(name)
+            observed.append(obs)
+            sigma.append(sig)
+        self.scenarios = scenarios
+        self.names = tuple(names)
+        self.parameterization = parameterization
+        self.fields = tuple(parameterization.fields)
+        self.base = base
+        self.loss_name = loss
+        self.f_scale = float(f_scale)
+        self._observed = tuple(observed)
+        self._sigma = tuple(sigma)
+        self.sizes = tuple(o.size for o in observed)
+        self.n_residuals = int(sum(self.sizes))
+        self.n_parameters = len(self.fields)
+
+    # -------------------------------------------------------------- pure functions
+    def material(self, u) -> Material:
+        """The material at unconstrained ``u`` (shape ``(p,)``)."""
+        return self.parameterization.unpack(u, self.base)
+
+    def material_from_values(self, values) -> Material:
+        """The material with the fitted fields set to physical ``values`` (shape ``(p,)``, SI)."""
+        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in self.fields), self.base, tuple(values[i] for i in range(self.n_parameters)))
+
+    def scaled_residuals_of(self, material: Material) -> jax.Array:
+        """``(predict - observed) / sigma`` of all scenarios, concatenated, shape ``(n,)`` [-]."""
+        parts = []
+        for sc, obs, sig in zip(self.scenarios, self._observed, self._sigma):
+            pred = jnp.asarray(sc.predict(material))
+            if pred.shape != obs.shape:
+                raise FitError(f"scenario {sc.name!r}: predict returned shape {pred.shape}, observed has {obs.shape}")
+            parts.append((pred - obs) / sig)
+        return jnp.concatenate(parts)
+
+    def robust(self, r) -> jax.Array:
+        """Robustified residuals ``r sqrt(rho(z)/z)``, ``z = (r/f_scale)^2``: their half sum of
+        squares is the loss, so Gauss--Newton methods minimise the robust loss."""
+        if self.loss_name == "linear":
+            return r
+        z = (r / self.f_scale) ** 2
+        return r * _robust_weight(z, self.loss_name)
+
+    def residuals(self, u) -> jax.Array:
+        """Robustified scaled residuals at ``u``, shape ``(n,)`` [-] (plain ones for ``linear``)."""
+        return self.robust(self.scaled_residuals_of(self.material(u)))
+
+    def residuals_of_values(self, values) -> jax.Array:
+        """Robustified scaled residuals as a function of the PHYSICAL fitted values (SI)."""
+        return self.robust(self.scaled_residuals_of(self.material_from_values(values)))
+
+    def loss(self, u) -> jax.Array:
+        """Loss ``0.5 f_scale^2 sum rho((r/f_scale)^2)`` [-] at ``u``."""
+        r = self.residuals(u)
+        return 0.5 * jnp.sum(r * r)
+
+    def values(self, u) -> dict[str, jax.Array]:
+        """Physical values of the fitted fields at ``u`` (SI)."""
+        return self.parameterization.values(u)
+
+    # -------------------------------------------------------------- fingerprint
+    def fingerprint(self, method: str, n_starts: int) -> tuple[str, dict[str, str]]:
+        """sha256 of the problem: fields, transforms, fixed fields of the base material,
+        scenario names and types, observed data and sigma, loss, method and number of starts.
+
+        Returns ``(hexdigest, components)``; ``components`` maps each part to its own short hash
+        so a mismatch can be named. The predict functions themselves cannot be hashed: a change
+        of the model code with the same data and names is not detected.
+        """
+
+        def h(b: bytes) -> str:
+            return hashlib.sha256(b).hexdigest()[:16]
+
+        fixed = {f: np.asarray(getattr(self.base, f), dtype=float).tolist() for f in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch") if f not in self.fields}
+        data = hashlib.sha256()
+        for obs, sig in zip(self._observed, self._sigma):
+            data.update(np.ascontiguousarray(obs, dtype="<f8").tobytes())
+            data.update(b"|")
+            data.update(np.ascontiguousarray(sig, dtype="<f8").tobytes())
+            data.update(b"||")
+        comps = {
+            "fields": h(repr(self.fields).encode()),
+            "transforms": h(repr(tuple(repr(t) for t in self.parameterization.transforms)).encode()),
+            "fixed material fields": h(json.dumps(fixed, sort_keys=True).encode()),
+            "scenarios": h(repr(tuple((n, type(s).__qualname__) for n, s in zip(self.names, self.scenarios))).encode()),
+            "observed data and sigma": data.hexdigest()[:16],
+            "loss": h(f"{self.loss_name}:{self.f_scale!r}".encode()),
+            "method": h(method.encode()),
+            "number of starts": h(str(int(n_starts)).encode()),
+        }
+        total = hashlib.sha256(json.dumps(comps, sort_keys=True).encode()).hexdigest()
+        return total, comps
+
+
+# ============================================================================ result
+@dataclasses.dataclass(frozen=True)
+class ScenarioFit:
+    """Data and model of one scenario at the fitted material (SI units).
+
+    ``residual`` is the scaled residual ``(predicted - observed) / sigma`` [-].
+    """
+
+    name: str
+    abscissa: np.ndarray
+    observed: np.ndarray
+    sigma: np.ndarray
+    predicted: np.ndarray
+    residual: np.ndarray
+    x_label: str
+    y_label: str
+
+
+@dataclasses.dataclass(frozen=True)
+class FitResult:
+    """Outcome of :func:`fit` (all values SI, see :data:`UNITS`).
+
+    Attributes:
+        material: the fitted material of the best start.
+        fields: names of the fitted fields, in the order of every matrix below.
+        values: fitted value of each field.
+        units: SI unit of each field.
+        standard_errors: standard error of each field (``inf`` where the data do not determine it).
+        covariance: ``(p, p)`` covariance of the physical parameters (NaN rows/columns where
+            not determined).
+        correlation: ``(p, p)`` correlation matrix.
+        jacobian: ``(n, p)`` Jacobian of the (robustified) scaled residuals w.r.t. the physical
+            parameters at the optimum.
+        loss: final loss of the best start [-].
+        converged: whether the best start met the tolerances (not max_steps, not a failure).
+        reason: why the best start stopped, in words.
+        steps: number of optimiser steps taken (counted over resumes).
+        best_start: index of the best start.
+        start_losses: final loss of every start, shape ``(S,)``.
+        start_values: fitted values of every start, shape ``(S, p)``.
+        start_converged: convergence flag of every start, shape ``(S,)``.
+        loss_history: ``(steps + 1, S)`` loss of every start after each step (row 0: initial).
+        predictions, residuals: per scenario name, the model prediction (unit of the data) and
+            scaled residual ``(predicted - observed) / sigma`` at the best start.
+        scenarios: :class:`ScenarioFit` per scenario (for plots).
+        warnings: identifiability warnings (also emitted as :class:`IdentifiabilityWarning`).
+        unidentified: fields named by those warnings.
+        condition_number: of ``J^T J`` in scaled parameters (``inf`` when singular).
+        residual_variance: ``s^2 = SSE / (n - p)`` (NaN when ``n <= p``).
+        dof: ``n - p``.
+        absolute_sigma: whether the covariance is ``(J^T J)^-1`` (sigma taken as absolute) instead of
+            ``s^2 (J^T J)^-1``.
+        method, loss_function, f_scale: the options of the fit.
+        unconstrained: the optimiser's vector ``u`` of the best start.
+        compilations: how many times the step function was traced (1 in a healthy fit).
+        resumed_from: step count read from a checkpoint (0 for a fresh fit).
+    """
+
+    material: Material
+    fields: tuple[str, ...]
+    values: dict[str, float]
+    units: dict[str, str]
+    standard_errors: dict[str, float]
+    covariance: np.ndarray
+    correlation: np.ndarray
+    jacobian: np.ndarray
+    loss: float
+    converged: bool
+    reason: str
+    steps: int
+    best_start: int
+    start_losses: np.ndarray
+    start_values: np.ndarray
+    start_converged: np.ndarray
+    loss_history: np.ndarray
+    predictions: dict[str, np.ndarray]
+    residuals: dict[str, np.ndarray]
+    scenarios: tuple[ScenarioFit, ...]
+    warnings: tuple[str, ...]
+    unidentified: tuple[str, ...]
+    condition_number: float
+    residual_variance: float
+    dof: int
+    absolute_sigma: bool
+    method: str
+    loss_function: str
+    f_scale: float
+    unconstrained: np.ndarray
+    compilations: int
+    resumed_from: int = 0
+
+    @property
+    def scenario_names(self) -> tuple[str, ...]:
+        return tuple(s.name for s in self.scenarios)
+
+    def summary(self) -> str:
+        """A few lines: each parameter with its standard error and unit, loss and convergence."""
+        lines = []
+        for f in self.fields:
+            se = self.standard_errors[f]
+            lines.append(f"{f} = {self.values[f]:.6g} ± {se:.3g} {self.units[f]}")
+        lines.append(f"loss = {self.loss:.6g}; {'converged' if self.converged else 'NOT converged'} after {self.steps} steps ({self.reason})")
+        lines.extend(f"warning: {w}" for w in self.warnings)
+        return "\n".join(lines)
+
+
+class FitProgress(NamedTuple):
+    """What :func:`fit` passes to its ``callback`` after every step.
+
+    Attributes:
+        step: steps taken so far.
+        loss: lowest loss over the starts [-].
+        losses: loss of every start, shape ``(S,)``.
+        values: physical values of every start, ``{field: array (S,)}`` (SI).
+        done: which starts have stopped, shape ``(S,)``.
+    """
+
+    step: int
+    loss: float
+    losses: np.ndarray
+    values: dict[str, np.ndarray]
+    done: np.ndarray
+
+
+# ============================================================================ statistics
+def parameter_statistics(jacobian, values, fields, *, loss: float, absolute_sigma: bool = False):
+    """Gauss--Newton covariance, standard errors and correlation of physical parameters.
+
+    Args:
+        jacobian: ``(n, p)`` Jacobian of the scaled residuals w.r.t. the physical parameters.
+        values: ``(p,)`` parameter values (SI), used for scaling.
+        fields: names of the parameters.
+        loss: final loss (``SSE = 2 loss``).
+        absolute_sigma: if true, ``cov = (J^T J)^-1`` (the sigmas are the true noise levels);
+            otherwise ``cov = s^2 (J^T J)^-1`` with ``s^2 = SSE / (n - p)``.
+
+    Returns:
+        dict with ``covariance``, ``correlation``, ``standard_errors`` (arrays), ``eigenvalues``,
+        ``eigenvectors`` (of the scaled ``J^T J``, ascending), ``condition_number``,
+        ``residual_variance``, ``dof``, ``scales`` and ``singular`` (bool per parameter).
+
+    Computed in scaled parameters ``theta_j / scale_j`` (``scale_j = max(|theta_j|, floor)``) by
+    an eigendecomposition; directions with eigenvalue below 1e-13 of the largest carry no
+    information: parameters with weight there get standard error ``inf`` and NaN covariance.
+    """
+    J = np.asarray(jacobian, dtype=float)
+    theta = np.asarray(values, dtype=float)
+    n, p = J.shape
+    scales = np.array([max(abs(t), _SCALE_FLOOR.get(f, 0.0)) or 1.0 for t, f in zip(theta, fields)])
+    Js = J * scales
+    A = Js.T @ Js
+    lam, V = np.linalg.eigh(A)
+    lam_max = float(lam[-1]) if p else 0.0
+    if not np.all(np.isfinite(J)):
+        lam = np.full(p, np.nan)
+    dof = n - p
+    sse = 2.0 * float(loss)
+    s2 = sse / dof if dof > 0 else float("nan")
+    factor = 1.0 if absolute_sigma else s2
+    if lam_max <= 0 or not np.isfinite(lam_max):
+        null = np.ones(p, dtype=bool)
+        cond = float("inf")
+    else:
+        null = lam <= _SINGULAR_FRACTION * lam_max
+        cond = float(lam_max / lam[0]) if lam[0] > 0 else float("inf")
+    keep = ~null
+    inv = (V[:, keep] / lam[keep]) @ V[:, keep].T
+    cov_s = factor * inv
+    singular = np.zeros(p, dtype=bool)
+    if np.any(null):
+        weight = np.sum(V[:, null] ** 2, axis=1)
+        singular = weight > 1e-6
+    cov = cov_s * np.outer(scales, scales)
+    cov[singular, :] = np.nan
+    cov[:, singular] = np.nan
+    var = np.diag(cov).copy()
+    se = np.where(singular, np.inf, np.sqrt(np.clip(var, 0.0, None)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = cov / np.outer(np.sqrt(var), np.sqrt(var))
+    corr[singular, :] = np.nan
+    corr[:, singular] = np.nan
+    for j in range(p):
+        if not singular[j]:
+            corr[j, j] = 1.0
+    return {
+        "covariance": cov,
+        "correlation": corr,
+        "standard_errors": se,
+        "eigenvalues": lam,
+        "eigenvectors": V,
+        "condition_number": cond,
+        "residual_variance": s2,
+        "dof": dof,
+        "scales": scales,
+        "singular": singular,
+    }
+
+
+def identifiability_diagnostics(stats: Mapping, values, fields) -> list[tuple[str, str]]:
+    """Which parameters the data do not determine, and why.
+
+    Rules (thresholds in :data:`CONDITION_LIMIT`, :data:`RELATIVE_SE_LIMIT`,
+    :data:`CORRELATION_LIMIT`):
+
+    1. ``J^T J`` in scaled parameters is singular or has condition number > 1e8: each eigen-
+       direction with eigenvalue < 1e-8 of the largest names the parameters that dominate it
+       (squared eigenvector component >= 0.5, else the largest), and mentions the others involved.
+    2. relative standard error ``SE / max(|value|, floor)`` > 1 (100 %).
+    3. ``|correlation| > 0.99`` between two parameters (both named).
+
+    Returns a list of ``(field, message)``.
+    """
+    fields = tuple(fields)
+    theta = np.asarray(values, dtype=float)
+    out: list[tuple[str, str]] = []
+    named: set[tuple[str, str]] = set()
+
+    def add(field, rule, message):
+        if (field, rule) not in named:
+            named.add((field, rule))
+            out.append((field, message))
+
+    lam = np.asarray(stats["eigenvalues"], dtype=float)
+    V = np.asarray(stats["eigenvectors"], dtype=float)
+    cond = float(stats["condition_number"])
+    if len(fields) and (not np.isfinite(cond) or cond > CONDITION_LIMIT):
+        lam_max = float(np.nanmax(lam)) if np.any(np.isfinite(lam)) else float("nan")
+        cond_txt = "singular" if not np.isfinite(cond) else f"condition number {cond:.3g} > {CONDITION_LIMIT:.0e}"
+        for k in range(len(fields)):
+            if np.isfinite(lam_max) and lam_max > 0 and lam[k] >= lam_max / CONDITION_LIMIT:
+                continue
+            w = V[:, k] ** 2
+            dominant = [j for j in range(len(fields)) if w[j] >= 0.5] or [int(np.argmax(w))]
+            involved = [fields[j] for j in range(len(fields)) if w[j] >= 0.01 and j not in dominant]
+            for j in dominant:
+                also = f"; only a combination with {', '.join(involved)} is determined" if involved else ""
+                add(
+                    fields[j],
+                    "condition",
+                    f"{fields[j]} is not determined by the data: J^T J (scaled parameters) is {cond_txt}, "
+                    f"along a direction dominated by {fields[j]}{also}",
+                )
+    se = np.asarray(stats["standard_errors"], dtype=float)
+    scales = np.asarray(stats["scales"], dtype=float)
+    for j, f in enumerate(fields):
+        rel = se[j] / scales[j]
+        if not np.isfinite(rel) or rel > RELATIVE_SE_LIMIT:
+            se_txt = "infinite" if not np.isfinite(se[j]) else f"{se[j]:.3g} {UNITS.get(f, '')}".strip()
+            of = f"|value| = {scales[j]:.3g}" if scales[j] > _SCALE_FLOOR.get(f, 0.0) else f"the floor scale {scales[j]:g} (|value| is smaller)"
+            add(f, "se", f"{f} is not determined by the data: standard error {se_txt} exceeds 100 % of {of}")
+    corr = np.asarray(stats["correlation"], dtype=float)
+    for i in range(len(fields)):
+        for j in range(i + 1, len(fields)):
+            c = corr[i, j]
+            if np.isfinite(c) and abs(c) > CORRELATION_LIMIT:
+                msg = f"{fields[i]} and {fields[j]} are correlated ({c:+.4f}, |rho| > {CORRELATION_LIMIT}): the data determine a combination of them, not each"
+                add(fields[i], f"corr-{fields[j]}", msg)
+                add(fields[j], f"corr-{fields[i]}", msg)
+    return out
+
+
+# ============================================================================ optimisers
+def _tree_where(cond, new, old):
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(cond, a, b), new, old)
+
+
+def _strong(tree):
+    """Every array leaf with its dtype made strong (not weak-typed), so the state that goes into
+    the jitted step has the same avals as what comes out: no recompilation at the second step."""
+    return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=jnp.result_type(x)) if eqx.is_array(x) else x, tree)
+
+
+class _Engine:
+    """One optimiser: ``init(U) -> dyn`` (batched state arrays) and a vmapped ``step``."""
+
+    def __init__(self, problem: FitProblem, method: str, *, rtol: float, atol: float, learning_rate: float, jac: str):
+        self.problem = problem
+        self.method = method
+        self.rtol = float(rtol)
+        self.atol = float(atol)
+        self.jac = jac
+        self.learning_rate = float(learning_rate)
+        self.traces = 0
+        if method in ("levenberg_marquardt", "gauss_newton"):
+            import optimistix as optx
+
+            self._optx = optx
+            cls = optx.LevenbergMarquardt if method == "levenberg_marquardt" else optx.GaussNewton
+            self.solver = cls(rtol=self.rtol, atol=self.atol)
+            self._fn = lambda y, args: (problem.residuals(y), None)
+            self._options = {"jac": jac}
+            self._tags = frozenset()
+        else:
+            import optax
+
+            self._optax = optax
+            if method == "adam":
+                self.solver = optax.adam(self.learning_rate)
+            else:
+                self.solver = optax.lbfgs()
+
+    # -- optimistix ------------------------------------------------------------------
+    def _optx_init_single(self, u):
+        f_struct = jax.eval_shape(self.problem.residuals, u)
+        return self.solver.init(self._fn, u, None, self._options, f_struct, None, self._tags)
+
+    def init(self, U):
+        """Batched dynamic state for starts ``U`` (shape ``(S, p)``)."""
+        if hasattr(self, "_optx"):
+            template = self._optx_init_single(U[0])
+            self._static = eqx.partition(template, eqx.is_array)[1]
+            return _strong(jax.vmap(lambda u: eqx.partition(self._optx_init_single(u), eqx.is_array)[0])(U))
+        return _strong(jax.vmap(self.solver.init)(U))
+
+    def make_step(self):
+        """The ONE jitted step: ``(U, dyn, done) -> (U, dyn, done, status, loss)``, vmapped over starts.
+
+        ``status``: 0 running or converged, >0 failure code (optimistix RESULTS index, or -1 for a
+        non-finite loss in optax)."""
+        problem = self.problem
+        rtol, atol = self.rtol, self.atol
+
+        if hasattr(self, "_optx"):
+            solver, fn, options, tags, static = self.solver, self._fn, self._options, self._tags, self._static
+
+            def one(u, dyn, done):
+                state = eqx.combine(dyn, static)
+                u_new, state_new, _ = solver.step(fn, u, None, options, state, tags)
+                term, result = solver.terminate(fn, u_new, None, options, state_new, tags)
+                dyn_new = eqx.partition(state_new, eqx.is_array)[0]
+                status = jnp.asarray(result._value)
+                r = state_new.f_info.residual
+                loss = 0.5 * jnp.sum(r * r)
+                finished = term | (status != 0)
+                u_out = jnp.where(done, u, u_new)
+                dyn_out = _tree_where(done, dyn, dyn_new)
+                return u_out, dyn_out, done | finished, jnp.where(done, 0, status), loss
+
+        else:
+            optax = self._optax
+            solver = self.solver
+            lbfgs = self.method == "lbfgs"
+            loss_fn = problem.loss
+
+            def one(u, state, done):
+                if lbfgs:
+                    value, grad = optax.value_and_grad_from_state(loss_fn)(u, state=state)
+                    updates, state_new = solver.update(grad, state, u, value=value, grad=grad, value_fn=loss_fn)
+                else:
+                    value, grad = jax.value_and_grad(loss_fn)(u)
+                    updates, state_new = solver.update(grad, state, u)
+                u_new = optax.apply_updates(u, updates)
+                if lbfgs:
+                    loss_new = optax.tree_utils.tree_get(state_new, "value")
+                else:
+                    loss_new = loss_fn(u_new)
+                du = jnp.max(jnp.abs(u_new - u))
+                small_u = du <= atol + rtol * jnp.max(jnp.abs(u_new))
+                small_f = jnp.abs(loss_new - value) <= atol + rtol * jnp.abs(value)
+                bad = ~jnp.isfinite(loss_new)
+                finished = (small_u & small_f) | bad
+                status = jnp.where(bad, -1, 0)
+                u_out = jnp.where(done, u, u_new)
+                state_out = _tree_where(done, state, state_new)
+                loss_out = jnp.where(done, value, loss_new)  # a stopped start stays at u, whose loss is value
+                return u_out, state_out, done | finished, jnp.where(done, 0, status), loss_out
+
+        def step(U, dyn, done):
+            self.traces += 1  # Python side effect: runs once per trace (compilation)
+            return _strong(jax.vmap(one)(U, dyn, done))
+
+        return jax.jit(step)
+
+    def status_message(self, code: int) -> str:
+        if code == -1:
+            return "non-finite loss"
+        if hasattr(self, "_optx"):
+            msg = self._optx.RESULTS._index_to_message[code].strip().split("\n")[0]
+            return f"optimistix: {msg}"
+        return f"status {code}"
+
+
+# ============================================================================ checkpoints
+def _save_checkpoint(path: Path, *, U, dyn, done, status, history, step, fingerprint, components, method):
+    leaves = [np.asarray(x) for x in jax.tree_util.tree_leaves(dyn)]
+    arrays = {f"state_{i}": a for i, a in enumerate(leaves)}
+    meta = {
+        "format": "difftissue-fit-checkpoint/1",
+        "fingerprint": fingerprint,
+        "components": components,
+        "method": method,
+        "step": int(step),
+        "n_state_leaves": len(leaves),
+    }
+    with atomic_output(path, overwrite=True) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(
+                fh,
+                meta=np.array(json.dumps(meta)),
+                unconstrained=np.asarray(U),
+                done=np.asarray(done),
+                status=np.asarray(status),
+                loss_history=np.asarray(history),
+                **arrays,
+            )
+
+
+def _load_checkpoint(path: Path, *, fingerprint, components, dyn_template):
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            meta = json.loads(str(z["meta"]))
+            data = {k: np.array(z[k]) for k in z.files if k != "meta"}
+    except Exception as exc:  # noqa: BLE001 - report any unreadable file as one clear error
+        raise CheckpointError(f"cannot read fit checkpoint {path}: {exc}") from exc
+    if meta.get("fingerprint") != fingerprint:
+        saved = meta.get("components", {})
+        differ = [k for k in components if saved.get(k) != components[k]] or ["unknown"]
+        raise CheckpointMismatchError(
+            f"checkpoint {path} was written by a different fit problem (differs in: {', '.join(differ)}); "
+            "refusing to resume from it. Delete it or choose another checkpoint path to start afresh."
+        )
+    leaves, treedef = jax.tree_util.tree_flatten(dyn_template)
+    if meta.get("n_state_leaves") != len(leaves):
+        raise CheckpointMismatchError(f"checkpoint {path} holds an optimiser state of another layout (library version changed?); delete it to start afresh")
+    new_leaves = []
+    for i, ref in enumerate(leaves):
+        a = data[f"state_{i}"]
+        if a.shape != ref.shape:
+            raise CheckpointMismatchError(f"checkpoint {path}: optimiser state leaf {i} has shape {a.shape}, expected {ref.shape}; delete it to start afresh")
+        new_leaves.append(jnp.asarray(a, dtype=ref.dtype))
+    dyn = jax.tree_util.tree_unflatten(treedef, new_leaves)
+    return (
+        jnp.asarray(data["unconstrained"]),
+        dyn,
+        jnp.asarray(data["done"]),
+        jnp.asarray(data["status"]),
+        [row for row in np.asarray(data["loss_history"])],
+        int(meta["step"]),
+    )
+
+
+# ============================================================================ fit
+def _initial_starts(parameterization, initial: Material, starts, seed: int, spread: float):
+    u0 = jnp.asarray(parameterization.pack(initial))
+    if isinstance(starts, Material):
+        starts = [starts]
+    if isinstance(starts, (int, np.integer)) and not isinstance(starts, bool):
+        if starts < 1:
+            raise FitError(f"starts must be >= 1, got {starts}")
+        if starts == 1:
+            return u0[None, :]
+        rng = np.random.default_rng(seed)
+        extra = rng.normal(0.0, spread, size=(int(starts) - 1, u0.shape[0]))
+        return jnp.concatenate([u0[None, :], u0[None, :] + jnp.asarray(extra, dtype=u0.dtype)])
+    if isinstance(starts, Sequence) and starts and all(isinstance(m, Material) for m in starts):
+        return jnp.stack([jnp.asarray(parameterization.pack(m), dtype=u0.dtype) for m in starts])
+    raise FitError(f"starts must be an int >= 1 or a non-empty sequence of Material, got {starts!r}")
+
+
+def _progress_bar(enabled: bool, total: int):
+    if not enabled:
+        return None
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(
+        TextColumn("fit"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("loss {task.fields[loss]}"),
+        TimeElapsedColumn(),
+        console=Console(stderr=True),
+        transient=False,
+    )
+
+
+def fit(
+    scenarios,
+    parameterization: MaterialParameterization,
+    initial: Material,
+    *,
+    method: str = "levenberg_marquardt",
+    loss: str = "linear",
+    f_scale: float = 1.0,
+    starts: int | Sequence[Material] = 1,
+    seed: int = 0,
+    start_spread: float = 1.0,
+    max_steps: int = 200,
+    rtol: float = 1e-8,
+    atol: float = 1e-10,
+    learning_rate: float = 0.05,
+    jac: str = "fwd",
+    absolute_sigma: bool = False,
+    checkpoint: str | os.PathLike | None = None,
+    checkpoint_every: int = 10,
+    resume: bool = False,
+    progress: bool = False,
+    callback: Callable[[FitProgress], bool | None] | None = None,
+) -> FitResult:
+    """Fit the fields of ``parameterization`` to one or more scenarios (weighted least squares).
+
+    Args:
+        scenarios: a :class:`Scenario` or a sequence of them; a joint fit shares the parameters.
+        parameterization: fitted fields and their bounded transforms.
+        initial: starting material (SI); its non-fitted fields are kept fixed.
+        method: ``"levenberg_marquardt"`` (default), ``"gauss_newton"`` (optimistix, on the
+            residual vector), ``"adam"`` or ``"lbfgs"`` (optax, on the scalar loss).
+        loss: ``"linear"``, ``"soft_l1"`` or ``"huber"``; robust losses use ``f_scale`` [-] (in
+            units of sigma).
+        starts: number of starts (the first is ``initial``; the others are drawn from
+            ``N(u0, start_spread^2)`` in the unconstrained space with ``numpy`` generator ``seed``),
+            or a sequence of starting materials. All starts run batched (``jax.vmap``) in one
+            jitted step; the result reports the start with the lowest final loss.
+        max_steps: total optimiser steps (a resumed fit counts the steps already taken).
+        rtol, atol: stop a start when both the step in ``u`` and the change of the residuals
+            (optimistix Cauchy criterion; for optax the loss) are below ``atol + rtol * |.|``.
+        learning_rate: Adam step size in ``u`` (ignored by the other methods).
+        jac: ``"fwd"`` or ``"bwd"``: forward- or reverse-mode Jacobian (use ``"bwd"`` for
+            scenarios whose derivatives are ``custom_vjp`` only).
+        absolute_sigma: covariance ``(J^T J)^-1`` (sigma is the true noise level) instead of the
+            default ``s^2 (J^T J)^-1``, ``s^2 = SSE / (n - p)``.
+        checkpoint: file (``.npz``) to save the unconstrained parameters of every start, the
+            optimiser state, step count, loss history and a fingerprint of the problem every
+            ``checkpoint_every`` steps, at the end and on interruption (written atomically:
+            temporary file in the same directory, then ``os.replace``).
+        resume: continue from ``checkpoint`` if it exists (else start afresh). The optimiser's
+            internal state (Levenberg--Marquardt damping / trust region, Adam moments, L-BFGS
+            memory) is restored, so a resumed fit takes the same steps as an uninterrupted one. A
+            checkpoint of a different problem raises :class:`CheckpointMismatchError`; an
+            existing checkpoint without ``resume`` raises :class:`CheckpointError`.
+        progress: show a rich progress bar (on stderr) with the best loss.
+        callback: called with a :class:`FitProgress` after every step; returning ``True``
+            stops the fit (reason "stopped by callback"). An exception (e.g. KeyboardInterrupt)
+            propagates after the checkpoint is written.
+
+    Returns:
+        A :class:`FitResult`. Identifiability problems are also emitted as
+        :class:`~difftissue.errors.IdentifiabilityWarning`.
+    """
+    if method not in METHODS:
+        raise FitError(f"unknown method {method!r}; choose one of {METHODS}")
+    if jac not in ("fwd", "bwd"):
+        raise FitError(f"jac must be 'fwd' or 'bwd', got {jac!r}")
+    if not (isinstance(max_steps, (int, np.integer)) and max_steps >= 0):
+        raise FitError(f"max_steps must be an int >= 0, got {max_steps!r}")
+    if not (isinstance(checkpoint_every, (int, np.integer)) and checkpoint_every >= 1):
+        raise FitError(f"checkpoint_every must be an int >= 1, got {checkpoint_every!r}")
+    if resume and checkpoint is None:
+        raise FitError("resume=True needs a checkpoint path")
+    problem = FitProblem(scenarios, parameterization, initial, loss=loss, f_scale=f_scale)
+    U = _initial_starts(parameterization, initial, starts, seed, start_spread)
+    n_starts = int(U.shape[0])
+    fingerprint, components = problem.fingerprint(method, n_starts)
+
+    engine = _Engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
+    dyn = engine.init(U)
+    step_fn = engine.make_step()
+    done = jnp.zeros(n_starts, dtype=bool)
+    status = jnp.zeros(n_starts, dtype=jnp.int32)
+    history: list[np.ndarray] = []
+    step = 0
+    resumed_from = 0
+    ckpt = Path(checkpoint) if checkpoint is not None else None
+    if ckpt is not None:
+        if ckpt.exists() and ckpt.is_dir():
+            raise CheckpointError(f"checkpoint {ckpt} is a directory; give a file path such as {ckpt / 'fit-checkpoint.npz'}")
+        if not ckpt.parent.is_dir():
+            raise CheckpointError(f"directory {ckpt.parent} of checkpoint {ckpt.name} does not exist; create it first")
+        if ckpt.exists():
+            if not resume:
+                raise CheckpointError(f"checkpoint {ckpt} exists; pass resume=True to continue that fit, or delete it to start afresh")
+            U, dyn, done, status, history, step = _load_checkpoint(ckpt, fingerprint=fingerprint, components=components, dyn_template=dyn)
+            status = status.astype(jnp.int32)
+            resumed_from = step
+    batch_loss = jax.jit(jax.vmap(problem.loss))
+    if not history:
+        history.append(np.asarray(batch_loss(U)))
+
+    def save():
+        if ckpt is not None:
+            _save_checkpoint(ckpt, U=U, dyn=dyn, done=done, status=status, history=np.stack(history), step=step, fingerprint=fingerprint, components=components, method=method)
+
+    stopped_by_callback = False
+    bar = _progress_bar(progress, max_steps)
+    task = None
+    if bar is not None:
+        bar.start()
+        task = bar.add_task("fit", total=max_steps, completed=step, loss=f"{np.nanmin(history[-1]):.6g}")
+    try:
+        while step < max_steps and not bool(np.all(np.asarray(done))):
+            U, dyn, done, new_status, losses = step_fn(U, dyn, done)
+            status = jnp.where(new_status != 0, new_status, status).astype(jnp.int32)
+            step += 1
+            losses = np.asarray(losses)
+            history.append(losses)
+            if bar is not None:
+                bar.update(task, completed=step, loss=f"{np.nanmin(losses):.6g}")
+            if ckpt is not None and step % checkpoint_every == 0:
+                save()
+            if callback is not None:
+                vals = {k: np.asarray(v) for k, v in jax.vmap(problem.values)(U).items()}
+                info = FitProgress(step, float(np.nanmin(losses)), losses, vals, np.asarray(done))
+                if callback(info) is True:
+                    stopped_by_callback = True
+                    break
+    except BaseException:
+        save()
+        raise
+    finally:
+        if bar is not None:
+            bar.stop()
+    save()
+
+    # ------------------------------------------------------------ the best start
+    final = np.asarray(batch_loss(U))
+    history[-1] = final
+    finite = np.where(np.isfinite(final), final, np.inf)
+    best = int(np.argmin(finite))
+    if not np.isfinite(finite[best]):
+        raise FitError("every start ended with a non-finite loss; check the initial material, the transforms and the scenarios' predictions")
+    done_np = np.asarray(done)
+    status_np = np.asarray(status)
+    start_converged = done_np & (status_np == 0)
+    if start_converged[best]:
+        reason = "converged: step and change below rtol/atol"
+    elif status_np[best] != 0:
+        reason = f"failed: {engine.status_message(int(status_np[best]))}"
+    elif stopped_by_callback:
+        reason = "stopped by callback"
+    else:
+        reason = f"max_steps ({max_steps}) reached"
+    u_best = U[best]
+    material = problem.material(u_best)
+    values_vec = jnp.stack([problem.values(u_best)[f] for f in problem.fields])
+    jac_fn = jax.jacfwd if jac == "fwd" else jax.jacrev
+    J = np.asarray(jax.jit(jac_fn(problem.residuals_of_values))(values_vec))
+    stats = parameter_statistics(J, np.asarray(values_vec), problem.fields, loss=float(final[best]), absolute_sigma=absolute_sigma)
+    diag = identifiability_diagnostics(stats, np.asarray(values_vec), problem.fields)
+    for _, msg in diag:
+        warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
+
+    # ------------------------------------------------------------ per-scenario outputs
+    scen_fits = []
+    predictions, residuals = {}, {}
+    for sc, obs, sig in zip(problem.scenarios, problem._observed, problem._sigma):
+        pred = np.asarray(sc.predict(material), dtype=float)
+        res = (pred - obs) / sig
+        absc = getattr(sc, "abscissa", None)
+        absc = np.arange(obs.size, dtype=float) if absc is None else np.asarray(absc, dtype=float)
+        predictions[sc.name] = pred
+        residuals[sc.name] = res
+        scen_fits.append(ScenarioFit(sc.name, absc, obs, sig, pred, res, str(getattr(sc, "x_label", "index")), str(getattr(sc, "y_label", "observed"))))
+    start_vals = np.asarray(jnp.stack([jnp.stack([problem.values(u)[f] for f in problem.fields]) for u in U]))
+    fields = problem.fields
+    return FitResult(
+        material=material,
+        fields=fields,
+        values={f: float(values_vec[i]) for i, f in enumerate(fields)},
+        units={f: UNITS.get(f, "") for f in fields},
+        standard_errors={f: float(stats["standard_errors"][i]) for i, f in enumerate(fields)},
+        covariance=stats["covariance"],
+        correlation=stats["correlation"],
+        jacobian=J,
+        loss=float(final[best]),
+        converged=bool(start_converged[best]),
+        reason=reason,
+        steps=int(step),
+        best_start=best,
+        start_losses=final,
+        start_values=start_vals,
+        start_converged=start_converged,
+        loss_history=np.stack(history),
+        predictions=predictions,
+        residuals=residuals,
+        scenarios=tuple(scen_fits),
+        warnings=tuple(msg for _, msg in diag),
+        unidentified=tuple(dict.fromkeys(f for f, _ in diag)),
+        condition_number=float(stats["condition_number"]),
+        residual_variance=float(stats["residual_variance"]),
+        dof=int(stats["dof"]),
+        absolute_sigma=bool(absolute_sigma),
+        method=method,
+        loss_function=loss,
+        f_scale=float(f_scale),
+        unconstrained=np.asarray(u_best),
+        compilations=engine.traces,
+        resumed_from=resumed_from,
+    )
+
+
+# ============================================================================ outputs
+def package_versions() -> dict[str, str | None]:
+    """Installed versions of difftissue and the numerical stack (None where not installed)."""
+    from ._version import __version__
+
+    out: dict[str, str | None] = {"difftissue": __version__}
+    for name in ("jax", "jaxlib", "numpy", "equinox", "optimistix", "optax", "lineax", "matplotlib"):
+        try:
+            out[name] = importlib.metadata.version(name)
+        except importlib.metadata.PackageNotFoundError:
+            out[name] = None
+    return out
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _num(x):
+    """JSON number or null (strict JSON has no inf/NaN)."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _jsonable(obj):
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, (str, bool)) or obj is None:
+        return obj
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return _num(obj)
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, (np.ndarray, jax.Array)):
+        return _jsonable(np.asarray(obj).tolist())
+    return str(obj)
+
+
+def _config_record(config):
+    if config is None:
+        return None
+    if isinstance(config, (str, os.PathLike)):
+        path = Path(config)
+        if not path.is_file():
+            raise OutputError(f"config file {path} does not exist")
+        record: dict[str, Any] = {"path": str(path), "sha256": _sha256(path)}
+        if path.suffix.lower() == ".toml":
+            import tomllib
+
+            with open(path, "rb") as fh:
+                record["content"] = _jsonable(tomllib.load(fh))
+        else:
+            record["text"] = path.read_text(encoding="utf-8", errors="replace")
+        return record
+    if isinstance(config, Mapping):
+        return _jsonable(config)
+    raise OutputError(f"config must be a mapping or a path, got {type(config).__name__}")
+
+
+def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -> dict:
+    fields = list(result.fields)
+    params = {}
+    for f in fields:
+        se = result.standard_errors[f]
+        v = result.values[f]
+        params[f] = {
+            "value": _num(v),
+            "unit": result.units[f],
+            "standard_error": _num(se),
+            "relative_standard_error": _num(se / abs(v)) if v != 0 and math.isfinite(se) else None,
+        }
+    model_name = None if model is None else (model if isinstance(model, str) else getattr(model, "name", None) or type(model).__name__)
+    return {
+        "schema": "difftissue-fit/1",
+        "parameters": params,
+        "fixed_parameters": {k: {"value": v, "unit": UNITS.get(k, "")} for k, v in result.material.to_dict().items() if k not in fields},
+        "correlation": {"fields": fields, "matrix": _jsonable(result.correlation)},
+        "covariance": {"fields": fields, "matrix": _jsonable(result.covariance), "absolute_sigma": result.absolute_sigma},
+        "loss": _num(result.loss),
+        "loss_function": result.loss_function,
+        "f_scale": result.f_scale,
+        "converged": bool(result.converged),
+        "reason": result.reason,
+        "steps": result.steps,
+        "method": result.method,
+        "starts": {"count": int(result.start_losses.size), "best": result.best_start, "final_losses": _jsonable(result.start_losses)},
+        "residual_variance": _num(result.residual_variance),
+        "degrees_of_freedom": result.dof,
+        "condition_number": _num(result.condition_number),
+        "identifiability_warnings": list(result.warnings),
+        "unidentified": list(result.unidentified),
+        "model": model_name,
+        "scenarios": [
+            {"name": s.name, "points": int(s.observed.size), "rms_scaled_residual": _num(np.sqrt(np.mean(s.residual**2)))}
+            for s in result.scenarios
+        ]
+        if scenario_names is None
+        else [{"name": str(n)} for n in scenario_names],
+        "data_files": [{"path": str(p), "sha256": _sha256(Path(p))} for p in data_files],
+        "versions": package_versions(),
+        "config": _config_record(config),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+    }
+
+
+def _plot_fit(result: FitResult, path: Path):
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    from matplotlib.figure import Figure
+
+    k = len(result.scenarios)
+    fig = Figure(figsize=(5.0 * k, 5.5), layout="constrained")
+    axes = fig.subplots(2, k, sharex="col", height_ratios=[3, 1], squeeze=False)
+    for j, s in enumerate(result.scenarios):
+        order = np.argsort(s.abscissa, kind="stable")
+        top, bottom = axes[0, j], axes[1, j]
+        top.errorbar(s.abscissa, s.observed, yerr=s.sigma, fmt="o", ms=3, lw=0.8, color="0.3", label="data")
+        top.plot(s.abscissa[order], s.predicted[order], "-", color="C0", lw=1.6, label="model")
+        top.set_ylabel(s.y_label)
+        top.set_title(s.name)
+        top.legend(frameon=False)
+        bottom.axhline(0.0, color="0.6", lw=0.8)
+        bottom.plot(s.abscissa, s.residual, "o", ms=3, color="C3")
+        bottom.set_ylabel("residual / sigma")
+        bottom.set_xlabel(s.x_label)
+    fig.savefig(path, format="png", dpi=110)
+
+
+def _plot_loss(result: FitResult, path: Path):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(5.5, 3.8), layout="constrained")
+    ax = fig.subplots()
+    H = np.asarray(result.loss_history, dtype=float)
+    steps = np.arange(H.shape[0])
+    tiny = np.finfo(float).tiny
+    for s in range(H.shape[1]):
+        best = s == result.best_start
+        ax.plot(steps, np.clip(H[:, s], tiny, None), color="C0" if best else "0.7", lw=1.8 if best else 0.8, label="best start" if best else None, zorder=3 if best else 2)
+    ax.set_yscale("log")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss [-]")
+    ax.set_title(f"{result.method}, {H.shape[1]} start(s)")
+    ax.legend(frameon=False)
+    fig.savefig(path, format="png", dpi=110)
+
+
+def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
+    lines = ["# Fit report", ""]
+    lines.append(f"Model: {record['model'] or '(not given)'}; scenarios: {', '.join(names)}.")
+    lines.append(
+        f"Method {result.method}, loss {result.loss_function}"
+        + (f" (f_scale {result.f_scale:g})" if result.loss_function != "linear" else "")
+        + f", {int(result.start_losses.size)} start(s) (best: {result.best_start})."
+    )
+    lines.append(f"**{'Converged' if result.converged else 'Not converged'}** after {result.steps} steps: {result.reason}. Final loss {result.loss:.6g}.")
+    lines += ["", "## Parameters", "", "| parameter | value | standard error | relative | unit |", "|---|---|---|---|---|"]
+    for f in result.fields:
+        v, se = result.values[f], result.standard_errors[f]
+        rel = f"{100 * se / abs(v):.3g} %" if v != 0 and math.isfinite(se) else "-"
+        se_txt = f"{se:.4g}" if math.isfinite(se) else "not determined"
+        lines.append(f"| {f} | {v:.6g} | {se_txt} | {rel} | {result.units[f]} |")
+    cov_txt = "(J^T J)^-1 (absolute sigma)" if result.absolute_sigma else f"s^2 (J^T J)^-1 with s^2 = SSE/(n-p) = {result.residual_variance:.4g} (n-p = {result.dof})"
+    lines += ["", f"Standard errors from the Gauss-Newton covariance {cov_txt}; condition number of J^T J (scaled) {result.condition_number:.3g}."]
+    if record["fixed_parameters"]:
+        lines += ["", "Fixed: " + ", ".join(f"{k} = {d['value']:g} {d['unit']}" for k, d in record["fixed_parameters"].items()) + "."]
+    if len(result.fields) > 1:
+        lines += ["", "## Correlations", "", "| | " + " | ".join(result.fields) + " |", "|---" * (len(result.fields) + 1) + "|"]
+        for i, f in enumerate(result.fields):
+            cells = [f"{c:+.3f}" if np.isfinite(c) else "-" for c in result.correlation[i]]
+            lines.append(f"| {f} | " + " | ".join(cells) + " |")
+    lines += ["", "## Warnings", ""]
+    lines += [f"- {w}" for w in result.warnings] or ["None: every parameter is determined by the data."]
+    lines += ["", "## Scenarios", "", "| scenario | points | rms residual / sigma |", "|---|---|---|"]
+    for s in result.scenarios:
+        lines.append(f"| {s.name} | {s.observed.size} | {np.sqrt(np.mean(s.residual ** 2)):.4g} |")
+    lines += ["", "## Files", "", "- `fit.json`: parameters, uncertainty, versions", "- `fit.png`: data vs model with residuals", "- `loss.png`: loss history"]
+    for d in record["data_files"]:
+        lines.append(f"- data `{d['path']}` (sha256 `{d['sha256']}`)")
+    lines += ["", "Versions: " + ", ".join(f"{k} {v}" for k, v in record["versions"].items() if v) + "."]
+    return "\n".join(lines) + "\n"
+
+
+def write_fit_outputs(
+    result: FitResult,
+    out_dir,
+    *,
+    config=None,
+    data_files: Sequence[str | os.PathLike] = (),
+    model=None,
+    scenario_names: Sequence[str] | None = None,
+    force: bool = False,
+) -> dict[str, Path]:
+    """Write ``fit.json``, ``fit.png``, ``loss.png`` and ``report.md`` into ``out_dir``.
+
+    Args:
+        result: a :class:`FitResult`.
+        out_dir: output directory (created if missing).
+        config: the run's configuration: a mapping (stored as is) or a config file path
+            (stored with its sha256 and, for TOML, its parsed content).
+        data_files: measured-data files used by the fit; each is recorded with its sha256.
+        model: model name (str) or object (its ``name`` or type name is recorded).
+        scenario_names: names to record instead of the result's scenarios.
+        force: overwrite existing output files. Without it, an existing file among the four
+            raises :class:`~difftissue.errors.OutputExistsError` naming it, before anything is written.
+
+    Every file is written atomically (temporary file beside it, then ``os.replace``).
+
+    Returns:
+        ``{file name: path}`` of the written files.
+    """
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out} exists and is not a directory")
+    paths = {name: out / name for name in OUTPUT_FILES}
+    if not force:
+        for p in paths.values():
+            if p.exists():
+                raise OutputExistsError(f"{p} exists; refusing to overwrite it (choose another output directory or pass force=True / --force)")
+    for p in data_files:
+        if not Path(p).is_file():
+            raise OutputError(f"data file {p} does not exist")
+    names = list(scenario_names) if scenario_names is not None else list(result.scenario_names)
+    record = _fit_json(result, config=config, data_files=data_files, model=model, scenario_names=scenario_names)
+    out.mkdir(parents=True, exist_ok=True)
+    with atomic_output(paths["fit.json"], overwrite=force) as tmp:
+        tmp.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    with atomic_output(paths["fit.png"], overwrite=force) as tmp:
+        _plot_fit(result, tmp)
+    with atomic_output(paths["loss.png"], overwrite=force) as tmp:
+        _plot_loss(result, tmp)
+    with atomic_output(paths["report.md"], overwrite=force) as tmp:
+        tmp.write_text(_report_md(result, record, names), encoding="utf-8")
+    return paths
