@@ -385,7 +385,8 @@ class FitResult:
         lines = []
         for f in self.fields:
             se = self.standard_errors[f]
-            lines.append(f"{f} = {self.values[f]:.6g} ± {se:.3g} {self.units[f]}")
+            unit = "" if self.units[f] == "1" else f" {self.units[f]}"
+            lines.append(f"{f} = {self.values[f]:.6g} ± {se:.3g}{unit}")
         lines.append(f"loss = {self.loss:.6g}; {'converged' if self.converged else 'NOT converged'} after {self.steps} steps ({self.reason})")
         lines.extend(f"warning: {w}" for w in self.warnings)
         return "\n".join(lines)
@@ -532,7 +533,7 @@ def identifiability_diagnostics(stats: Mapping, values, fields) -> list[tuple[st
     for j, f in enumerate(fields):
         rel = se[j] / scales[j]
         if not np.isfinite(rel) or rel > RELATIVE_SE_LIMIT:
-            se_txt = "infinite" if not np.isfinite(se[j]) else f"{se[j]:.3g} {UNITS.get(f, '')}".strip()
+            se_txt = "infinite" if not np.isfinite(se[j]) else f"{se[j]:.3g} {_unit_text(UNITS.get(f, ''))}".strip()
             of = f"|value| = {scales[j]:.3g}" if scales[j] > _SCALE_FLOOR.get(f, 0.0) else f"the floor scale {scales[j]:g} (|value| is smaller)"
             add(f, "se", f"{f} is not determined by the data: standard error {se_txt} exceeds 100 % of {of}")
     corr = np.asarray(stats["correlation"], dtype=float)
@@ -594,8 +595,9 @@ class _Engine:
     def init(self, U):
         """Batched dynamic state for starts ``U`` (shape ``(S, p)``)."""
         if hasattr(self, "_optx"):
-            template = self._optx_init_single(U[0])
-            self._static = eqx.partition(template, eqx.is_array)[1]
+            if not hasattr(self, "_static"):  # keep the first one: the compiled step closes over it
+                template = self._optx_init_single(U[0])
+                self._static = eqx.partition(template, eqx.is_array)[1]
             return _strong(jax.vmap(lambda u: eqx.partition(self._optx_init_single(u), eqx.is_array)[0])(U))
         return _strong(jax.vmap(self.solver.init)(U))
 
@@ -656,7 +658,9 @@ class _Engine:
             self.traces += 1  # Python side effect: runs once per trace (compilation)
             return _strong(jax.vmap(one)(U, dyn, done))
 
-        return jax.jit(step)
+        if getattr(self, "_step", None) is None:
+            self._step = jax.jit(step)
+        return self._step
 
     def status_message(self, code: int) -> str:
         if code == -1:
@@ -665,6 +669,27 @@ class _Engine:
             msg = self._optx.RESULTS._index_to_message[code].strip().split("\n")[0]
             return f"optimistix: {msg}"
         return f"status {code}"
+
+
+#: Recently used engines (compiled step functions), so that fitting the same problem again in a
+#: session -- a resume, a re-run with more steps -- does not compile again. The key holds the
+#: identity of the scenario objects (their predict code), a hash of everything else that enters
+#: the traced step (fields, transforms, fixed fields, data, loss) and the solver options; the
+#: entry keeps the scenarios alive, so their ids cannot be reused while cached.
+_ENGINE_CACHE: dict = {}
+_ENGINE_CACHE_SIZE = 8
+
+
+def _cached_engine(problem: FitProblem, method: str, **options) -> _Engine:
+    digest, _ = problem.fingerprint(method, 0)
+    key = (tuple(id(s) for s in problem.scenarios), digest, tuple(sorted(options.items())))
+    engine = _ENGINE_CACHE.pop(key, None)
+    if engine is None:
+        engine = _Engine(problem, method, **options)
+    _ENGINE_CACHE[key] = engine  # most recent last
+    while len(_ENGINE_CACHE) > _ENGINE_CACHE_SIZE:
+        _ENGINE_CACHE.pop(next(iter(_ENGINE_CACHE)))
+    return engine
 
 
 # ============================================================================ checkpoints
@@ -839,7 +864,8 @@ def fit(
     n_starts = int(U.shape[0])
     fingerprint, components = problem.fingerprint(method, n_starts)
 
-    engine = _Engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
+    engine = _cached_engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
+    traces_before = engine.traces
     dyn = engine.init(U)
     step_fn = engine.make_step()
     done = jnp.zeros(n_starts, dtype=bool)
@@ -909,7 +935,7 @@ def fit(
     status_np = np.asarray(status)
     start_converged = done_np & (status_np == 0)
     if start_converged[best]:
-        reason = "converged: step and change below rtol/atol"
+        reason = "step and residual change below rtol/atol"
     elif status_np[best] != 0:
         reason = f"failed: {engine.status_message(int(status_np[best]))}"
     elif stopped_by_callback:
@@ -923,6 +949,8 @@ def fit(
     J = np.asarray(jax.jit(jac_fn(problem.residuals_of_values))(values_vec))
     stats = parameter_statistics(J, np.asarray(values_vec), problem.fields, loss=float(final[best]), absolute_sigma=absolute_sigma)
     diag = identifiability_diagnostics(stats, np.asarray(values_vec), problem.fields)
+    if not start_converged[best]:
+        diag = [(f, f"{msg} (evaluated where the fit stopped without converging: {reason})") for f, msg in diag]
     for _, msg in diag:
         warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
 
@@ -970,7 +998,7 @@ def fit(
         loss_function=loss,
         f_scale=float(f_scale),
         unconstrained=np.asarray(u_best),
-        compilations=engine.traces,
+        compilations=engine.traces - traces_before,
         resumed_from=resumed_from,
     )
 
@@ -1098,10 +1126,19 @@ def _plot_fit(result: FitResult, path: Path):
     fig = Figure(figsize=(5.0 * k, 5.5), layout="constrained")
     axes = fig.subplots(2, k, sharex="col", height_ratios=[3, 1], squeeze=False)
     for j, s in enumerate(result.scenarios):
-        order = np.argsort(s.abscissa, kind="stable")
         top, bottom = axes[0, j], axes[1, j]
         top.errorbar(s.abscissa, s.observed, yerr=s.sigma, fmt="o", ms=3, lw=0.8, color="0.3", label="data")
-        top.plot(s.abscissa[order], s.predicted[order], "-", color="C0", lw=1.6, label="model")
+        # the model as lines along each increasing run of the abscissa (a scenario may concatenate
+        # several outputs or loading segments); as markers when the points are not ordered
+        x = np.asarray(s.abscissa)
+        runs = np.split(np.arange(x.size), np.nonzero(np.diff(x) < 0)[0] + 1)
+        if min(len(r) for r in runs) >= 2:
+            for i, run in enumerate(runs):
+                top.plot(x[run], s.predicted[run], "-", color="C0", lw=1.6, label="model" if i == 0 else None)
+        else:
+            top.plot(x, s.predicted, "x", color="C0", ms=5, label="model")
+        for ax in (top, bottom):
+            ax.ticklabel_format(style="sci", scilimits=(-3, 4), useMathText=True)
         top.set_ylabel(s.y_label)
         top.set_title(s.name)
         top.legend(frameon=False)
@@ -1131,6 +1168,11 @@ def _plot_loss(result: FitResult, path: Path):
     fig.savefig(path, format="png", dpi=110)
 
 
+def _unit_text(unit: str) -> str:
+    """Unit for prose: empty for dimensionless ("1")."""
+    return "" if unit == "1" else unit
+
+
 def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines = ["# Fit report", ""]
     lines.append(f"Model: {record['model'] or '(not given)'}; scenarios: {', '.join(names)}.")
@@ -1145,11 +1187,11 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
         v, se = result.values[f], result.standard_errors[f]
         rel = f"{100 * se / abs(v):.3g} %" if v != 0 and math.isfinite(se) else "-"
         se_txt = f"{se:.4g}" if math.isfinite(se) else "not determined"
-        lines.append(f"| {f} | {v:.6g} | {se_txt} | {rel} | {result.units[f]} |")
+        lines.append(f"| {f} | {v:.6g} | {se_txt} | {rel} | {_unit_text(result.units[f]) or '-'} |")
     cov_txt = "(J^T J)^-1 (absolute sigma)" if result.absolute_sigma else f"s^2 (J^T J)^-1 with s^2 = SSE/(n-p) = {result.residual_variance:.4g} (n-p = {result.dof})"
     lines += ["", f"Standard errors from the Gauss-Newton covariance {cov_txt}; condition number of J^T J (scaled) {result.condition_number:.3g}."]
     if record["fixed_parameters"]:
-        lines += ["", "Fixed: " + ", ".join(f"{k} = {d['value']:g} {d['unit']}" for k, d in record["fixed_parameters"].items()) + "."]
+        lines += ["", "Fixed: " + ", ".join(f"{k} = {d['value']:g}{' ' + _unit_text(d['unit']) if _unit_text(d['unit']) else ''}" for k, d in record["fixed_parameters"].items()) + "."]
     if len(result.fields) > 1:
         lines += ["", "## Correlations", "", "| | " + " | ".join(result.fields) + " |", "|---" * (len(result.fields) + 1) + "|"]
         for i, f in enumerate(result.fields):
