@@ -798,8 +798,8 @@ def fit(
     seed: int = 0,
     start_spread: float = 1.0,
     max_steps: int = 200,
-    rtol: float = 1e-8,
-    atol: float = 1e-10,
+    rtol: float | None = None,
+    atol: float | None = None,
     learning_rate: float = 0.05,
     jac: str = "fwd",
     absolute_sigma: bool = False,
@@ -826,6 +826,7 @@ def fit(
         max_steps: total optimiser steps (a resumed fit counts the steps already taken).
         rtol, atol: stop a start when both the step in ``u`` and the change of the residuals
             (optimistix Cauchy criterion; for optax the loss) are below ``atol + rtol * |.|``.
+            Default ``1e-8, 1e-10`` in float64 and ``1e-5, 1e-7`` in float32 (the dtype of ``u``).
         learning_rate: Adam step size in ``u`` (ignored by the other methods).
         jac: ``"fwd"`` or ``"bwd"``: forward- or reverse-mode Jacobian (use ``"bwd"`` for
             scenarios whose derivatives are ``custom_vjp`` only).
@@ -862,6 +863,9 @@ def fit(
     problem = FitProblem(scenarios, parameterization, initial, loss=loss, f_scale=f_scale)
     U = _initial_starts(parameterization, initial, starts, seed, start_spread)
     n_starts = int(U.shape[0])
+    double = U.dtype == jnp.float64
+    rtol = (1e-8 if double else 1e-5) if rtol is None else float(rtol)
+    atol = (1e-10 if double else 1e-7) if atol is None else float(atol)
     fingerprint, components = problem.fingerprint(method, n_starts)
 
     engine = _cached_engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
