@@ -244,3 +244,13 @@ class CheckpointMismatchError(CheckpointError):
 class IdentifiabilityWarning(DifftissueWarning):
     """A fitted parameter is not determined by the data (singular or ill-conditioned J^T J,
     relative standard error above 100 %, or a correlation above 0.99 in magnitude)."""
+
+
+# ====================================================================== configuration
+# (appended block: errors of the scenarios and of fit configuration files)
+__all__ += ["ConfigError"]
+
+
+class ConfigError(DifftissueError):
+    """A scenario or fit configuration is invalid: a missing or unknown key, a value of the
+    wrong type or out of range. The message names the key (e.g. ``experiment[0].radius``)."""

@@ -1,0 +1,370 @@
+"""Rigid frictionless indenters and compression platens.
+
+Two ways a rigid body loads the tissue, both differentiable:
+
+- **Penalty contact** (:class:`SphereIndenter`, :class:`ConeIndenter`): the contact region
+  is unknown, so every candidate surface node ``i`` carries the energy
+  ``kappa_i / 2 * max(p_i, 0)^2`` of its penetration ``p_i`` [m] into the indenter. The
+  penalty ``kappa_i = penalty * E * A_i / h_i`` [N/m] scales with the stiffest Young's modulus
+  ``E``, the node's tributary surface area ``A_i`` and its local size ``h_i = sqrt(A_i)``, so
+  the penetration relative to the local deformation is about ``1 / penalty`` whatever the
+  material and mesh (default ``penalty = 100``; see ``docs/contact.md`` for the measured bias).
+  The contact is frictionless: the penalty force is normal to the indenter surface.
+  :class:`ContactModel` adds these terms to any :class:`~difftissue.models.ElasticModel`, so
+  the static solver minimises elastic + contact energy with Newton's method and
+  differentiates the equilibrium implicitly, as without contact.
+- **Prescribed displacement** (:class:`FlatPunch`, :class:`Platens`): a flat rigid face in
+  full contact moves its nodes with it. Frictionless: only the normal (z) component is
+  prescribed and the nodes slide; bonded: all three components. The reaction force is the
+  sum of the static solution's reactions over those nodes.
+
+Conventions: the tissue surface is the plane ``z = surface_z`` with the tissue below it; the
+indenter approaches along ``-z``; ``depth`` [m] is positive into the tissue; reaction forces
+are reported positive when they push the indenter back (compressive), in N.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .boundary import BoundaryConditions
+from .errors import BoundaryConditionError, ModelError
+from .materials import Material
+from .mesh import TetMesh
+from .models import ElasticModel, ElementTerm
+
+__all__ = [
+    "Indenter",
+    "SphereIndenter",
+    "ConeIndenter",
+    "FlatPunch",
+    "Platens",
+    "ContactModel",
+    "surface_node_areas",
+    "contact_force",
+    "top_surface_nodes",
+]
+
+
+def _positive(name: str, value, unit: str = "m") -> float:
+    v = float(value)
+    if not np.isfinite(v) or v <= 0:
+        raise ModelError(f"{name} must be a positive finite number [{unit}], got {value!r}")
+    return v
+
+
+def _safe_norm(v, axis=-1):
+    # sqrt(|v|^2 + tiny): differentiable at 0 (a node exactly on the axis or at the apex).
+    return jnp.sqrt(jnp.sum(v * v, axis=axis) + jnp.finfo(v.dtype).tiny ** 0.5)
+
+
+# --------------------------------------------------------------------- indenters
+@dataclasses.dataclass(frozen=True, kw_only=True)
+class Indenter:
+    """Geometry of a rigid axisymmetric indenter whose tip is at
+    ``(axis_xy[0], axis_xy[1], surface_z - depth)``.
+
+    A frozen (hashable) dataclass: the geometry is static data of a compiled solve, the
+    ``depth`` [m] is passed separately and may be traced, so a ``lax.scan`` over a depth
+    protocol compiles once. Subclasses define :meth:`penetration`.
+    """
+
+    axis_xy: tuple[float, float] = (0.0, 0.0)
+    surface_z: float = 0.0
+
+    def __post_init__(self):
+        object.__setattr__(self, "axis_xy", (float(self.axis_xy[0]), float(self.axis_xy[1])))
+        object.__setattr__(self, "surface_z", float(self.surface_z))
+
+    def tip(self, depth):
+        """Position [m] of the lowest point of the indenter at ``depth``, shape ``(3,)``."""
+        d = jnp.asarray(depth, dtype=float)
+        return jnp.stack([jnp.full_like(d, self.axis_xy[0]), jnp.full_like(d, self.axis_xy[1]), self.surface_z - d])
+
+    def penetration(self, x, depth):
+        """Penetration [m] of points ``x (..., 3)`` into the indenter at ``depth`` (> 0 inside)."""
+        raise NotImplementedError
+
+
+@dataclasses.dataclass(frozen=True)
+class SphereIndenter(Indenter):
+    """Rigid sphere of ``radius`` [m] (Hertz / Dimitriadis geometry)."""
+
+    radius: float = 1.0
+
+    def __post_init__(self):
+        super().__post_init__()
+        object.__setattr__(self, "radius", _positive("sphere radius", self.radius))
+
+    def penetration(self, x, depth):
+        c = self.tip(depth) + jnp.array([0.0, 0.0, self.radius])
+        return self.radius - _safe_norm(x - c)
+
+
+@dataclasses.dataclass(frozen=True)
+class ConeIndenter(Indenter):
+    """Rigid cone of ``half_angle`` [rad] between its axis and its surface (Sneddon geometry).
+
+    The penetration is the distance to the cone surface in the meridian plane,
+    ``(z_tip - z) sin(theta) + r cos(theta)`` with the sign flipped; it is exact on the
+    lateral surface, which is all a cone touches when it goes less deep than its height.
+    """
+
+    half_angle: float = 0.5
+
+    def __post_init__(self):
+        super().__post_init__()
+        if not (0.0 < float(self.half_angle) < np.pi / 2):
+            raise ModelError(f"cone half_angle must lie in (0, pi/2) rad, got {self.half_angle!r}")
+
+    def penetration(self, x, depth):
+        tip = self.tip(depth)
+        r = _safe_norm(x[..., :2] - tip[:2])
+        dz = x[..., 2] - tip[2]
+        return dz * np.sin(self.half_angle) - r * np.cos(self.half_angle)
+
+
+def surface_node_areas(mesh: TetMesh, nodes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Boundary nodes and their tributary surface areas [m^2] (a third of each face).
+
+    Args:
+        nodes: restrict to these node ids (they must be on the boundary).
+
+    Returns:
+        ``(node_ids (K,), areas (K,))``.
+    """
+    p = np.asarray(mesh.points, dtype=float)
+    f = mesh.boundary_faces
+    a = 0.5 * np.linalg.norm(np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]]), axis=1)
+    area = np.zeros(len(p))
+    np.add.at(area, f.reshape(-1), np.repeat(a / 3.0, 3))
+    ids = np.flatnonzero(area > 0) if nodes is None else np.asarray(nodes, dtype=np.int64).reshape(-1)
+    if nodes is not None and np.any(area[ids] <= 0):
+        bad = ids[area[ids] <= 0]
+        raise BoundaryConditionError(f"contact nodes must lie on the boundary; nodes {bad[:8].tolist()} are interior")
+    return ids.astype(np.int32), area[ids]
+
+
+def top_surface_nodes(mesh: TetMesh, *, tolerance: float = 1e-9) -> np.ndarray:
+    """Boundary nodes on the top plane ``z = max z`` (within ``tolerance`` x the mesh size)."""
+    p = np.asarray(mesh.points)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    tol = tolerance * float(np.linalg.norm(hi - lo))
+    ids, _ = surface_node_areas(mesh)
+    return ids[np.abs(p[ids, 2] - hi[2]) <= tol]
+
+
+@dataclasses.dataclass(frozen=True)
+class _PenaltyEnergy:
+    # energy(x_e (1, 3), kappa, depth) of one candidate node; hashable (a static field).
+    indenter: Indenter
+
+    def __call__(self, x_e, kappa, depth):
+        return 0.5 * kappa * jnp.maximum(self.indenter.penetration(x_e[0], depth), 0.0) ** 2
+
+
+class ContactModel(ElasticModel):
+    """An :class:`~difftissue.models.ElasticModel` plus frictionless penalty contact with a
+    rigid indenter: pass it to :func:`~difftissue.solvers.static.solve_static` instead of
+    the base model.
+
+    Attributes (besides the base model's):
+        base: the elastic model.
+        indenter: a :class:`SphereIndenter` or :class:`ConeIndenter` (static geometry).
+        depth: indenter depth [m] (a leaf: :meth:`with_depth` does not recompile).
+        contact_nodes: ``(K,)`` candidate surface nodes.
+        penalty_factors: ``(K,)`` ``penalty * A_i / h_i`` [m]; ``kappa_i`` = this x the largest
+            Young's modulus of the material (held constant under differentiation: the
+            penalty is a numerical device, not a physical parameter).
+    """
+
+    base: ElasticModel
+    indenter: Indenter = eqx.field(static=True)
+    depth: jax.Array
+    contact_nodes: np.ndarray
+    penalty_factors: np.ndarray
+
+    def __init__(self, base: ElasticModel, indenter: Indenter, mesh: TetMesh, *, depth=0.0, nodes=None, penalty: float = 100.0):
+        """
+        Args:
+            base: the elastic model of ``mesh``.
+            indenter: the rigid indenter.
+            mesh: the mesh of ``base`` (for the surface).
+            depth: indenter depth [m].
+            nodes: candidate contact nodes (default: the top surface, see
+                :func:`top_surface_nodes`); they must be boundary nodes.
+            penalty: dimensionless penalty ``kappa_i h_i / (E A_i)``; larger is stiffer contact
+                (less penetration) but a worse-conditioned Newton system.
+        """
+        if not isinstance(base, ElasticModel) or isinstance(base, ContactModel):
+            raise ModelError("ContactModel needs a plain ElasticModel as base (one indenter per model)")
+        if not isinstance(indenter, (SphereIndenter, ConeIndenter)):
+            raise ModelError(
+                f"penalty contact supports SphereIndenter and ConeIndenter, got {type(indenter).__name__}; "
+                "a FlatPunch or Platens is applied as boundary conditions (.apply)"
+            )
+        if np.shape(mesh.points) != np.shape(base.rest_points) or not np.allclose(mesh.points, base.rest_points):
+            raise ModelError("ContactModel: mesh does not match the base model's rest points")
+        penalty = _positive("penalty", penalty, "-")
+        ids, area = surface_node_areas(mesh, top_surface_nodes(mesh) if nodes is None else nodes)
+        if ids.size == 0:
+            raise BoundaryConditionError("no candidate contact nodes on the surface")
+        for k in ("kind", "rest_points", "tets", "tet_regions", "tet_Dm_inv", "tet_volumes", "region_names", "nu_min"):
+            setattr(self, k, getattr(base, k))
+        self.base = base
+        self.indenter = indenter
+        self.depth = jnp.asarray(depth, dtype=float)
+        self.contact_nodes = ids
+        self.penalty_factors = penalty * np.sqrt(area)
+
+    def with_depth(self, depth) -> "ContactModel":
+        """The same model with the indenter at ``depth`` [m] (traceable: no recompile)."""
+        return eqx.tree_at(lambda m: m.depth, self, jnp.asarray(depth, dtype=float))
+
+    def _kappa(self, material: Material):
+        E = jnp.max(self.base.region_values(material)["youngs_modulus"])
+        return jax.lax.stop_gradient(E) * self.penalty_factors
+
+    def terms(self, material):
+        n = self.contact_nodes.shape[0]
+        depth = jnp.broadcast_to(self.depth, (n,))
+        contact = ElementTerm("contact", self.contact_nodes[:, None], _PenaltyEnergy(self.indenter), (self._kappa(material), depth))
+        return tuple(self.base.terms(material)) + (contact,)
+
+    def min_volume_ratio(self, x):
+        return self.base.min_volume_ratio(x)
+
+    def penetrations(self, x):
+        """Penetration [m] of every candidate node at positions ``x`` (> 0: in contact)."""
+        return self.indenter.penetration(x[self.contact_nodes], self.depth)
+
+    def contact_energy(self, x, material: Material, depth=None):
+        """Penalty energy [J] at positions ``x`` and indenter ``depth`` (default: the model's)."""
+        p = self.indenter.penetration(x[self.contact_nodes], self.depth if depth is None else depth)
+        return 0.5 * jnp.sum(self._kappa(material) * jnp.maximum(p, 0.0) ** 2)
+
+    def reaction_force(self, x, material: Material):
+        """Force [N] the tissue exerts on the indenter along +z (positive compressive).
+
+        ``dE_contact / d depth`` at fixed nodes: the sum of the penalty forces' axial parts.
+        """
+        return jax.grad(lambda d: self.contact_energy(x, material, d))(self.depth)
+
+    def contact_radius(self, x):
+        """Largest distance [m] from the axis of a node in contact at positions ``x``."""
+        pts = x[self.contact_nodes]
+        r = jnp.hypot(pts[:, 0] - self.indenter.axis_xy[0], pts[:, 1] - self.indenter.axis_xy[1])
+        return jnp.max(jnp.where(self.penetrations(x) > 0, r, 0.0))
+
+
+def contact_force(model: ContactModel, solution, material: Material):
+    """Indentation force [N] (positive compressive) of a static solution of a :class:`ContactModel`."""
+    x = jnp.asarray(model.rest_points) + solution.displacement
+    return model.reaction_force(x, material)
+
+
+# ------------------------------------------------------- displacement-type contact
+def _nodes_in_disc(mesh: TetMesh, radius: float, axis_xy, surface_z: float, tol: float):
+    p = np.asarray(mesh.points)
+    ids = top_surface_nodes(mesh)
+    on_top = ids[np.abs(p[ids, 2] - surface_z) <= tol]
+    r = np.hypot(p[on_top, 0] - axis_xy[0], p[on_top, 1] - axis_xy[1])
+    return on_top[r <= radius + tol]
+
+
+class FlatPunch(eqx.Module):
+    """Rigid flat cylindrical punch of ``radius`` [m] in full contact (Sneddon / Hayes geometry).
+
+    Applied as prescribed displacements of the top-surface nodes within ``radius`` of the
+    axis: ``u_z = -depth`` (frictionless: the nodes slide freely) or ``u = (0, 0, -depth)``
+    (``bonded=True``). With a mesh, the effective punch radius is that of the outermost node
+    ring inside ``radius``.
+    """
+
+    radius: float = eqx.field(static=True)
+    axis_xy: tuple[float, float] = eqx.field(static=True, default=(0.0, 0.0))
+    bonded: bool = eqx.field(static=True, default=False)
+
+    def __init__(self, radius, *, axis_xy=(0.0, 0.0), bonded: bool = False):
+        self.radius = _positive("punch radius", radius)
+        self.axis_xy = (float(axis_xy[0]), float(axis_xy[1]))
+        self.bonded = bool(bonded)
+
+    def nodes(self, mesh: TetMesh, *, tolerance: float = 1e-9) -> np.ndarray:
+        """Top-surface nodes under the punch."""
+        p = np.asarray(mesh.points)
+        size = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+        ids = _nodes_in_disc(mesh, self.radius, self.axis_xy, float(p[:, 2].max()), tolerance * size)
+        if ids.size == 0:
+            raise BoundaryConditionError(f"no surface node lies under the punch of radius {self.radius:g} m at {self.axis_xy}; refine the mesh")
+        return ids
+
+    def apply(self, mesh: TetMesh, bc: BoundaryConditions, depth) -> BoundaryConditions:
+        """``bc`` with the punch nodes' displacements prescribed for ``depth`` [m]."""
+        return _prescribe(bc, self.nodes(mesh), depth, "xyz" if self.bonded else "z")
+
+
+class Platens(eqx.Module):
+    """Two rigid parallel platens compressing a specimen along z (unconfined compression).
+
+    The bottom platen at ``z = min z`` is fixed, the top one at ``z = max z`` moves down by
+    the displacement. ``bonded=False`` (frictionless, the ideal lubricated test): only
+    ``u_z`` is prescribed on both faces, and the in-plane rigid modes are removed by fixing
+    ``u_x, u_y`` of the bottom node nearest the axis and ``u_y`` (or ``u_x``) of one more
+    bottom node — which carry no force in the homogeneous solution. ``bonded=True`` (no
+    slip, barrelling): all components of both faces are prescribed.
+    """
+
+    bonded: bool = eqx.field(static=True, default=False)
+
+    def faces(self, mesh: TetMesh, *, tolerance: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+        """``(bottom_nodes, top_nodes)``."""
+        p = np.asarray(mesh.points)
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        tol = tolerance * float(np.linalg.norm(hi - lo))
+        return np.flatnonzero(np.abs(p[:, 2] - lo[2]) <= tol), np.flatnonzero(np.abs(p[:, 2] - hi[2]) <= tol)
+
+    def apply(self, mesh: TetMesh, bc: BoundaryConditions, displacement, *, symmetry_planes: Sequence[str] = ()) -> BoundaryConditions:
+        """``bc`` with the platens applied for a top-platen ``displacement`` [m] (positive down).
+
+        Args:
+            symmetry_planes: ``"x"`` and/or ``"y"``: the model is cut by the plane through the
+                specimen's axis normal to x (or y), which already carries ``u_x = 0`` (``u_y =
+                0``); then the in-plane pinning uses those planes.
+        """
+        bottom, top = self.faces(mesh)
+        comps = "xyz" if self.bonded else "z"
+        bc = _prescribe(bc, bottom, 0.0, comps)
+        bc = _prescribe(bc, top, displacement, comps)
+        if not self.bonded:
+            p = np.asarray(mesh.points)
+            c = p[bottom, :2].mean(axis=0)
+            sym = set(symmetry_planes)
+            if not {"x", "y"} <= sym:
+                anchor = bottom[np.argmin(np.linalg.norm(p[bottom, :2] - c, axis=1))]
+                bc = bc.fix(mesh, np.array([anchor]), "xy")
+                if not sym:
+                    # a second bottom node away from the anchor along x stops rotation about z
+                    d = p[bottom, :2] - p[anchor, :2]
+                    other = bottom[np.argmax(np.abs(d[:, 0]) - 1e-3 * np.abs(d[:, 1]))]
+                    bc = bc.fix(mesh, np.array([other]), "y")
+        return bc
+
+
+def _prescribe(bc: BoundaryConditions, nodes: np.ndarray, depth_or_value, components: str) -> BoundaryConditions:
+    nodes = np.asarray(nodes, dtype=np.int64)
+    comps = [{"x": 0, "y": 1, "z": 2}[c] for c in components]
+    fixed = np.array(bc.fixed, copy=True)
+    mask = np.zeros_like(fixed)
+    for c in comps:
+        mask[nodes, c] = True
+    fixed |= mask
+    target = jnp.zeros_like(bc.displacement).at[nodes, 2].set(-jnp.asarray(depth_or_value, dtype=bc.displacement.dtype))
+    disp = jnp.where(jnp.asarray(mask), target, bc.displacement)
+    return BoundaryConditions(fixed, disp, bc.force)

@@ -1,0 +1,689 @@
+"""Experiments as pure ``material -> predictions`` functions.
+
+A scenario holds everything about one measurement except the material: the specimen and
+its model, the boundary conditions, the loading protocol and the measured values. Its
+:meth:`predict` maps a :class:`~difftissue.materials.Material` to predictions of the
+measured quantity (SI units), jit-compatible and differentiable, so :func:`difftissue.fit.fit`
+can fit any of them, alone or jointly. Every scenario has:
+
+- ``name``; ``observed`` ``(n,)`` and ``sigma`` ``(n,)`` (the measurement scale used as
+  the weight ``1/sigma``) in the unit of the prediction;
+- ``abscissa`` ``(n,)`` with ``x_label`` / ``y_label`` (units included) for plots;
+- ``predict(material) -> (n,)``.
+
+Scenarios:
+
+- :class:`AnalyticIndentation`: Hertz, Sneddon punch or cone, Hayes punch on a layer, the
+  exact bonded-layer sphere and the Dimitriadis series (the fast path AFM users expect).
+- :class:`Indentation`: simulated indentation of a block, layered skin or imported mesh by a
+  sphere, cone (frictionless penalty contact) or flat punch, with a bonded or sliding base,
+  following a depth protocol (each depth starts from the previous equilibrium).
+- :class:`Compression`: unconfined compression of a block or cylinder between frictionless
+  or bonded platens, engineering or true stress-strain.
+- :class:`FEMField`: a reference FEM displacement field (and optionally a reaction force)
+  reproduced with the same boundary conditions.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, Sequence
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from . import analytic
+from .boundary import BoundaryConditions
+from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, top_surface_nodes
+from .errors import BoundaryConditionError, ConfigError, DataError, ModelError
+from .materials import Material
+from .mesh import TetMesh, structured_grid
+from .models import ElasticModel, make_model
+from .selectors import select_nodes
+from .solvers.static import solve_static
+
+__all__ = [
+    "AnalyticIndentation",
+    "Indentation",
+    "Compression",
+    "FEMField",
+    "graded_axis",
+    "indentation_block",
+    "cylinder",
+    "recover_lattice",
+]
+
+
+def _as_1d(name, v) -> np.ndarray:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.size == 0:
+        raise DataError(f"{name} is empty")
+    if not np.all(np.isfinite(a)):
+        raise DataError(f"{name} contains NaN or infinite values")
+    return a
+
+
+def _sigma(observed: np.ndarray, sigma) -> np.ndarray:
+    """Measurement scale: given (scalar or per point), else the RMS of the data (uniform)."""
+    if sigma is None:
+        s = float(np.sqrt(np.mean(observed**2)))
+        return np.full_like(observed, s if s > 0 else 1.0)
+    s = np.broadcast_to(np.asarray(sigma, dtype=float), observed.shape).copy()
+    if not np.all(np.isfinite(s) & (s > 0)):
+        raise DataError("sigma must be positive and finite")
+    return s
+
+
+def _check_depths(depths: np.ndarray) -> None:
+    if np.any(depths < 0):
+        raise DataError(f"indentation depths must be >= 0 m (positive into the specimen); got min {depths.min():.3g} m")
+    if np.any(np.diff(depths) < 0):
+        raise DataError("the depth protocol must be non-decreasing (simulate the approach segment; each depth starts from the previous equilibrium)")
+
+
+# =========================================================================== analytic
+class AnalyticIndentation(eqx.Module):
+    """Force-depth curve of a closed-form (or exact layer) indentation solution.
+
+    Args:
+        depths, forces: the curve [m], [N] (depth from the contact point, force compressive).
+        indenter: ``"sphere"`` (``radius``), ``"flat_punch"`` (``radius``) or ``"cone"``
+            (``half_angle`` [rad]).
+        thickness: layer thickness [m] for the finite-thickness solutions (``None``: half-space).
+        solution: ``"half_space"`` (Hertz / Sneddon), ``"exact_layer"`` (sphere: the exact
+            layer integral equation; punch: Hayes), ``"dimitriadis"`` (sphere on a layer).
+        base: ``"bonded"`` or ``"lubricated"`` layer base.
+        sigma: measurement scale [N] (default: RMS force, uniform weights).
+    """
+
+    name: str = eqx.field(static=True)
+    abscissa: np.ndarray
+    observed: np.ndarray
+    sigma: np.ndarray
+    indenter: str = eqx.field(static=True)
+    size: float = eqx.field(static=True)
+    thickness: float | None = eqx.field(static=True)
+    solution: str = eqx.field(static=True)
+    base: str = eqx.field(static=True)
+    x_label: str = eqx.field(static=True, default="depth [m]")
+    y_label: str = eqx.field(static=True, default="force [N]")
+
+    def __init__(self, depths, forces, *, indenter="sphere", radius=None, half_angle=None, thickness=None, solution="half_space", base="bonded", sigma=None, name="indentation"):
+        self.name = str(name)
+        self.abscissa = _as_1d("depths", depths)
+        self.observed = _as_1d("forces", forces)
+        if self.abscissa.shape != self.observed.shape:
+            raise DataError(f"{self.abscissa.size} depths but {self.observed.size} forces")
+        if np.any(self.abscissa < 0):
+            raise DataError("indentation depths must be >= 0 m")
+        self.sigma = _sigma(self.observed, sigma)
+        if indenter not in ("sphere", "flat_punch", "cone"):
+            raise ConfigError(f"indenter must be 'sphere', 'flat_punch' or 'cone', got {indenter!r}")
+        if indenter == "cone":
+            if half_angle is None:
+                raise ConfigError("a cone needs half_angle [rad]")
+            size = float(half_angle)
+        else:
+            if radius is None:
+                raise ConfigError(f"a {indenter} needs radius [m]")
+            size = float(radius)
+        solutions = {"sphere": ("half_space", "exact_layer", "dimitriadis"), "flat_punch": ("half_space", "exact_layer"), "cone": ("half_space",)}
+        if solution not in solutions[indenter]:
+            raise ConfigError(f"solution {solution!r} is not available for a {indenter}; choose one of {solutions[indenter]}")
+        if solution != "half_space" and thickness is None:
+            raise ConfigError(f"solution {solution!r} needs the layer thickness [m]")
+        if base not in ("bonded", "lubricated"):
+            raise ConfigError(f"base must be 'bonded' or 'lubricated', got {base!r}")
+        self.indenter, self.size, self.solution, self.base = indenter, size, solution, base
+        self.thickness = None if thickness is None else float(thickness)
+        self.x_label, self.y_label = "depth [m]", "force [N]"
+
+    def predict(self, material: Material):
+        d = jnp.asarray(self.abscissa)
+        E, nu = material.youngs_modulus, material.poisson_ratio
+        if self.indenter == "sphere":
+            if self.solution == "half_space":
+                return analytic.hertz_force(d, E, nu, self.size)
+            if self.solution == "dimitriadis":
+                return analytic.dimitriadis_force(d, E, nu, self.size, self.thickness, base=self.base)
+            return analytic.layer_sphere_force(d, E, nu, self.size, self.thickness, base=self.base)
+        if self.indenter == "flat_punch":
+            if self.solution == "half_space":
+                return analytic.flat_punch_force(d, E, nu, self.size)
+            return analytic.layer_flat_punch_force(d, E, nu, self.size, self.thickness, base=self.base)
+        return analytic.cone_force(d, E, nu, self.size)
+
+
+# ============================================================================ meshes
+def graded_axis(length: float, cells: int, first: float | None = None) -> np.ndarray:
+    """Node coordinates ``0 .. length`` [m] with ``cells`` cells growing geometrically from
+    ``first`` [m] (uniform when ``first`` is None or ``>= length / cells``)."""
+    length, cells = float(length), int(cells)
+    if not (length > 0 and cells >= 1):
+        raise ModelError(f"an axis needs a positive length and >= 1 cell, got {length}, {cells}")
+    if first is None or first >= length / cells:
+        return np.linspace(0.0, length, cells + 1)
+    if first <= 0:
+        raise ModelError(f"first cell size must be > 0 m, got {first}")
+    from scipy.optimize import brentq
+
+    q = brentq(lambda q: first * (q**cells - 1.0) / (q - 1.0) - length, 1.0 + 1e-12, 1e3)
+    x = np.concatenate([[0.0], np.cumsum(first * q ** np.arange(cells))])
+    x[-1] = length
+    return x
+
+
+def indentation_block(size, cells, *, symmetry: str = "quarter", refine: float | None = None) -> TetMesh:
+    """A block for indentation along -z at the axis x = y = 0, top surface at ``z = size[2]``.
+
+    Args:
+        size: ``(Lx, Ly, H)`` [m] of the whole specimen.
+        cells: ``(nx, ny, nz)`` cells of the modelled part.
+        symmetry: ``"quarter"`` models ``[0, Lx/2] x [0, Ly/2] x [0, H]`` (the axis on the
+            corner, symmetry planes x = 0 and y = 0); ``"none"`` models
+            ``[-Lx/2, Lx/2] x [-Ly/2, Ly/2] x [0, H]``.
+        refine: first cell size [m] at the axis and at the surface, growing geometrically
+            (None: uniform cells). Graded cells are not cubes: use the FEM or stable
+            neo-Hookean models with them (springs_volume refuses elongated cells).
+    """
+    Lx, Ly, H = (float(v) for v in np.broadcast_to(np.asarray(size, dtype=float), (3,)))
+    nx, ny, nz = (int(v) for v in np.broadcast_to(np.asarray(cells), (3,)))
+    if symmetry == "quarter":
+        xs, ys = graded_axis(Lx / 2, nx, refine), graded_axis(Ly / 2, ny, refine)
+    elif symmetry == "none":
+        if refine is not None:
+            hx, hy = graded_axis(Lx / 2, max(nx // 2, 1), refine), graded_axis(Ly / 2, max(ny // 2, 1), refine)
+            xs, ys = np.concatenate([-hx[::-1], hx[1:]]), np.concatenate([-hy[::-1], hy[1:]])
+        else:
+            xs, ys = np.linspace(-Lx / 2, Lx / 2, nx + 1), np.linspace(-Ly / 2, Ly / 2, ny + 1)
+    else:
+        raise ConfigError(f"symmetry must be 'quarter' or 'none', got {symmetry!r}")
+    zs = H - graded_axis(H, nz, refine)[::-1]
+    return structured_grid(xs, ys, zs, region_names=("tissue",))
+
+
+def cylinder(diameter: float, height: float, cells_radial: int = 4, cells_height: int = 4) -> TetMesh:
+    """A cylinder along z (base at z = 0) meshed by mapping a structured square grid onto the
+    disc (Shirley-Chiu-free elliptical map), so its tets are valid but not a cube lattice:
+    use it with the FEM or stable neo-Hookean models."""
+    r = float(diameter) / 2
+    n = int(cells_radial)
+    if not (r > 0 and float(height) > 0 and n >= 1 and int(cells_height) >= 1):
+        raise ModelError("cylinder needs positive diameter, height and cell counts")
+    s = np.linspace(-1.0, 1.0, 2 * n + 1)
+    grid = structured_grid(s, s, np.linspace(0.0, float(height), int(cells_height) + 1))
+    p = np.array(grid.points)
+    u, v = p[:, 0], p[:, 1]
+    p[:, 0] = r * u * np.sqrt(1.0 - v**2 / 2.0)
+    p[:, 1] = r * v * np.sqrt(1.0 - u**2 / 2.0)
+    return TetMesh(p, grid.tets, grid.region_ids, grid.region_names)
+
+
+def recover_lattice(mesh: TetMesh) -> TetMesh:
+    """Re-attach the cube lattice to a mesh that is a Freudenthal-split rectilinear grid
+    (e.g. written by :func:`~difftissue.mesh.block` and read back from a file, which loses it).
+
+    Raises :class:`~difftissue.errors.ModelError` when the mesh is not such a grid.
+    """
+    p = np.asarray(mesh.points)
+    size = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+    tol = 1e-9 * size
+    axes = []
+    for a in range(3):
+        c = np.sort(p[:, a])
+        keep = np.concatenate([[True], np.diff(c) > tol])
+        axes.append(c[keep])
+    not_grid = ModelError("the mesh is not a rectilinear grid split into 6 tets per box, so it has no cube lattice; use the fem_* or stable_neo_hookean models")
+    if np.prod([len(a) for a in axes]) != len(p):
+        raise not_grid
+    grid = structured_grid(*axes)
+    idx = [np.clip(np.searchsorted(axes[a], p[:, a] - tol), 0, len(axes[a]) - 1) for a in range(3)]
+    nx1, ny1 = len(axes[0]), len(axes[1])
+    grid_id = idx[0] + nx1 * (idx[1] + ny1 * idx[2])  # grid node of each mesh node
+    if len(np.unique(grid_id)) != len(p) or not np.allclose(np.asarray(grid.points)[grid_id], p, atol=10 * tol):
+        raise not_grid
+    to_mesh = np.empty(len(p), dtype=np.int64)
+    to_mesh[grid_id] = np.arange(len(p))
+    mine = {tuple(sorted(t)) for t in mesh.tets.tolist()}
+    theirs = [tuple(sorted(t)) for t in to_mesh[grid.tets].tolist()]
+    if len(mine) != len(theirs) or any(t not in mine for t in theirs):
+        raise not_grid
+    lat = grid.lattice
+    # region of each cube = region of its tets (6 consecutive tets per cube in the grid)
+    tet_index = {tuple(sorted(t)): i for i, t in enumerate(mesh.tets.tolist())}
+    cube_regions = np.array([mesh.region_ids[tet_index[theirs[6 * c]]] for c in range(lat.n_cubes)], dtype=np.int32)
+    lattice = eqx.tree_at(lambda l: (l.cubes, l.springs, l.cube_region_ids), lat, (to_mesh[lat.cubes].astype(lat.cubes.dtype), to_mesh[lat.springs].astype(lat.springs.dtype), cube_regions))
+    return TetMesh(mesh.points, mesh.tets, mesh.region_ids, mesh.region_names, point_data=mesh.point_data, cell_data=mesh.cell_data, lattice=lattice, validate=False)
+
+
+# ====================================================================== simulations
+@dataclasses.dataclass(frozen=True)
+class SolverOptions:
+    """Options of the static solves inside a scenario (see :func:`solve_static`)."""
+
+    rtol: float = 1e-9
+    xtol: float = 1e-8
+    max_steps: int = 50
+    linear_solver: str = "auto"
+
+
+def _solve(model, material, bc, u0, opts: SolverOptions):
+    # The warm start (the previous depth's equilibrium) does not change the solution; it
+    # must not carry derivatives into the implicit-gradient solve.
+    u0 = None if u0 is None else jax.lax.stop_gradient(u0)
+    return solve_static(model, material, bc, rtol=opts.rtol, xtol=opts.xtol, max_steps=opts.max_steps, linear_solver=opts.linear_solver, initial_displacement=u0)
+
+
+class Indentation(eqx.Module):
+    """Simulated indentation of a specimen: force at each depth of a protocol.
+
+    The specimen's top surface is indented along -z on the axis ``axis_xy``. Sphere and cone
+    use frictionless penalty contact (:class:`~difftissue.contact.ContactModel`), the flat
+    punch prescribed displacements (frictionless or bonded). The base ``z = min z`` is
+    ``"bonded"`` (all components fixed) or ``"sliding"`` (``u_z = 0``; in-plane rigid modes
+    removed by the symmetry planes or by pinning). With ``symmetry="quarter"`` the mesh is the
+    quarter ``x >= 0, y >= 0`` with the axis on its corner: the planes x = 0 and y = 0 get
+    ``u_x = 0`` / ``u_y = 0`` and the force is multiplied by 4.
+
+    The depths are solved in order, each starting from the previous equilibrium (a
+    ``lax.scan``: one compilation for the whole protocol); the gradient with respect to the
+    material is implicit at every depth.
+    """
+
+    name: str = eqx.field(static=True)
+    abscissa: np.ndarray
+    observed: np.ndarray
+    sigma: np.ndarray
+    model: ElasticModel
+    bc: BoundaryConditions
+    punch_mask: np.ndarray | None
+    force_multiplier: float = eqx.field(static=True)
+    options: SolverOptions = eqx.field(static=True)
+    x_label: str = eqx.field(static=True, default="depth [m]")
+    y_label: str = eqx.field(static=True, default="force [N]")
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        depths,
+        forces=None,
+        *,
+        model: str = "springs_volume",
+        indenter: str = "sphere",
+        radius: float | None = None,
+        half_angle: float | None = None,
+        bonded_punch: bool = False,
+        base: str = "bonded",
+        symmetry: str = "none",
+        axis_xy=None,
+        penalty: float = 100.0,
+        sigma=None,
+        options: SolverOptions = SolverOptions(),
+        name: str = "indentation",
+    ):
+        """
+        Args:
+            mesh: the specimen (e.g. :func:`indentation_block`, a layered skin, a file).
+            depths: depth protocol [m], non-decreasing, from the contact point.
+            forces: measured forces [N] (None: predictions only, ``observed`` is zeros).
+            model: elastic model name (:func:`~difftissue.models.make_model`).
+            indenter: ``"sphere"`` (``radius``), ``"cone"`` (``half_angle`` [rad]) or
+                ``"flat_punch"`` (``radius``; ``bonded_punch`` for a no-slip face).
+            base: ``"bonded"`` or ``"sliding"``.
+            symmetry: ``"quarter"`` or ``"none"`` (see the class docstring).
+            axis_xy: indenter axis [m]; default (0, 0) with quarter symmetry, else the centre of
+                the top surface.
+            penalty: contact penalty (see :class:`~difftissue.contact.ContactModel`).
+        """
+        self.name = str(name)
+        d = _as_1d("depths", depths)
+        _check_depths(d)
+        self.abscissa = d
+        self.observed = np.zeros_like(d) if forces is None else _as_1d("forces", forces)
+        if self.observed.shape != d.shape:
+            raise DataError(f"{d.size} depths but {self.observed.size} forces")
+        self.sigma = _sigma(self.observed, sigma) if forces is not None else np.ones_like(d)
+        self.options = options
+        self.x_label, self.y_label = "depth [m]", "force [N]"
+        p = np.asarray(mesh.points)
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        tol = 1e-9 * float(np.linalg.norm(hi - lo))
+        if symmetry not in ("quarter", "none"):
+            raise ConfigError(f"symmetry must be 'quarter' or 'none', got {symmetry!r}")
+        if symmetry == "quarter":
+            if abs(lo[0]) > tol or abs(lo[1]) > tol:
+                raise BoundaryConditionError("quarter symmetry needs the mesh's x >= 0, y >= 0 quarter with the axis at x = y = 0 (see indentation_block)")
+            axis = (0.0, 0.0)
+        else:
+            top = top_surface_nodes(mesh)
+            axis = tuple(float(v) for v in (0.5 * (p[top, :2].min(axis=0) + p[top, :2].max(axis=0)) if axis_xy is None else axis_xy))
+        self.force_multiplier = 4.0 if symmetry == "quarter" else 1.0
+        bc = BoundaryConditions.free(mesh)
+        if base == "bonded":
+            bc = bc.fix(mesh, {"face": "z-min"})
+        elif base == "sliding":
+            bc = bc.fix(mesh, {"face": "z-min"}, "z")
+        else:
+            raise ConfigError(f"base must be 'bonded' or 'sliding', got {base!r}")
+        if symmetry == "quarter":
+            bc = bc.fix(mesh, {"face": "x-min"}, "x").fix(mesh, {"face": "y-min"}, "y")
+        elif base == "sliding":
+            bottom = np.flatnonzero(np.abs(p[:, 2] - lo[2]) <= tol)
+            anchor = bottom[np.argmin(np.hypot(p[bottom, 0] - axis[0], p[bottom, 1] - axis[1]))]
+            other = bottom[np.argmax(np.abs(p[bottom, 0] - p[anchor, 0]))]
+            bc = bc.fix(mesh, np.array([anchor]), "xy").fix(mesh, np.array([other]), "y")
+        base_model = make_model(mesh, model)
+        if indenter in ("sphere", "cone"):
+            if indenter == "sphere":
+                if radius is None:
+                    raise ConfigError("a sphere indenter needs radius [m]")
+                geom = SphereIndenter(float(radius), axis_xy=axis, surface_z=float(hi[2]))
+            else:
+                if half_angle is None:
+                    raise ConfigError("a cone indenter needs half_angle [rad]")
+                geom = ConeIndenter(float(half_angle), axis_xy=axis, surface_z=float(hi[2]))
+            self.model = ContactModel(base_model, geom, mesh, penalty=penalty)
+            self.punch_mask = None
+        elif indenter == "flat_punch":
+            if radius is None:
+                raise ConfigError("a flat punch needs radius [m]")
+            punch = FlatPunch(float(radius), axis_xy=axis, bonded=bonded_punch)
+            nodes = punch.nodes(mesh)
+            mask = np.zeros((mesh.n_nodes, 3), dtype=bool)
+            mask[nodes, :] = [True, True, True] if bonded_punch else [False, False, True]
+            bc = punch.apply(mesh, bc, 0.0)
+            self.model = base_model
+            self.punch_mask = mask
+        else:
+            raise ConfigError(f"indenter must be 'sphere', 'cone' or 'flat_punch', got {indenter!r}")
+        self.bc = bc
+
+    def _force_at(self, material, depth, u0):
+        if self.punch_mask is None:
+            model = self.model.with_depth(depth)
+            sol = _solve(model, material, self.bc, u0, self.options)
+            force = model.reaction_force(jnp.asarray(model.rest_points) + sol.displacement, material)
+        else:
+            zmask = jnp.asarray(self.punch_mask[:, 2])
+            disp = self.bc.displacement.at[:, 2].set(jnp.where(zmask, -depth, self.bc.displacement[:, 2]))
+            bc = BoundaryConditions(self.bc.fixed, disp, self.bc.force)
+            sol = _solve(self.model, material, bc, u0, self.options)
+            force = -jnp.sum(jnp.where(zmask, sol.reaction[:, 2], 0.0))
+        return self.force_multiplier * force, sol.displacement
+
+    def solve(self, material: Material):
+        """``(forces (n,) [N], displacements (n, N, 3) [m])`` along the protocol."""
+        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
+
+        def step(u, depth):
+            f, u_new = self._force_at(material, depth, u)
+            return u_new, (f, u_new)
+
+        _, (forces, us) = jax.lax.scan(step, u0, jnp.asarray(self.abscissa))
+        return forces, us
+
+    def predict(self, material: Material):
+        """Indentation force [N] at each depth (positive compressive)."""
+        return self.solve(material)[0]
+
+
+class Compression(eqx.Module):
+    """Unconfined compression between rigid platens: stress at each strain of a protocol.
+
+    Predictions are nominal (engineering) stress ``F / A0`` [Pa] against nominal strain
+    ``delta / H`` (``measure="engineering"``), or true stress ``F / A`` with the current mean
+    cross-section ``A = V / h`` (volume over current height) against true strain
+    ``-ln(1 - delta / H)`` (``measure="true"``); compression positive.
+
+    With frictionless platens the deformation of a homogeneous specimen is homogeneous, so a
+    small block gives the exact answer for any specimen shape; bonded platens (barrelling)
+    need the real shape (:func:`cylinder`).
+    """
+
+    name: str = eqx.field(static=True)
+    abscissa: np.ndarray
+    observed: np.ndarray
+    sigma: np.ndarray
+    model: ElasticModel
+    bc: BoundaryConditions
+    top_mask: np.ndarray
+    height: float = eqx.field(static=True)
+    area: float = eqx.field(static=True)
+    measure: str = eqx.field(static=True)
+    options: SolverOptions = eqx.field(static=True)
+    x_label: str = eqx.field(static=True, default="strain [-]")
+    y_label: str = eqx.field(static=True, default="stress [Pa]")
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        strains,
+        stresses=None,
+        *,
+        model: str = "springs_volume",
+        bonded: bool = False,
+        measure: str = "engineering",
+        sigma=None,
+        options: SolverOptions = SolverOptions(),
+        name: str = "compression",
+    ):
+        """
+        Args:
+            mesh: the specimen, compressed along z between ``z = min z`` and ``z = max z``.
+            strains: strain protocol [-] (compression positive, increasing, < 1), in the
+                ``measure`` given.
+            stresses: measured stresses [Pa] in the same measure (None: predictions only).
+            model: elastic model name.
+            bonded: no-slip platens (default frictionless).
+            measure: ``"engineering"`` or ``"true"``.
+        """
+        self.name = str(name)
+        eps = _as_1d("strains", strains)
+        if measure not in ("engineering", "true"):
+            raise ConfigError(f"measure must be 'engineering' or 'true', got {measure!r}")
+        if np.any(eps < 0) or np.any(np.diff(eps) < 0):
+            raise DataError("the strain protocol must be >= 0 (compression positive) and non-decreasing")
+        nominal = eps if measure == "engineering" else -np.expm1(-eps)
+        if np.any(nominal >= 1):
+            raise DataError("a nominal compressive strain must be < 1")
+        self.abscissa = eps
+        self.observed = np.zeros_like(eps) if stresses is None else _as_1d("stresses", stresses)
+        if self.observed.shape != eps.shape:
+            raise DataError(f"{eps.size} strains but {self.observed.size} stresses")
+        self.sigma = _sigma(self.observed, sigma) if stresses is not None else np.ones_like(eps)
+        self.measure = measure
+        self.options = options
+        self.x_label = f"{measure} strain [-]"
+        self.y_label = f"{measure} stress [Pa]"
+        p = np.asarray(mesh.points)
+        lo, hi = p.min(axis=0), p.max(axis=0)
+        self.height = float(hi[2] - lo[2])
+        self.area = float(np.sum(mesh.volumes()) / self.height)
+        platens = Platens(bonded=bonded)
+        bottom, top = platens.faces(mesh)
+        self.bc = platens.apply(mesh, BoundaryConditions.free(mesh), 0.0)
+        mask = np.zeros(mesh.n_nodes, dtype=bool)
+        mask[top] = True
+        self.top_mask = mask
+        self.model = make_model(mesh, model)
+
+    def solve(self, material: Material):
+        """``(stress (n,) [Pa], displacements (n, N, 3) [m])`` along the protocol."""
+        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        nominal = jnp.asarray(self.abscissa if self.measure == "engineering" else -np.expm1(-self.abscissa))
+        top = jnp.asarray(self.top_mask)
+        x0 = jnp.asarray(self.model.rest_points)
+
+        def step(u, e):
+            disp = self.bc.displacement.at[:, 2].set(jnp.where(top, -e * self.height, self.bc.displacement[:, 2]))
+            sol = _solve(self.model, material, BoundaryConditions(self.bc.fixed, disp, self.bc.force), u, self.options)
+            force = -jnp.sum(jnp.where(top, sol.reaction[:, 2], 0.0))
+            if self.measure == "engineering":
+                stress = force / self.area
+            else:
+                x = x0 + sol.displacement
+                volume = jnp.sum(jnp.abs(_tet_volumes(x, self.model.tets)))
+                stress = force * (1.0 - e) * self.height / volume
+            return sol.displacement, (stress, sol.displacement)
+
+        _, (stress, us) = jax.lax.scan(step, jnp.zeros_like(self.bc.displacement), nominal)
+        return stress, us
+
+    def predict(self, material: Material):
+        """Stress [Pa] at each strain (compression positive)."""
+        return self.solve(material)[0]
+
+
+def _tet_volumes(x, tets):
+    a, b, c, d = (x[tets[:, i]] for i in range(4))
+    return jnp.einsum("ij,ij->i", jnp.cross(b - a, c - a), d - a) / 6.0
+
+
+class FEMField(eqx.Module):
+    """Reproduce a reference FEM solution: displacements of the unconstrained degrees of
+    freedom, and optionally a reaction force, under the reference's boundary conditions.
+
+    The model mesh is the reference mesh (its lattice recovered for ``springs_volume`` when
+    it is a structured grid). Node sets are point-data masks of the file (nonzero = member)
+    or selectors (:mod:`difftissue.selectors`).
+
+    Predictions: ``u`` of every free component of the nodes in ``observe`` (default all) [m],
+    then, with ``reaction``, the summed reaction-force components [N]. ``sigma`` is
+    ``displacement_sigma`` [m] for the displacements and ``force_sigma`` [N] for the force
+    (defaults: 1e-3 of the largest value of each, i.e. equal relative precision).
+    """
+
+    name: str = eqx.field(static=True)
+    abscissa: np.ndarray
+    observed: np.ndarray
+    sigma: np.ndarray
+    model: ElasticModel
+    bc: BoundaryConditions
+    observe_dofs: np.ndarray
+    reaction_mask: np.ndarray | None
+    x_label: str = eqx.field(static=True, default="observation index")
+    y_label: str = eqx.field(static=True, default="displacement [m] / force [N]")
+    options: SolverOptions = eqx.field(static=True, default=SolverOptions())
+
+    def __init__(
+        self,
+        mesh: TetMesh,
+        displacement,
+        *,
+        prescribed: Sequence[dict],
+        model: str = "fem_linear",
+        observe=None,
+        reaction: dict | None = None,
+        displacement_sigma: float | None = None,
+        force_sigma: float | None = None,
+        options: SolverOptions = SolverOptions(),
+        name: str = "fem_field",
+    ):
+        """
+        Args:
+            mesh: the reference mesh (with the node-set masks in ``point_data``).
+            displacement: ``(N, 3)`` reference displacement [m].
+            prescribed: ``[{"set": name-or-selector, "components": "xyz"}, ...]``: the
+                reference displacement is prescribed on these components.
+            model: elastic model name.
+            observe: node set whose free components are compared (default all nodes).
+            reaction: ``{"set": ..., "components": "z", "force": [..] (N) or "field": name}``:
+                compare the sum of the model's reactions over the set with the given total
+                force, or with the sum of a nodal reaction point field of the file.
+        """
+        self.name = str(name)
+        self.options = options
+        u_ref = np.asarray(displacement, dtype=float)
+        if u_ref.shape != (mesh.n_nodes, 3) or not np.all(np.isfinite(u_ref)):
+            raise DataError(f"the reference displacement must be finite with shape ({mesh.n_nodes}, 3), got {u_ref.shape}")
+        if model == "springs_volume" and mesh.lattice is None:
+            mesh = recover_lattice(mesh)
+        if not prescribed:
+            raise ConfigError("fem_field needs 'prescribed': the node sets whose displacement the reference prescribed")
+        bc = BoundaryConditions.free(mesh)
+        fixed = np.zeros((mesh.n_nodes, 3), dtype=bool)
+        for i, entry in enumerate(prescribed):
+            if not isinstance(entry, dict) or "set" not in entry:
+                raise ConfigError(f"prescribed[{i}] must be a table with 'set' (and optionally 'components')")
+            nodes = _node_set(mesh, entry["set"], f"prescribed[{i}].set")
+            for c in str(entry.get("components", "xyz")):
+                if c not in "xyz":
+                    raise ConfigError(f"prescribed[{i}].components must be letters from 'xyz', got {entry.get('components')!r}")
+                fixed[nodes, "xyz".index(c)] = True
+        bc = BoundaryConditions(fixed, jnp.asarray(np.where(fixed, u_ref, 0.0)), jnp.zeros((mesh.n_nodes, 3)))
+        from .boundary import check_rigid_modes
+
+        check_rigid_modes(np.asarray(mesh.points), fixed)
+        obs_nodes = np.arange(mesh.n_nodes) if observe is None else _node_set(mesh, observe, "observe")
+        obs = np.zeros((mesh.n_nodes, 3), dtype=bool)
+        obs[obs_nodes] = True
+        obs &= ~fixed
+        self.observe_dofs = np.flatnonzero(obs.reshape(-1))
+        if self.observe_dofs.size == 0:
+            raise ConfigError("no free displacement component to compare: every observed node is prescribed")
+        observed = [u_ref.reshape(-1)[self.observe_dofs]]
+        s_u = float(displacement_sigma) if displacement_sigma is not None else 1e-3 * max(float(np.abs(observed[0]).max()), 1e-300)
+        sig = [np.full(observed[0].shape, s_u)]
+        self.reaction_mask = None
+        if reaction is not None:
+            nodes = _node_set(mesh, reaction.get("set"), "reaction.set")
+            comps = str(reaction.get("components", "z"))
+            rmask = np.zeros((mesh.n_nodes, 3), dtype=bool)
+            for c in comps:
+                if c not in "xyz":
+                    raise ConfigError(f"reaction.components must be letters from 'xyz', got {comps!r}")
+                rmask[nodes, "xyz".index(c)] = True
+            if not np.all(fixed[rmask]):
+                raise ConfigError("reaction.set/components must be prescribed components (a reaction exists only where the displacement is prescribed)")
+            if "force" in reaction:
+                f = np.atleast_1d(np.asarray(reaction["force"], dtype=float))
+            elif "field" in reaction:
+                name_f = reaction["field"]
+                if name_f not in mesh.point_data:
+                    raise ConfigError(f"reaction.field {name_f!r} is not a point field of the reference (fields: {sorted(mesh.point_data)})")
+                nodal = np.asarray(mesh.point_data[name_f], dtype=float).reshape(mesh.n_nodes, -1)
+                f = np.array([nodal[nodes, "xyz".index(c)].sum() for c in comps])
+            else:
+                raise ConfigError("reaction needs 'force' (the total force in N, one value per component) or 'field' (a nodal reaction point field)")
+            if f.shape != (len(comps),) or not np.all(np.isfinite(f)):
+                raise ConfigError(f"reaction.force needs one finite value per component {comps!r}, got {f.tolist()}")
+            self.reaction_mask = rmask
+            observed.append(f)
+            s_f = float(force_sigma) if force_sigma is not None else 1e-3 * max(float(np.abs(f).max()), 1e-300)
+            sig.append(np.full(f.shape, s_f))
+        self.observed = np.concatenate(observed)
+        self.sigma = np.concatenate(sig)
+        self.abscissa = np.arange(self.observed.size, dtype=float)
+        self.x_label, self.y_label = "observation index", "displacement [m] / force [N]"
+        self.bc = bc
+        self.model = make_model(mesh, model)
+
+    def solve(self, material: Material):
+        """The static solution of the model under the reference's boundary conditions."""
+        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        return _solve(self.model, material, self.bc, None, self.options)
+
+    def predict(self, material: Material):
+        sol = self.solve(material)
+        out = [sol.displacement.reshape(-1)[self.observe_dofs]]
+        if self.reaction_mask is not None:
+            m = self.reaction_mask
+            out.append(jnp.stack([jnp.sum(jnp.where(jnp.asarray(m[:, c]), sol.reaction[:, c], 0.0)) for c in range(3) if m[:, c].any()]))
+        return jnp.concatenate(out)
+
+
+def _node_set(mesh: TetMesh, spec: Any, key: str) -> np.ndarray:
+    if isinstance(spec, str):
+        if spec not in mesh.point_data:
+            raise ConfigError(f"{key}: {spec!r} is not a point-data node set of the mesh (point fields: {sorted(mesh.point_data)})")
+        m = np.asarray(mesh.point_data[spec]).reshape(mesh.n_nodes, -1)[:, 0]
+        nodes = np.flatnonzero(m != 0)
+        if nodes.size == 0:
+            raise ConfigError(f"{key}: node set {spec!r} is empty")
+        return nodes
+    if isinstance(spec, dict):
+        return select_nodes(mesh, spec)
+    raise ConfigError(f"{key} must be a point-data mask name or a selector table, got {spec!r}")
