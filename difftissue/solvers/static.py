@@ -19,6 +19,7 @@ transposes that solve (one adjoint solve). See ``docs/theory.md``.
 from __future__ import annotations
 
 import enum
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -30,6 +31,7 @@ from ..boundary import BoundaryConditions, _validate_values, check_rigid_modes
 from ..errors import ConvergenceError, ModelError
 from ..materials import Material
 from ..models import ElasticModel
+from .sparse import SparseLU, assemble_csr_data, sparse_pattern
 
 __all__ = ["StaticSolution", "StaticResult", "solve_static", "element_hessian_operator"]
 
@@ -134,6 +136,8 @@ class _Options(eqx.Module):
     linear_solver: str
     cg_rtol: float
     cg_max_steps: int
+    #: CSR pattern for linear_solver="sparse" (hashable by content: no recompile per call).
+    pattern: Any = eqx.field(static=True, default=None)
 
 
 def _projected_operator(model, u, material, free, options: _Options):
@@ -144,6 +148,20 @@ def _projected_operator(model, u, material, free, options: _Options):
         H = _dense_hessian(model, x, material)
         A = H * P[:, None] * P[None, :] + jnp.diag(1.0 - P)
         return lx.MatrixLinearOperator(A, (lx.symmetric_tag, lx.positive_semidefinite_tag)), lx.Cholesky(), {}
+    if options.linear_solver == "sparse":
+        data = _element_data(model, x, material)
+        csr = assemble_csr_data(options.pattern, data, P)
+        struct = jax.ShapeDtypeStruct((3 * model.n_nodes,), u.dtype)
+
+        def mv_sparse(v):
+            y = (1.0 - P) * v
+            for hess, dofs in data:
+                pv = (P * v)[dofs]
+                y = y.at[dofs].add(P[dofs] * jnp.einsum("eij,ej->ei", hess, pv))
+            return y
+
+        op = lx.FunctionLinearOperator(mv_sparse, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
+        return op, SparseLU(options.pattern), {"csr_data": csr}
     matvec, diag = element_hessian_operator(model, x, material)
     struct = jax.ShapeDtypeStruct((3 * model.n_nodes,), u.dtype)
     op = lx.FunctionLinearOperator(lambda v: P * matvec(P * v) + (1.0 - P) * v, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
@@ -314,8 +332,10 @@ def solve_static(
             the residual of an ill-conditioned problem stalls at round-off level, and with
             Newton's quadratic convergence the remaining error is far below that correction.
         max_steps: Newton steps allowed.
-        linear_solver: ``"dense"`` (Cholesky of the assembled Hessian), ``"cg"``
-            (matrix-free Jacobi-preconditioned CG) or ``"auto"`` (dense up to 3000 unknowns).
+        linear_solver: ``"dense"`` (Cholesky of the assembled Hessian), ``"sparse"`` (SciPy
+            sparse LU of the assembled CSR Hessian, on the host via ``pure_callback``),
+            ``"cg"`` (matrix-free Jacobi-preconditioned CG) or ``"auto"`` (dense up to 3000
+            unknowns, sparse above; CG when the model's connectivity is traced).
         cg_rtol, cg_max_steps: CG tolerance and step limit (default 10 x unknowns).
         initial_displacement: ``(N, 3)`` starting guess [m] for the free components.
         load_steps: apply the prescribed displacements and forces in this many equal
@@ -337,11 +357,18 @@ def solve_static(
     if not isinstance(bc.fixed, jax.core.Tracer):
         check_rigid_modes(model.rest_points, bc.fixed)
     model.region_values(material)  # range checks (raise now when concrete)
+    node_arrays = [t.nodes for t in model.terms(material)]
+    concrete_nodes = not any(isinstance(a, jax.core.Tracer) for a in node_arrays)
     if linear_solver == "auto":
-        linear_solver = "dense" if 3 * n <= 3000 else "cg"
-    if linear_solver not in ("dense", "cg"):
-        raise ModelError(f"linear_solver must be 'auto', 'dense' or 'cg', got {linear_solver!r}")
-    options = _Options(float(rtol), float(atol), float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or 10 * 3 * n))
+        linear_solver = "dense" if 3 * n <= 3000 else ("sparse" if concrete_nodes else "cg")
+    if linear_solver not in ("dense", "cg", "sparse"):
+        raise ModelError(f"linear_solver must be 'auto', 'dense', 'sparse' or 'cg', got {linear_solver!r}")
+    pattern = None
+    if linear_solver == "sparse":
+        if not concrete_nodes:
+            raise ModelError("linear_solver='sparse' needs the model's element connectivity as concrete arrays (close over the model instead of passing it as a traced argument), or use 'cg'")
+        pattern = sparse_pattern(node_arrays, n)
+    options = _Options(float(rtol), float(atol), float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or 10 * 3 * n), pattern)
     # Python floats would be static under jit (a recompile per value): make every leaf an array.
     material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
     u_init = jnp.zeros((n, 3)) if initial_displacement is None else jnp.asarray(initial_displacement, dtype=float)

@@ -1,0 +1,144 @@
+"""Sparse direct solves of the static problem's (projected) Hessian.
+
+The element Hessians of an :class:`~difftissue.models.ElasticModel` are assembled into a
+CSR matrix whose sparsity pattern is computed once per mesh (in NumPy, outside the traced
+code); the values are scattered inside the compiled solve. The linear solve itself is a
+``jax.pure_callback`` to SciPy's sparse LU (SuperLU with a symmetric-mode ordering), wrapped
+as a :mod:`lineax` solver so that implicit differentiation (forward and reverse) goes
+through it like through the dense Cholesky. The matrix is symmetric, so the transposed solve
+(reverse mode) is the same solve.
+
+For the stiffness matrices here a sparse factorisation costs about ``O(n^1.5..2)`` instead
+of the dense ``O(n^3)``, and unlike Jacobi-preconditioned CG it does not slow down on
+bending-dominated or penalty-contact problems.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import scipy.sparse as sps
+import scipy.sparse.linalg as spla
+
+__all__ = ["SparsePattern", "sparse_pattern", "SparseLU"]
+
+
+class SparsePattern:
+    """CSR pattern of ``P H P + (I - P)`` for a model's element terms.
+
+    Attributes:
+        n: matrix size (3 x nodes).
+        indices, indptr: CSR column indices and row pointers (NumPy).
+        scatter: ``(n_coo,)`` position in the CSR data of every element-Hessian entry
+            (terms in order, each ``(E, 3k, 3k)`` row-major), then of the ``n`` diagonal entries.
+        digest: content hash (equality and hashing use it, so a jit cache keyed on the pattern
+            does not recompile for the same mesh).
+    """
+
+    def __init__(self, n: int, indices: np.ndarray, indptr: np.ndarray, scatter: np.ndarray, digest: str):
+        self.n, self.indices, self.indptr, self.scatter, self.digest = n, indices, indptr, scatter, digest
+
+    @property
+    def nnz(self) -> int:
+        return int(self.indices.size)
+
+    def __hash__(self):
+        return hash(self.digest)
+
+    def __eq__(self, other):
+        return isinstance(other, SparsePattern) and other.digest == self.digest
+
+    def __repr__(self):
+        return f"SparsePattern(n={self.n}, nnz={self.nnz})"
+
+
+_CACHE: dict[str, SparsePattern] = {}
+
+
+def sparse_pattern(node_arrays, n_nodes: int) -> SparsePattern:
+    """The CSR pattern for element terms with node arrays ``[(E_t, k_t), ...]`` on ``n_nodes`` nodes."""
+    h = hashlib.sha256(str(n_nodes).encode())
+    arrays = [np.ascontiguousarray(np.asarray(a, dtype=np.int64)) for a in node_arrays]
+    for a in arrays:
+        h.update(str(a.shape).encode())
+        h.update(a.tobytes())
+    digest = h.hexdigest()
+    if digest in _CACHE:
+        return _CACHE[digest]
+    n = 3 * int(n_nodes)
+    keys = []
+    for a in arrays:
+        k = a.shape[1]
+        dofs = (3 * a[:, :, None] + np.arange(3)).reshape(-1, 3 * k)
+        keys.append((dofs[:, :, None] * n + dofs[:, None, :]).reshape(-1))
+    diag = np.arange(n, dtype=np.int64)
+    keys.append(diag * n + diag)
+    allkeys = np.concatenate(keys)
+    uniq, scatter = np.unique(allkeys, return_inverse=True)
+    rows, cols = uniq // n, uniq % n
+    indptr = np.zeros(n + 1, dtype=np.int64)
+    np.add.at(indptr, rows + 1, 1)
+    indptr = np.cumsum(indptr)
+    pattern = SparsePattern(n, cols.astype(np.int32), indptr.astype(np.int32), scatter.astype(np.int32), digest)
+    if len(_CACHE) > 16:
+        _CACHE.pop(next(iter(_CACHE)))
+    _CACHE[digest] = pattern
+    return pattern
+
+
+def assemble_csr_data(pattern: SparsePattern, element_hessians, free_dofs):
+    """CSR data of ``P H P + (I - P)`` from ``[(hess (E, 3k, 3k), dofs (E, 3k)), ...]`` and the
+    free-DOF indicator ``free_dofs`` (``(n,)``, 1 free / 0 prescribed)."""
+    P = free_dofs
+    vals = []
+    for hess, dofs in element_hessians:
+        mask = P[dofs][:, :, None] * P[dofs][:, None, :]
+        vals.append((hess * mask).reshape(-1))
+    vals.append(1.0 - P)
+    v = jnp.concatenate(vals)
+    return jnp.zeros(pattern.nnz, dtype=v.dtype).at[jnp.asarray(pattern.scatter)].add(v)
+
+
+def _host_solve(pattern: SparsePattern, data, b):
+    A = sps.csr_matrix((np.asarray(data), pattern.indices, pattern.indptr), shape=(pattern.n, pattern.n))
+    try:
+        lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        x = lu.solve(np.asarray(b))
+    except RuntimeError:  # exactly singular: report NaN, the Newton loop falls back / flags it
+        x = np.full(np.shape(b), np.nan)
+    return x.astype(np.asarray(b).dtype)
+
+
+class SparseLU(lx.AbstractLinearSolver):
+    """:mod:`lineax` solver: SciPy sparse LU of the CSR matrix passed as ``options["csr_data"]``.
+
+    The matrix must be symmetric (transposed solves reuse it). Runs on the host through
+    ``jax.pure_callback`` (sequential under ``vmap``).
+    """
+
+    pattern: SparsePattern = eqx.field(static=True)
+
+    def init(self, operator, options: dict[str, Any]):
+        return options["csr_data"]
+
+    def compute(self, state, vector, options):
+        data = state
+        shape = jax.ShapeDtypeStruct(vector.shape, vector.dtype)
+        x = jax.pure_callback(lambda d, b: _host_solve(self.pattern, d, b), shape, data, vector, vmap_method="sequential")
+        ok = jnp.all(jnp.isfinite(x))
+        return x, lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.singular), {}
+
+    def transpose(self, state, options):
+        return state, options
+
+    def conj(self, state, options):
+        return state, options
+
+    def assume_full_rank(self):
+        return True

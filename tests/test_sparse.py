@@ -1,0 +1,67 @@
+"""The sparse direct linear solver of the static solve: same answers and gradients as dense."""
+
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from difftissue.boundary import BoundaryConditions
+from difftissue.materials import Material
+from difftissue.mesh import block
+from difftissue.models import make_model
+from difftissue.solvers import solve_static
+from difftissue.solvers.sparse import sparse_pattern
+
+
+@pytest.fixture(scope="module")
+def problem():
+    mesh = block((0.01, 0.01, 0.01), (2, 2, 2))
+    model = make_model(mesh, "fem_neo_hookean")
+    top = np.flatnonzero(np.isclose(mesh.points[:, 2], 0.01))
+    bc = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"}).fix(mesh, {"face": "z-max"}, "z", (0, 0, -2e-4))
+    return mesh, model, top, bc
+
+
+def _top_force(model, bc, top, solver, E, nu):
+    sol = solve_static(model, Material(E, nu), bc, linear_solver=solver)
+    return jnp.sum(sol.reaction[top, 2])
+
+
+def test_pattern_is_csr_of_all_couplings(problem):
+    mesh, model, _, _ = problem
+    pat = sparse_pattern([t.nodes for t in model.terms(Material(1e4, 0.4))], mesh.n_nodes)
+    # each row's columns sorted and unique; every edge couples its two nodes' 3x3 blocks
+    for r in range(0, pat.n, 7):
+        cols = pat.indices[pat.indptr[r] : pat.indptr[r + 1]]
+        assert np.all(np.diff(cols) > 0)
+    n_pairs = mesh.n_nodes + 2 * len(mesh.edges)
+    assert pat.nnz == 9 * n_pairs
+    assert sparse_pattern([t.nodes for t in model.terms(Material(2e4, 0.3))], mesh.n_nodes) is pat  # cached
+
+
+def test_sparse_matches_dense_solution_and_gradients(problem):
+    _, model, top, bc = problem
+    dense = solve_static(model, Material(1e4, 0.45), bc, linear_solver="dense")
+    sparse = solve_static(model, Material(1e4, 0.45), bc, linear_solver="sparse")
+    assert bool(sparse.converged)
+    np.testing.assert_allclose(sparse.displacement, dense.displacement, rtol=0, atol=1e-12 * 5e-4 * 1e3)
+    g = jax.grad(lambda E, nu: _top_force(model, bc, top, "sparse", E, nu), argnums=(0, 1))(1e4, 0.45)
+    h = 1e-6
+    fd_E = (_top_force(model, bc, top, "sparse", 1e4 * (1 + h), 0.45) - _top_force(model, bc, top, "sparse", 1e4 * (1 - h), 0.45)) / (2e4 * h)
+    fd_nu = (_top_force(model, bc, top, "sparse", 1e4, 0.45 + h) - _top_force(model, bc, top, "sparse", 1e4, 0.45 - h)) / (2 * h)
+    np.testing.assert_allclose([float(g[0]), float(g[1])], [float(fd_E), float(fd_nu)], rtol=1e-5)
+    _, t = jax.jvp(lambda E: _top_force(model, bc, top, "sparse", E, 0.45), (1e4,), (1.0,))
+    np.testing.assert_allclose(float(t), float(g[0]), rtol=1e-9)
+
+
+def test_sparse_vmaps_and_does_not_recompile(problem, caplog):
+    _, model, top, bc = problem
+    forces = jax.vmap(lambda E: _top_force(model, bc, top, "sparse", E, 0.4))(jnp.array([1e4, 2e4]))
+    np.testing.assert_allclose(forces[1], 2 * forces[0], rtol=1e-9)  # homogeneous of degree 1 in E
+    solve_static(model, Material(1e4, 0.3), bc, linear_solver="sparse")
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        caplog.clear()
+        solve_static(model, Material(3e4, 0.35), bc, linear_solver="sparse")
+    assert [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()] == []
