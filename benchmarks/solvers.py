@@ -15,7 +15,9 @@ with stiffness 1e3 (alpha = 1e-3), dt = 1e-2, one substep, unit nodal masses, ba
 fixed, the rest compressed 10 % in z at the start, float32. The figure is ns per
 tet-iteration = (time of 40 iterations - time of 10 iterations) / 30 / n_tets, median (and
 minimum) of ``--reps`` repetitions with the implementations interleaved so they see the same
-noise. The machine load (``os.getloadavg``) is printed before and after each section.
+noise. Times are CPU times of the process (``time.process_time``): on one pinned thread that is
+the wall time of an idle machine, and it is far less sensitive to other processes sharing the
+core. The machine load (``os.getloadavg``) is printed with each section.
 """
 
 from __future__ import annotations
@@ -27,6 +29,8 @@ import sys
 import time
 
 import numpy as np
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")  # pypbd (OpenMP): one thread, like everything else here
 
 
 def _workload(n):
@@ -133,10 +137,10 @@ def _ours(mesh, X, x0, tets, edges, fixed, method):
         settings = XPBDSettings(dt=dt, substeps=1, iterations=iterations, method=method)
 
         def run():
-            t = time.perf_counter()
+            t = _clock()
             out = xpbd_simulate_constraints(cons, Xf, mf, bc, settings=settings, steps=1, state=state0)
             jax.block_until_ready(out.positions)
-            return time.perf_counter() - t
+            return _clock() - t
 
         run()  # compile
         return run
@@ -173,9 +177,9 @@ def _pypbd_runner(X, x0, tets, fixed):
                 pd.setPosition(off + i, x0[i])
                 pd.setVelocity(off + i, np.zeros(3))
             ts.setValueUInt(pbd.TimeStepController.MAX_ITERATIONS, iterations)
-            t = time.perf_counter()
+            t = _clock()
             ts.step(model)
-            return time.perf_counter() - t
+            return _clock() - t
 
         return run
 
@@ -191,6 +195,13 @@ PEERS = {
 }
 
 
+def _clock():
+    """CPU time of this process (all its threads). The benchmark runs single-threaded and
+    pinned, so CPU time equals the wall time on an idle machine, and it does not count the
+    time slices other processes take on a shared one (wall times scattered by +-40 % here)."""
+    return time.process_time()
+
+
 def _load():
     try:
         return "load average %.2f %.2f %.2f" % os.getloadavg()
@@ -201,17 +212,17 @@ def _load():
 def _time(fn, reps):
     out = []
     for _ in range(reps):
-        t = time.perf_counter()
+        t = _clock()
         fn()
-        out.append(time.perf_counter() - t)
+        out.append(_clock() - t)
     return out
 
 
 def _self_timed(fn):
     def run():
-        t = time.perf_counter()
+        t = _clock()
         fn()
-        return time.perf_counter() - t
+        return _clock() - t
 
     return run
 
