@@ -155,37 +155,154 @@ def _cmd_info(args) -> int:
     return 1 if any(f.severity == "error" for f in findings) else 0
 
 
-def _cmd_demo(args) -> int:
-    """Build the default layered skin specimen, validate it and write it with its materials."""
-    from ._io import atomic_output
-    from .mesh import layered_skin, write_mesh
+def _enable_float64() -> None:
+    """Fits run in float64 (the covariance and tight tolerances need it); must precede any jax array."""
+    import jax
 
-    out = Path(args.out)
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise FileExistsError(f"{out} exists and is not empty; choose another --out or pass --force")
-    out.mkdir(parents=True, exist_ok=True)
+    jax.config.update("jax_enable_x64", True)
+
+
+def _one_line(text) -> str:
+    return " ".join(str(text).split())
+
+
+_CHECKPOINT = Path("checkpoint") / "fit.npz"
+
+
+def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
+    """Check DIR before fitting: refuse to overwrite outputs (or a checkpoint) without --force/--resume."""
+    from .errors import OutputError, OutputExistsError
+    from .fit import OUTPUT_FILES
+
+    if out.exists() and not out.is_dir():
+        raise OutputError(f"{out} exists and is not a directory")
+    ckpt = out / _CHECKPOINT
+    if not force and not resume:
+        for name in (*OUTPUT_FILES, "config.toml"):
+            if (out / name).exists():
+                raise OutputExistsError(f"{out / name} exists; refusing to overwrite it (choose another --out, pass --force, or --resume to continue that fit)")
+        if ckpt.exists():
+            raise OutputExistsError(f"{ckpt} exists (an interrupted fit); pass --resume to continue it or --force to start afresh")
+    if force and not resume and ckpt.exists():
+        ckpt.unlink()
+    ckpt.parent.mkdir(parents=True, exist_ok=True)
+    return ckpt
+
+
+def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, starts, checkpoint: bool, console, extra_notes=()):
+    """Fit a loaded config and write DIR/{fit.json, fit.png, loss.png, report.md, config.toml}."""
+    from ._io import atomic_output
+    from .fit import write_fit_outputs
+
+    ckpt = _prepare_out(out, force=force, resume=resume) if checkpoint else None
+    if not checkpoint:
+        out.mkdir(parents=True, exist_ok=True)
+    overrides = {"progress": progress}
+    if starts is not None:
+        overrides["starts"] = starts
+    if ckpt is not None:
+        overrides.update(checkpoint=ckpt, resume=resume)
     t0 = time.perf_counter()
-    specimen = layered_skin(size=(0.02, 0.02), resolution=(20, 20))
-    mesh = specimen.mesh
-    findings = mesh.validate()
-    vtu = write_mesh(out / "skin.vtu", mesh, cell_data=specimen.cell_fields(), overwrite=args.force)
-    summary = _mesh_summary(mesh)
-    summary["materials"] = {}
-    for i, (name, mat) in enumerate(zip(mesh.region_names, specimen.materials)):
-        cells = mesh.lattice.cell_size[mesh.lattice.cube_region_ids == i]
-        summary["materials"][name] = {
-            **mat.to_dict(),
-            "lame_lambda_Pa": float(mat.lame[0]),
-            "shear_modulus_Pa": float(mat.shear_modulus),
-            "bulk_modulus_Pa": float(mat.bulk_modulus),
-            "cell_size_m": cells[0].tolist(),
-        }
-    summary["findings"] = [f.to_dict() for f in findings]
-    with atomic_output(out / "summary.json", overwrite=args.force) as tmp:
-        tmp.write_text(json.dumps(summary, indent=2))
-    _print_summary(f"layered skin specimen -> {vtu}", summary, findings, [])
-    print(f"demo finished in {time.perf_counter() - t0:.1f} s; open {vtu} in ParaView (cell fields: region_id, youngs_modulus, poisson_ratio, ...)")
-    return 1 if any(f.severity == "error" for f in findings) else 0
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = cfg.run(**overrides)
+    elapsed = time.perf_counter() - t0
+    paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name, force=force or resume)
+    if cfg.path is not None:
+        with atomic_output(out / "config.toml", overwrite=True) as tmp:
+            tmp.write_bytes(Path(cfg.path).read_bytes())
+    notes = [n for e in cfg.experiments for n in e.notes] + list(extra_notes)
+    notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ != "IdentifiabilityWarning"]
+    _print_fit(result, cfg, out, elapsed, console, notes)
+    return result, paths
+
+
+def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
+    import numpy as np
+    from rich.markup import escape
+    from rich.table import Table
+
+    t = Table(title=escape(f"{cfg.raw.get('title') or (cfg.path.name if cfg.path else 'fit')}"), title_justify="left")
+    for col in ("parameter", "value", "standard error", "unit"):
+        t.add_column(col, justify="left" if col in ("parameter", "unit") else "right")
+    for f in result.fields:
+        se = result.standard_errors[f]
+        t.add_row(f, f"{result.values[f]:.6g}", f"{se:.3g}", result.units[f])
+    console.print(t)
+    fixed = {k: v for k, v in result.material.to_dict().items() if k not in result.fields}
+    console.print("fixed: " + ", ".join(f"{k} = {v:g}" for k, v in fixed.items()), markup=False, highlight=False)
+    state = "converged" if result.converged else "NOT converged"
+    rms = ", ".join(f"{s.name} {np.sqrt(np.mean(s.residual ** 2)):.3g}" for s in result.scenarios)
+    console.print(f"loss {result.loss:.6g}, {state} after {result.steps} steps ({result.reason}); rms residual/sigma: {rms}; {elapsed:.1f} s", markup=False, highlight=False)
+    for w in result.warnings:
+        console.print(f"warning: {_one_line(w)}", markup=False, highlight=False)
+    for n in notes:
+        console.print(f"note: {n}", markup=False, highlight=False)
+    console.print(f"wrote {out}/: fit.json, fit.png, loss.png, report.md" + (", config.toml" if cfg.path else ""), markup=False, highlight=False)
+
+
+def _progress_default(args) -> bool:
+    return sys.stderr.isatty() if args.progress is None else bool(args.progress)
+
+
+def _cmd_fit(args) -> int:
+    """Fit a TOML config and write the outputs."""
+    from rich.console import Console
+
+    from .config import load_config
+
+    _enable_float64()
+    cfg = load_config(args.config)
+    if args.starts is not None and args.starts < 1:
+        raise _UsageError(f"--starts must be >= 1, got {args.starts}")
+    result, _ = _run_config(cfg, Path(args.out), force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts, checkpoint=True, console=Console(highlight=False))
+    return 0
+
+
+#: Demo configs shipped in difftissue/configs, with the output subfolder of each.
+DEMO_CONFIGS = (("afm_hertz.toml", "afm_hertz"), ("ecoflex_compression.toml", "ecoflex_compression"))
+
+
+def _cmd_demo(args) -> int:
+    """Fit the bundled real data: the Chiaro AFM curve (Hertz) and the Ecoflex compression."""
+    import numpy as np
+    from rich.console import Console
+
+    from .config import load_config
+    from .errors import OutputExistsError
+
+    _enable_float64()
+    t0 = time.perf_counter()
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise OutputExistsError(f"{out} exists and is not a directory")
+    if out.exists() and any(out.iterdir()) and not args.force:
+        raise OutputExistsError(f"{out} exists and is not empty; choose another --out or pass --force")
+    console = Console(highlight=False)
+    here = Path(__file__).resolve().parent / "configs"
+    chosen = DEMO_CONFIGS[:1] if args.quick else DEMO_CONFIGS
+    summary = {}
+    for name, sub in chosen:
+        cfg = load_config(here / name)
+        result, _ = _run_config(cfg, out / sub, force=True, resume=False, progress=False, starts=None, checkpoint=False, console=console)
+        summary[sub] = result
+        console.print("")
+    afm = summary.get("afm_hertz")
+    if afm is not None:
+        e_eff = afm.values["youngs_modulus"] / (1.0 - float(afm.material.poisson_ratio) ** 2)
+        se = afm.standard_errors["youngs_modulus"]
+        console.print(f"AFM (Hertz): E_eff = {e_eff:.1f} ± {se:.1f} Pa (instrument: 156.0 Pa, {100 * (e_eff / 156.0 - 1):+.1f} %); "
+                      f"E at nu = 0.5: {0.75 * e_eff:.1f} Pa (instrument: 117.0 Pa)", markup=False)
+    comp = summary.get("ecoflex_compression")
+    if comp is not None:
+        E = comp.values["youngs_modulus"]
+        sc = comp.scenarios[0]
+        dev = np.abs(sc.predicted - sc.observed).max() / np.abs(sc.observed).max()
+        console.print(f"Ecoflex compression (springs_volume): E = {E / 1e3:.2f} ± {comp.standard_errors['youngs_modulus'] / 1e3:.2f} kPa "
+                      f"(authors: 16.29 kPa, {100 * (E / 16290.0 - 1):+.1f} %), cubic coefficient b = {comp.values['cubic_coefficient']:.3f}; "
+                      f"model within {100 * dev:.2f} % of the peak stress up to {sc.abscissa.max():.0%} strain", markup=False)
+    console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {out}/ (fit.json, fit.png, loss.png, report.md, config.toml per fit)", markup=False)
+    return 0
 
 
 # ------------------------------------------------------------------------------ parser
@@ -198,10 +315,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--debug", action="store_true", help="show full tracebacks on errors")
     sub = p.add_subparsers(dest="command", metavar="COMMAND")
 
-    d = sub.add_parser("demo", help="build, validate and write the default layered skin specimen (the fit of bundled data comes with the fitting module)")
+    d = sub.add_parser("demo", help="fit the bundled real data (AFM curve with Hertz, Ecoflex compression with springs_volume) and write the reports")
     d.add_argument("--out", default="demo-output", help="output directory (default: demo-output)")
-    d.add_argument("--force", action="store_true", help="overwrite files in --out")
+    d.add_argument("--force", action="store_true", help="write into a non-empty --out, overwriting the demo's files")
+    d.add_argument("--quick", action="store_true", help="only the AFM Hertz fit (a few seconds)")
     d.set_defaults(func=_cmd_demo)
+
+    f = sub.add_parser("fit", help="fit material parameters to the experiments of a TOML config (see docs/configuration.md)")
+    f.add_argument("config", help="the fit config (TOML); relative paths in it are taken from its folder")
+    f.add_argument("--out", required=True, help="output directory: fit.json, fit.png, loss.png, report.md, config.toml, checkpoint/")
+    f.add_argument("--force", action="store_true", help="overwrite the outputs in --out (and discard its checkpoint)")
+    f.add_argument("--resume", action="store_true", help="continue the fit from --out/checkpoint/fit.npz (same config) and replace its outputs")
+    f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="show a progress bar on stderr (default: when stderr is a terminal)")
+    f.add_argument("--starts", type=int, default=None, metavar="N", help="number of starts (overrides fit.starts)")
+    f.set_defaults(func=_cmd_fit)
 
     m = sub.add_parser("mesh", help="generate a specimen mesh")
     msub = m.add_subparsers(dest="kind", metavar="KIND", required=True)

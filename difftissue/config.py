@@ -1,0 +1,882 @@
+"""Fit configs: a TOML file -> scenarios, parameterization, initial material and fit options.
+
+A config has three parts (the full schema, with every key, is in ``docs/configuration.md``)::
+
+    [material]                 # initial values, SI
+    youngs_modulus = 1e4
+    poisson_ratio = 0.45
+
+    [fit]
+    parameters = ["youngs_modulus", "cubic_coefficient"]
+    bounds = { cubic_coefficient = [-3.0, 5.0] }
+
+    [[experiment]]
+    name = "ecoflex"
+    scenario = "compression"
+    data = { format = "instron", path = "data/EF10_50T_A1.csv" }   # relative to this file
+
+Every key is checked before anything heavy happens: an unknown key, a value of the wrong type
+or outside its range raises :class:`~difftissue.errors.ConfigError` whose one-line message
+starts with the key's path, e.g. ``experiment[0].indenter.radius: must be a positive length
+in m, got -1``. Errors raised while loading the data or building a scenario are re-raised
+with the experiment's path in front.
+
+Lengths are in metres unless the table that holds them gives ``length_unit``.
+
+:func:`load_config` reads a file, :func:`parse_config` a mapping; both return a
+:class:`FitConfig`, whose :meth:`FitConfig.run` calls :func:`difftissue.fit.fit`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import ConfigError, DifftissueError
+
+__all__ = ["FitConfig", "Experiment", "load_config", "parse_config", "SCENARIOS", "FIELDS"]
+
+#: Scenario kinds understood in ``experiment[i].scenario``.
+SCENARIOS = ("analytic_indentation", "indentation", "compression", "fem_field")
+#: Material fields (``[material]`` keys, ``fit.parameters`` entries) and their SI units.
+FIELDS = {
+    "youngs_modulus": "Pa",
+    "poisson_ratio": "1",
+    "cubic_coefficient": "1",
+    "density": "kg/m^3",
+    "pre_stretch": "1",
+}
+_POSITIVE_FIELDS = ("youngs_modulus", "density", "pre_stretch")
+_LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "nm": 1e-9}
+_MESH_UNITS = ("m", "cm", "mm", "um", "µm")
+
+_TOP_KEYS = ("title", "description", "material", "fit", "experiment")
+_FIT_KEYS = (
+    "parameters", "bounds", "method", "loss", "f_scale", "starts", "seed", "start_spread", "max_steps",
+    "rtol", "atol", "learning_rate", "jac", "absolute_sigma", "checkpoint_every", "separate_compilation",
+)
+_COMMON_EXPERIMENT_KEYS = ("name", "scenario", "data", "sigma", "points", "length_unit")
+_EXPERIMENT_KEYS = {
+    "analytic_indentation": _COMMON_EXPERIMENT_KEYS + ("indenter", "solution", "thickness", "base", "max_depth"),
+    "indentation": _COMMON_EXPERIMENT_KEYS + ("model", "indenter", "specimen", "base", "max_depth", "penalty", "solver"),
+    "compression": _COMMON_EXPERIMENT_KEYS + ("model", "specimen", "platens", "measure", "max_strain", "solver"),
+    "fem_field": ("name", "scenario", "data", "model", "prescribed", "observe", "reaction", "displacement_sigma", "force_sigma", "solver"),
+}
+_DATA_FORMATS = {
+    "analytic_indentation": ("chiaro", "table"),
+    "indentation": ("chiaro", "table"),
+    "compression": ("instron", "table"),
+    "fem_field": ("fem",),
+}
+_SOLVER_KEYS = ("rtol", "xtol", "max_steps", "linear_solver")
+
+
+# ============================================================================ helpers
+def _fail(path: str, message: str):
+    text = f"{path}: {message}" if path else message
+    raise ConfigError(" ".join(str(text).split()))
+
+
+def _show(value) -> str:
+    if isinstance(value, str):
+        return repr(value)
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, Mapping):
+        return "a table"
+    return str(value)
+
+
+def _join(path: str, key) -> str:
+    if isinstance(key, int):
+        return f"{path}[{key}]"
+    return f"{path}.{key}" if path else str(key)
+
+
+def _table(value, path: str, allowed: Sequence[str], required: Sequence[str] = ()) -> dict:
+    if not isinstance(value, Mapping):
+        _fail(path, f"must be a table, got {_show(value)}")
+    for k in value:
+        if k not in allowed:
+            where = path if path else "config"
+            _fail(where, f"unknown key {k!r}; allowed: {', '.join(allowed)}")
+    for k in required:
+        if k not in value:
+            _fail(_join(path, k), "missing (required)")
+    return dict(value)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _number(value, path: str, *, what: str = "a number", finite: bool = True, check=None, rule: str = "") -> float:
+    if not _is_number(value):
+        _fail(path, f"must be {what}, got {_show(value)}")
+    v = float(value)
+    if finite and not math.isfinite(v):
+        _fail(path, f"must be {what}, got {_show(value)}")
+    if check is not None and not check(v):
+        _fail(path, f"must be {rule or what}, got {_show(value)}")
+    return v
+
+
+def _positive(value, path: str, unit: str = "") -> float:
+    u = f" in {unit}" if unit else ""
+    return _number(value, path, what=f"a positive number{u}", check=lambda v: v > 0)
+
+
+def _integer(value, path: str, *, minimum: int = 0) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        _fail(path, f"must be an integer >= {minimum}, got {_show(value)}")
+    return int(value)
+
+
+def _bool(value, path: str) -> bool:
+    if not isinstance(value, bool):
+        _fail(path, f"must be true or false, got {_show(value)}")
+    return value
+
+
+def _choice(value, path: str, choices: Sequence[str]) -> str:
+    if not isinstance(value, str) or value not in choices:
+        _fail(path, f"must be one of {', '.join(repr(c) for c in choices)}; got {_show(value)}")
+    return value
+
+
+def _string(value, path: str) -> str:
+    if not isinstance(value, str) or not value.strip():
+        _fail(path, f"must be a non-empty string, got {_show(value)}")
+    return value
+
+
+def _unit_of(table: Mapping, path: str, units: Sequence[str] = tuple(_LENGTH_UNITS)) -> tuple[str, float]:
+    if "length_unit" not in table:
+        return "m", 1.0
+    u = _choice(table["length_unit"], _join(path, "length_unit"), tuple(units))
+    return u, _LENGTH_UNITS[u]
+
+
+def _length(value, path: str, unit: tuple[str, float]) -> float:
+    name, factor = unit
+    return _number(value, path, what=f"a positive length in {name}", check=lambda v: v > 0) * factor
+
+
+def _lengths(value, path: str, unit: tuple[str, float], n: int = 3) -> tuple[float, ...]:
+    if _is_number(value):
+        value = [value] * n
+    if not isinstance(value, list) or len(value) != n:
+        _fail(path, f"must be {n} positive lengths in {unit[0]} (a list), got {_show(value)}")
+    return tuple(_length(v, _join(path, i), unit) for i, v in enumerate(value))
+
+
+def _counts(value, path: str, n: int = 3) -> tuple[int, ...]:
+    if isinstance(value, int) and not isinstance(value, bool):
+        value = [value] * n
+    if not isinstance(value, list) or len(value) != n:
+        _fail(path, f"must be {n} cell counts (a list of integers >= 1), got {_show(value)}")
+    return tuple(_integer(v, _join(path, i), minimum=1) for i, v in enumerate(value))
+
+
+def _sigma(value, path: str, observed: np.ndarray, unit: str):
+    """``sigma`` key: a number (SI unit of the observable), ``"rms"``, or ``{relative = r}``."""
+    if value == "rms":
+        return None
+    if isinstance(value, Mapping):
+        t = _table(value, path, ("relative",), ("relative",))
+        r = _number(t["relative"], _join(path, "relative"), what="a positive fraction", check=lambda v: v > 0)
+        scale = float(np.max(np.abs(observed))) if observed.size else 0.0
+        return r * (scale if scale > 0 else 1.0)
+    return _number(value, path, what=f"a positive number in {unit}, 'rms' or {{ relative = r }}", check=lambda v: v > 0)
+
+
+def _resolve(base_dir: Path, value, path: str, *, must_exist: bool = True) -> Path:
+    p = Path(os.path.expanduser(_string(value, path)))
+    if not p.is_absolute():
+        p = base_dir / p
+    if must_exist and not p.is_file():
+        _fail(path, f"file not found: {p}")
+    return p
+
+
+def _reraise(path: str, e: Exception):
+    """Re-raise a difftissue error with the key path in front (same type where possible)."""
+    msg = " ".join(f"{path}: {e}".split())
+    try:
+        new = type(e)(msg)
+    except Exception:  # pragma: no cover - classes with other signatures
+        new = ConfigError(msg)
+    raise new from e
+
+
+def _downsample(x: np.ndarray, y: np.ndarray, *, x_max: float | None, points: int | None, path: str, key: str, unit: str):
+    """The loading segment up to ``x_max``, thinned to ``points`` samples evenly spread in x.
+
+    The samples kept are measured points (no interpolation): for each of ``points`` targets
+    ``x_max / points, ..., x_max`` the first sample whose running maximum of x reaches it, so
+    the abscissa is strictly increasing even when the data step back by noise.
+    """
+    x = np.asarray(x, dtype=float)
+    y = np.asarray(y, dtype=float)
+    cm = np.maximum.accumulate(x)
+    keep = np.ones(x.size, dtype=bool) if x_max is None else cm <= x_max * (1 + 1e-12)
+    n_keep = int(np.sum(keep))
+    if points is None:
+        sel = np.flatnonzero(keep & (x >= 0))
+    else:
+        if n_keep == 0 or cm[n_keep - 1] <= 0:
+            sel = np.array([], dtype=int)
+        else:
+            top = cm[n_keep - 1]
+            grid = np.linspace(top / points, top, points)
+            sel = np.unique(np.clip(np.searchsorted(cm[:n_keep], grid, side="left"), 0, n_keep - 1))
+            sel = sel[x[sel] > 0]
+    if sel.size < 2:
+        limit = f" up to {key} = {x_max:g} {unit}" if x_max is not None else ""
+        _fail(path, f"only {sel.size} usable data point(s){limit}; the data reach {np.max(x) if x.size else float('nan'):.4g} {unit}")
+    return x[sel], y[sel]
+
+
+# ============================================================================ result types
+@dataclasses.dataclass(frozen=True)
+class Experiment:
+    """One built experiment: its scenario and where its data came from."""
+
+    name: str
+    kind: str
+    model: str | None
+    scenario: Any
+    data_files: tuple[Path, ...]
+    notes: tuple[str, ...] = ()
+
+
+@dataclasses.dataclass(frozen=True)
+class FitConfig:
+    """A validated fit config, ready to run.
+
+    Attributes:
+        path: the config file (None when parsed from a mapping).
+        raw: the parsed TOML (a dict).
+        material: initial :class:`~difftissue.materials.Material` (SI).
+        parameterization: fitted fields and their transforms.
+        options: keyword arguments for :func:`difftissue.fit.fit` (method, loss, starts, ...).
+        experiments: the built experiments, in file order.
+    """
+
+    path: Path | None
+    raw: dict
+    material: Any
+    parameterization: Any
+    options: dict
+    experiments: tuple[Experiment, ...]
+
+    @property
+    def scenarios(self) -> tuple:
+        return tuple(e.scenario for e in self.experiments)
+
+    @property
+    def data_files(self) -> tuple[Path, ...]:
+        seen: dict[Path, None] = {}
+        for e in self.experiments:
+            for p in e.data_files:
+                seen.setdefault(p, None)
+        return tuple(seen)
+
+    @property
+    def model_name(self) -> str:
+        """The models used, e.g. ``"springs_volume"`` or ``"hertz; springs_volume"``."""
+        names = dict.fromkeys(e.model or "analytic" for e in self.experiments)
+        return "; ".join(names)
+
+    def fit_scenarios(self, separate_compilation: bool | None = None) -> tuple:
+        """The scenarios handed to :func:`~difftissue.fit.fit`: the simulated ones wrapped in
+        :class:`SeparatelyCompiled` unless ``separate_compilation`` (default: the config's
+        ``fit.separate_compilation``, true) is false."""
+        sep = self.options.get("separate_compilation", True) if separate_compilation is None else separate_compilation
+        if not sep:
+            return self.scenarios
+        mode = "reverse" if (self.options.get("method") in ("adam", "lbfgs") or self.options.get("jac") == "bwd") else "forward"
+        return tuple(SeparatelyCompiled(e.scenario, mode=mode) if e.kind != "analytic_indentation" else e.scenario for e in self.experiments)
+
+    def run(self, **overrides):
+        """Fit: :func:`difftissue.fit.fit` with the config's options updated by ``overrides``
+        (e.g. ``checkpoint=``, ``resume=``, ``progress=``, ``starts=``)."""
+        from .fit import fit
+
+        opts = {**self.options, **overrides}
+        scenarios = self.fit_scenarios(opts.pop("separate_compilation", None))
+        return fit(scenarios, self.parameterization, self.material, **opts)
+
+
+_MATERIAL_LEAVES = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
+
+
+class SeparatelyCompiled:
+    """A scenario whose prediction and derivative are compiled once each, on their own.
+
+    :func:`difftissue.fit.fit` traces the scenario's ``predict`` into several jitted functions
+    (the batched loss, the optimiser step with its Jacobian, the final Jacobian, the final
+    prediction). For a simulated scenario (a scan of static solves with implicit gradients)
+    each of these XLA compilations takes seconds to tens of seconds, which dominates a small
+    fit. This wrapper compiles ``material -> prediction`` and its Jacobian-vector product
+    (``mode="forward"``: Levenberg--Marquardt / Gauss--Newton with forward Jacobians) or
+    vector-Jacobian product (``mode="reverse"``: Adam, L-BFGS, ``jac = "bwd"``) once, and the
+    fit's compiled code calls them through :func:`jax.pure_callback` (batched calls run one
+    after the other). The numbers are the same; only the compilation is shared. The material
+    must have scalar fields.
+    """
+
+    def __init__(self, scenario, *, mode: str = "forward"):
+        import jax
+        import jax.numpy as jnp
+
+        from .materials import Material
+
+        if mode not in ("forward", "reverse"):
+            raise ConfigError(f"mode must be 'forward' or 'reverse', got {mode!r}")
+        self.inner = scenario
+        self.mode = mode
+        for k in ("name", "observed", "sigma", "abscissa", "x_label", "y_label"):
+            setattr(self, k, getattr(scenario, k))
+        n = int(np.asarray(scenario.observed).size)
+
+        def f(v):
+            return scenario.predict(Material(*(v[i] for i in range(len(_MATERIAL_LEAVES)))))
+
+        fwd = jax.jit(f)
+        out = jax.ShapeDtypeStruct((n,), jnp.float64)
+        vec = jax.ShapeDtypeStruct((len(_MATERIAL_LEAVES),), jnp.float64)
+
+        def host_f(v):
+            return np.asarray(fwd(jnp.asarray(v)), dtype=np.float64)
+
+        def call_f(v):
+            return jax.pure_callback(host_f, out, v, vmap_method="sequential")
+
+        if mode == "forward":
+            jvp = jax.jit(lambda v, t: jax.jvp(f, (v,), (t,))[1])
+
+            def host_jvp(v, t):
+                return np.asarray(jvp(jnp.asarray(v), jnp.asarray(t)), dtype=np.float64)
+
+            @jax.custom_jvp
+            def call(v):
+                return call_f(v)
+
+            @call.defjvp
+            def _call_jvp(primals, tangents):
+                (v,), (t,) = primals, tangents
+                return call_f(v), jax.pure_callback(host_jvp, out, v, t, vmap_method="sequential")
+
+        else:
+            vjp = jax.jit(lambda v, ct: jax.vjp(f, v)[1](ct)[0])
+
+            def host_vjp(v, ct):
+                return np.asarray(vjp(jnp.asarray(v), jnp.asarray(ct)), dtype=np.float64)
+
+            @jax.custom_vjp
+            def call(v):
+                return call_f(v)
+
+            def _fwd(v):
+                return call_f(v), v
+
+            def _bwd(v, ct):
+                return (jax.pure_callback(host_vjp, vec, v, ct, vmap_method="sequential"),)
+
+            call.defvjp(_fwd, _bwd)
+        self._call = call
+
+    def predict(self, material):
+        import jax.numpy as jnp
+
+        v = jnp.stack([jnp.asarray(getattr(material, k), dtype=jnp.float64).reshape(()) for k in _MATERIAL_LEAVES])
+        return self._call(v)
+
+
+# ============================================================================ parsing
+def load_config(path) -> FitConfig:
+    """Read, validate and build a TOML fit config; relative paths are taken from its folder."""
+    import tomllib
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"config file not found: {path}")
+    try:
+        with open(path, "rb") as fh:
+            raw = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(" ".join(f"{path}: invalid TOML: {e}".split())) from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    return parse_config(raw, base_dir=path.parent, path=path)
+
+
+def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
+    """Validate and build a config given as a mapping (the parsed TOML)."""
+    from .materials import Material
+
+    base_dir = Path(base_dir)
+    top = _table(raw, "", _TOP_KEYS, ("material", "fit", "experiment"))
+    for k in ("title", "description"):
+        if k in top:
+            _string(top[k], k)
+    material = _parse_material(top["material"])
+    param, options = _parse_fit(top["fit"], material)
+    exps = top["experiment"]
+    if not isinstance(exps, list) or not exps:
+        _fail("experiment", "must be one or more [[experiment]] tables")
+    # Structure first (cheap), then the data and the models.
+    names = []
+    for i, e in enumerate(exps):
+        p = f"experiment[{i}]"
+        if not isinstance(e, Mapping):
+            _fail(p, f"must be a table, got {_show(e)}")
+        if "scenario" not in e:
+            _fail(_join(p, "scenario"), f"missing (required); one of {', '.join(SCENARIOS)}")
+        kind = _choice(e["scenario"], _join(p, "scenario"), SCENARIOS)
+        _table(e, p, _EXPERIMENT_KEYS[kind], ("data",))
+        name = _string(e["name"], _join(p, "name")) if "name" in e else f"{kind}_{i}"
+        if name in names:
+            _fail(_join(p, "name"), f"{name!r} is used by experiment[{names.index(name)}] too; names must be unique")
+        names.append(name)
+    built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir) for i, e in enumerate(exps))
+    return FitConfig(
+        path=None if path is None else Path(path),
+        raw=dict(raw),
+        material=material,
+        parameterization=param,
+        options=options,
+        experiments=built,
+    )
+
+
+def _parse_material(value):
+    from .materials import Material
+
+    t = _table(value, "material", tuple(FIELDS), ("youngs_modulus", "poisson_ratio"))
+    vals = {}
+    for k, v in t.items():
+        p = _join("material", k)
+        if k in _POSITIVE_FIELDS:
+            vals[k] = _positive(v, p, FIELDS[k] if FIELDS[k] != "1" else "")
+        elif k == "poisson_ratio":
+            vals[k] = _number(v, p, check=lambda x: -1.0 < x < 0.5, rule="a number in (-1, 0.5) (0.5 is the incompressible limit; use e.g. 0.49 or 0.499)")
+        else:
+            vals[k] = _number(v, p, what="a finite number")
+    return Material(**vals)
+
+
+def _parse_fit(value, material):
+    from .fit import LOSSES, METHODS
+    from .materials import Identity, Log, MaterialParameterization, ScaledLogit
+
+    t = _table(value, "fit", _FIT_KEYS, ("parameters",))
+    params = t["parameters"]
+    if isinstance(params, str):
+        params = [params]
+    if not isinstance(params, list) or not params:
+        _fail("fit.parameters", f"must be a non-empty list of material fields ({', '.join(FIELDS)}), got {_show(params)}")
+    for i, f in enumerate(params):
+        if not isinstance(f, str) or f not in FIELDS:
+            _fail(f"fit.parameters[{i}]", f"unknown material field {_show(f)}; choose from {', '.join(FIELDS)}")
+        if params.index(f) != i:
+            _fail(f"fit.parameters[{i}]", f"{f!r} is listed twice")
+    bounds = _table(t.get("bounds", {}), "fit.bounds", tuple(FIELDS))
+    transforms = {}
+    for f in params:
+        x0 = float(getattr(material, f))
+        if f in bounds:
+            p = f"fit.bounds.{f}"
+            b = bounds[f]
+            if not isinstance(b, list) or len(b) != 2 or not all(_is_number(v) for v in b):
+                _fail(p, f"must be [lower, upper] (numbers; inf allowed), got {_show(b)}")
+            lo, hi = float(b[0]), float(b[1])
+            if math.isnan(lo) or math.isnan(hi) or not lo < hi:
+                _fail(p, f"needs lower < upper, got [{lo:g}, {hi:g}]")
+            if f in _POSITIVE_FIELDS and lo < 0:
+                _fail(p, f"the lower bound of {f} must be >= 0 (it must stay positive), got {lo:g}")
+            if f == "poisson_ratio" and (lo < -1 or hi > 0.5):
+                _fail(p, f"bounds of poisson_ratio must lie within [-1, 0.5], got [{lo:g}, {hi:g}]")
+            if not lo < x0 < hi:
+                _fail(p, f"the initial value material.{f} = {x0:g} must lie strictly inside [{lo:g}, {hi:g}]")
+            if math.isfinite(lo) and math.isfinite(hi):
+                transforms[f] = ScaledLogit(lo, hi)
+            elif math.isfinite(lo):
+                transforms[f] = Log(lower=lo, scale=x0 - lo)
+            elif math.isfinite(hi):
+                _fail(p, "an upper bound alone is not supported; give a finite lower bound too")
+            else:
+                if f in _POSITIVE_FIELDS or f == "poisson_ratio":
+                    _fail(p, f"{f} needs a finite lower bound")
+                transforms[f] = Identity()
+        elif f in _POSITIVE_FIELDS:
+            transforms[f] = Log(scale=x0)  # u = 0 at the initial value
+    for f in bounds:
+        if f not in params:
+            _fail(f"fit.bounds.{f}", f"{f!r} is not fitted (not in fit.parameters)")
+    param = MaterialParameterization(tuple(params), transforms)
+
+    opts: dict[str, Any] = {}
+    if "method" in t:
+        opts["method"] = _choice(t["method"], "fit.method", METHODS)
+    if "loss" in t:
+        opts["loss"] = _choice(t["loss"], "fit.loss", LOSSES)
+    if "f_scale" in t:
+        opts["f_scale"] = _positive(t["f_scale"], "fit.f_scale")
+    if "starts" in t:
+        opts["starts"] = _integer(t["starts"], "fit.starts", minimum=1)
+    if "seed" in t:
+        opts["seed"] = _integer(t["seed"], "fit.seed")
+    if "start_spread" in t:
+        opts["start_spread"] = _positive(t["start_spread"], "fit.start_spread")
+    if "max_steps" in t:
+        opts["max_steps"] = _integer(t["max_steps"], "fit.max_steps")
+    for k in ("rtol", "atol", "learning_rate"):
+        if k in t:
+            opts[k] = _positive(t[k], f"fit.{k}")
+    if "jac" in t:
+        opts["jac"] = _choice(t["jac"], "fit.jac", ("fwd", "bwd"))
+    if "absolute_sigma" in t:
+        opts["absolute_sigma"] = _bool(t["absolute_sigma"], "fit.absolute_sigma")
+    if "checkpoint_every" in t:
+        opts["checkpoint_every"] = _integer(t["checkpoint_every"], "fit.checkpoint_every", minimum=1)
+    if "separate_compilation" in t:
+        opts["separate_compilation"] = _bool(t["separate_compilation"], "fit.separate_compilation")
+    return param, opts
+
+
+def _solver_options(e: Mapping, path: str):
+    from .scenarios import SolverOptions
+
+    if "solver" not in e:
+        return SolverOptions()
+    p = _join(path, "solver")
+    t = _table(e["solver"], p, _SOLVER_KEYS)
+    kw: dict[str, Any] = {}
+    for k in ("rtol", "xtol"):
+        if k in t:
+            kw[k] = _positive(t[k], _join(p, k))
+    if "max_steps" in t:
+        kw["max_steps"] = _integer(t["max_steps"], _join(p, "max_steps"), minimum=1)
+    if "linear_solver" in t:
+        kw["linear_solver"] = _choice(t["linear_solver"], _join(p, "linear_solver"), ("auto", "dense", "sparse", "cg"))
+    return SolverOptions(**kw)
+
+
+def _model(e: Mapping, path: str, default: str) -> str:
+    from .models import MODELS
+
+    return _choice(e.get("model", default), _join(path, "model"), MODELS)
+
+
+def _points(e: Mapping, path: str, default: int | None = 20) -> int | None:
+    if "points" not in e:
+        return default
+    v = e["points"]
+    if v == "all":
+        return None
+    return _integer(v, _join(path, "points"), minimum=2)
+
+
+def _load_data(e: Mapping, path: str, kind: str, base_dir: Path):
+    from .data import load_dataset
+
+    p = _join(path, "data")
+    d = e["data"]
+    if not isinstance(d, Mapping):
+        _fail(p, f"must be a table such as {{ format = \"{_DATA_FORMATS[kind][0]}\", path = \"...\" }}, got {_show(d)}")
+    d = dict(d)
+    if "format" not in d:
+        _fail(_join(p, "format"), f"missing (required); for a {kind} experiment one of {', '.join(repr(f) for f in _DATA_FORMATS[kind])}")
+    fmt = _choice(d["format"], _join(p, "format"), _DATA_FORMATS[kind])
+    if "path" not in d:
+        _fail(_join(p, "path"), "missing (required): the data file, relative to the config file")
+    file = _resolve(base_dir, d["path"], _join(p, "path"))
+    if fmt == "table":
+        tk = d.get("kind", "compression" if kind == "compression" else "force_depth")
+        want = "compression" if kind == "compression" else "force_depth"
+        if tk != want:
+            _fail(_join(p, "kind"), f"a {kind} experiment needs a {want!r} table, got {_show(tk)}")
+        d["kind"] = want
+    d["path"] = str(file)
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            dataset = load_dataset(d)
+    except DifftissueError as err:
+        _reraise(p, err)
+    notes = tuple(f"{p}: {w.category.__name__}: {' '.join(str(w.message).split())}" for w in caught)
+    return dataset, file, notes
+
+
+def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path) -> Experiment:
+    kind = e["scenario"]
+    builder = {"analytic_indentation": _analytic, "indentation": _indentation, "compression": _compression, "fem_field": _fem_field}[kind]
+    return builder(e, path, name, base_dir)
+
+
+def _force_depth(e, path, base_dir, kind):
+    curve, file, notes = _load_data(e, path, kind, base_dir)
+    if getattr(curve, "turnaround_index", None) is not None:
+        try:
+            curve = curve.approach()
+        except DifftissueError:
+            pass
+    unit = _unit_of(e, path)
+    max_depth = _length(e["max_depth"], _join(path, "max_depth"), unit) if "max_depth" in e else None
+    if np.max(curve.depth) <= 0:
+        _fail(_join(path, "data"), "no positive depth in the data; for an AFM file set data.contact = true (depth from the contact point)")
+    depth, force = _downsample(curve.depth, curve.force, x_max=max_depth, points=_points(e, path), path=_join(path, "max_depth" if max_depth else "data"), key="max_depth", unit="m")
+    sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), force, "N")
+    return curve, file, notes, depth, force, sigma, unit
+
+
+def _indenter(e, path, curve, kind):
+    p = _join(path, "indenter")
+    if "indenter" not in e:
+        _fail(p, "missing (required): e.g. { shape = \"sphere\", radius = 27.5e-6 }")
+    t = _table(e["indenter"], p, ("shape", "radius", "half_angle_deg", "bonded", "length_unit"), ("shape",))
+    shape = _choice(t["shape"], _join(p, "shape"), ("sphere", "flat_punch", "cone"))
+    unit = _unit_of(t, p)
+    kw: dict[str, Any] = {"indenter": shape}
+    if shape == "cone":
+        for k in ("radius", "bonded"):
+            if k in t:
+                _fail(_join(p, k), "not used by a cone (give half_angle_deg)")
+        if "half_angle_deg" not in t:
+            _fail(_join(p, "half_angle_deg"), "missing (required for a cone): the half-angle in degrees")
+        deg = _number(t["half_angle_deg"], _join(p, "half_angle_deg"), check=lambda v: 0 < v < 90, rule="an angle in degrees in (0, 90)")
+        kw["half_angle"] = math.radians(deg)
+    else:
+        if "half_angle_deg" in t:
+            _fail(_join(p, "half_angle_deg"), f"not used by a {shape} (give radius)")
+        if "radius" not in t:
+            _fail(_join(p, "radius"), f"missing (required for a {shape}): a length in {unit[0]}, or \"instrument\" for the tip radius in the data file")
+        r = t["radius"]
+        if r == "instrument":
+            inst = getattr(curve, "metadata", {}).get("instrument", {}) or {}
+            if not inst.get("tip_radius"):
+                _fail(_join(p, "radius"), "\"instrument\": the data file records no tip radius; give the radius as a length")
+            kw["radius"] = float(inst["tip_radius"])
+        else:
+            kw["radius"] = _length(r, _join(p, "radius"), unit)
+        if "bonded" in t:
+            if shape != "flat_punch" or kind != "indentation":
+                _fail(_join(p, "bonded"), "only a simulated flat punch (scenario \"indentation\") can be bonded")
+            kw["bonded_punch"] = _bool(t["bonded"], _join(p, "bonded"))
+    return kw
+
+
+def _analytic(e, path, name, base_dir) -> Experiment:
+    from .scenarios import AnalyticIndentation
+
+    curve, file, notes, depth, force, sigma, unit = _force_depth(e, path, base_dir, "analytic_indentation")
+    kw = _indenter(e, path, curve, "analytic_indentation")
+    solution = _choice(e.get("solution", "half_space"), _join(path, "solution"), ("half_space", "exact_layer", "dimitriadis"))
+    thickness = _length(e["thickness"], _join(path, "thickness"), unit) if "thickness" in e else None
+    if solution != "half_space" and thickness is None:
+        _fail(_join(path, "thickness"), f"missing (required by solution = {solution!r}): the layer thickness in {unit[0]}")
+    if solution == "half_space" and thickness is not None:
+        _fail(_join(path, "thickness"), "not used by solution = 'half_space'; choose 'exact_layer' or 'dimitriadis' for a layer")
+    base = _choice(e.get("base", "bonded"), _join(path, "base"), ("bonded", "lubricated"))
+    if kw["indenter"] == "cone" and solution != "half_space":
+        _fail(_join(path, "solution"), "a cone has only the 'half_space' solution")
+    if kw["indenter"] == "flat_punch" and solution == "dimitriadis":
+        _fail(_join(path, "solution"), "'dimitriadis' is for a sphere; a flat punch on a layer uses 'exact_layer' (Hayes)")
+    try:
+        sc = AnalyticIndentation(depth, force, thickness=thickness, solution=solution, base=base, sigma=sigma, name=name, **kw)
+    except DifftissueError as err:
+        _reraise(path, err)
+    model = {"sphere": "hertz", "flat_punch": "sneddon_flat_punch", "cone": "sneddon_cone"}[kw["indenter"]] if solution == "half_space" else f"{solution}_{kw['indenter']}"
+    return Experiment(name, "analytic_indentation", model, sc, (file,), notes)
+
+
+def _compression(e, path, name, base_dir) -> Experiment:
+    from .mesh import block
+    from .scenarios import Compression, cylinder
+
+    curve, file, notes = _load_data(e, path, "compression", base_dir)
+    curve = curve.loading()
+    measure = _choice(e.get("measure", "engineering"), _join(path, "measure"), ("engineering", "true"))
+    if measure == "engineering":
+        x, y = curve.strain, curve.stress
+    else:
+        if curve.true_strain is None or curve.true_stress is None:
+            _fail(_join(path, "measure"), "'true' needs true strain and true stress columns in the data; use 'engineering'")
+        x, y = curve.true_strain, curve.true_stress
+    max_strain = None
+    if "max_strain" in e:
+        max_strain = _number(e["max_strain"], _join(path, "max_strain"), check=lambda v: 0 < v < 1, rule="a strain in (0, 1)")
+    x, y = _downsample(x, y, x_max=max_strain, points=_points(e, path), path=_join(path, "max_strain" if max_strain else "data"), key="max_strain", unit="")
+    sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), y, "Pa")
+    platens = _choice(e.get("platens", "frictionless"), _join(path, "platens"), ("frictionless", "bonded"))
+    model = _model(e, path, "springs_volume")
+    options = _solver_options(e, path)
+    p = _join(path, "specimen")
+    spec = _table(e.get("specimen", {}), p, ("shape", "size", "cells", "diameter", "height", "cells_radial", "cells_height", "mesh", "length_unit", "reorient"))
+    files = [file]
+    if "mesh" in spec:
+        mesh, mfile = _mesh_file(spec, p, base_dir)
+        files.append(mfile)
+    else:
+        shape = _choice(spec.get("shape", "block"), _join(p, "shape"), ("block", "cylinder"))
+        unit = _unit_of(spec, p)
+        h_data = curve.height or 0.01
+        d_data = curve.diameter or h_data
+        if shape == "block":
+            for k in ("diameter", "height", "cells_radial", "cells_height"):
+                if k in spec:
+                    _fail(_join(p, k), "not used by shape = 'block' (give size and cells)")
+            size = _lengths(spec["size"], _join(p, "size"), unit) if "size" in spec else (d_data, d_data, h_data)
+            cells = _counts(spec.get("cells", [2, 2, 2]), _join(p, "cells"))
+            mesh = block(size, cells)
+        else:
+            for k in ("size", "cells"):
+                if k in spec:
+                    _fail(_join(p, k), "not used by shape = 'cylinder' (give diameter, height, cells_radial, cells_height)")
+            dia = _length(spec["diameter"], _join(p, "diameter"), unit) if "diameter" in spec else d_data
+            hei = _length(spec["height"], _join(p, "height"), unit) if "height" in spec else h_data
+            nr = _integer(spec.get("cells_radial", 4), _join(p, "cells_radial"), minimum=1)
+            nh = _integer(spec.get("cells_height", 4), _join(p, "cells_height"), minimum=1)
+            if model == "springs_volume":
+                _fail(_join(path, "model"), "a cylinder mesh has no cube lattice: use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean' (or a block: with frictionless platens any shape gives the same answer)")
+            mesh = cylinder(dia, hei, nr, nh)
+    try:
+        sc = Compression(mesh, x, y, model=model, bonded=platens == "bonded", measure=measure, sigma=sigma, options=options, name=name)
+    except DifftissueError as err:
+        _reraise(path, err)
+    return Experiment(name, "compression", model, sc, tuple(files), notes)
+
+
+def _mesh_file(spec: dict, p: str, base_dir: Path):
+    from .mesh import read_mesh
+
+    for k in spec:
+        if k not in ("mesh", "length_unit", "reorient"):
+            _fail(_join(p, k), "not used with 'mesh' (a mesh file takes only length_unit and reorient)")
+    unit = _unit_of(spec, p, _MESH_UNITS)
+    file = _resolve(base_dir, spec["mesh"], _join(p, "mesh"))
+    reorient = _bool(spec.get("reorient", False), _join(p, "reorient"))
+    try:
+        return read_mesh(file, length_unit=unit[0], reorient=reorient), file
+    except DifftissueError as err:
+        _reraise(_join(p, "mesh"), err)
+
+
+def _indentation(e, path, name, base_dir) -> Experiment:
+    from .scenarios import Indentation, indentation_block
+
+    curve, file, notes, depth, force, sigma, unit = _force_depth(e, path, base_dir, "indentation")
+    kw = _indenter(e, path, curve, "indentation")
+    model = _model(e, path, "springs_volume")
+    base = _choice(e.get("base", "bonded"), _join(path, "base"), ("bonded", "sliding"))
+    penalty = _positive(e["penalty"], _join(path, "penalty")) if "penalty" in e else 100.0
+    if "penalty" in e and kw["indenter"] == "flat_punch":
+        _fail(_join(path, "penalty"), "not used by a flat punch (its displacement is prescribed)")
+    options = _solver_options(e, path)
+    p = _join(path, "specimen")
+    if "specimen" not in e:
+        _fail(p, "missing (required): e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" } or { mesh = \"specimen.vtu\", length_unit = \"mm\" }")
+    spec = _table(e["specimen"], p, ("shape", "size", "cells", "symmetry", "refine", "mesh", "length_unit", "reorient"))
+    files = [file]
+    symmetry = "none"
+    if "mesh" in spec:
+        mesh, mfile = _mesh_file(spec, p, base_dir)
+        files.append(mfile)
+    else:
+        _choice(spec.get("shape", "block"), _join(p, "shape"), ("block",))
+        sunit = _unit_of(spec, p)
+        if "size" not in spec:
+            _fail(_join(p, "size"), f"missing (required): [Lx, Ly, H] of the whole specimen in {sunit[0]}")
+        size = _lengths(spec["size"], _join(p, "size"), sunit)
+        cells = _counts(spec.get("cells", [6, 6, 4]), _join(p, "cells"))
+        symmetry = _choice(spec.get("symmetry", "quarter"), _join(p, "symmetry"), ("quarter", "none"))
+        refine = _length(spec["refine"], _join(p, "refine"), sunit) if "refine" in spec else None
+        if refine is not None and model == "springs_volume":
+            _fail(_join(p, "refine"), "graded cells are not cubes: use model 'fem_linear', 'fem_neo_hookean' or 'stable_neo_hookean' with refine")
+        try:
+            mesh = indentation_block(size, cells, symmetry=symmetry, refine=refine)
+        except DifftissueError as err:
+            _reraise(p, err)
+        if depth.max() >= size[2]:
+            _fail(_join(path, "max_depth"), f"the deepest point ({depth.max():.3g} m) reaches the specimen's height ({size[2]:.3g} m)")
+    try:
+        sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
+    except DifftissueError as err:
+        _reraise(path, err)
+    return Experiment(name, "indentation", model, sc, tuple(files), notes)
+
+
+def _node_set_spec(value, path: str):
+    if isinstance(value, str):
+        return _string(value, path)
+    if isinstance(value, Mapping):
+        from .selectors import selector_from_dict
+
+        try:
+            selector_from_dict(dict(value))
+        except DifftissueError as err:
+            _reraise(path, err)
+        except (TypeError, KeyError, ValueError) as err:
+            _fail(path, f"not a valid selector: {err}")
+        return dict(value)
+    _fail(path, f"must be the name of a point-data node set or a selector table, got {_show(value)}")
+
+
+def _components(value, path: str) -> str:
+    if not isinstance(value, str) or not value or any(c not in "xyz" for c in value) or len(set(value)) != len(value):
+        _fail(path, f"must be letters from 'xyz' (e.g. \"z\" or \"xyz\"), got {_show(value)}")
+    return value
+
+
+def _fem_field(e, path, name, base_dir) -> Experiment:
+    from .scenarios import FEMField
+
+    p = _join(path, "prescribed")
+    if "prescribed" not in e:
+        _fail(p, "missing (required): the node sets whose displacement the reference prescribed, e.g. [{ set = \"bottom\" }, { set = \"punch\", components = \"z\" }]")
+    pres = e["prescribed"]
+    if not isinstance(pres, list) or not pres:
+        _fail(p, f"must be a non-empty list of tables {{ set = ..., components = \"xyz\" }}, got {_show(pres)}")
+    prescribed = []
+    for i, entry in enumerate(pres):
+        q = _join(p, i)
+        t = _table(entry, q, ("set", "components"), ("set",))
+        prescribed.append({"set": _node_set_spec(t["set"], _join(q, "set")), "components": _components(t.get("components", "xyz"), _join(q, "components"))})
+    observe = _node_set_spec(e["observe"], _join(path, "observe")) if "observe" in e else None
+    reaction = None
+    if "reaction" in e:
+        q = _join(path, "reaction")
+        t = _table(e["reaction"], q, ("set", "components", "force", "field"), ("set",))
+        comps = _components(t.get("components", "z"), _join(q, "components"))
+        reaction = {"set": _node_set_spec(t["set"], _join(q, "set")), "components": comps}
+        if ("force" in t) == ("field" in t):
+            _fail(q, "give exactly one of 'force' (total force in N, one value per component) or 'field' (a nodal reaction point field of the file)")
+        if "force" in t:
+            f = t["force"]
+            f = [f] if _is_number(f) else f
+            if not isinstance(f, list) or len(f) != len(comps):
+                _fail(_join(q, "force"), f"must be {len(comps)} number(s) in N (one per component {comps!r}), got {_show(t['force'])}")
+            reaction["force"] = [_number(v, _join(_join(q, "force"), j), what="a force in N") for j, v in enumerate(f)]
+        else:
+            reaction["field"] = _string(t["field"], _join(q, "field"))
+    ds = _positive(e["displacement_sigma"], _join(path, "displacement_sigma"), "m") if "displacement_sigma" in e else None
+    fs = _positive(e["force_sigma"], _join(path, "force_sigma"), "N") if "force_sigma" in e else None
+    if fs is not None and reaction is None:
+        _fail(_join(path, "force_sigma"), "needs a 'reaction' to compare")
+    model = _model(e, path, "fem_linear")
+    options = _solver_options(e, path)
+    result, file, notes = _load_data(e, path, "fem_field", base_dir)
+    try:
+        sc = FEMField(result.mesh, result.displacement, prescribed=prescribed, model=model, observe=observe, reaction=reaction, displacement_sigma=ds, force_sigma=fs, options=options, name=name)
+    except DifftissueError as err:
+        _reraise(path, err)
+    return Experiment(name, "fem_field", model, sc, (file,), notes)
