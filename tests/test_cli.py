@@ -20,7 +20,7 @@ def test_version_and_help(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     out = capsys.readouterr().out
-    for cmd in ("demo", "mesh", "info"):
+    for cmd in ("demo", "fit", "mesh", "info"):
         assert cmd in out
     assert main([]) == 2
 
@@ -91,19 +91,37 @@ def test_info_reports_validation_errors_from_a_foreign_file(tmp_path, capsys):
     assert report["findings"][0]["severity"] == "note"
 
 
-def test_demo_writes_specimen_and_summary(tmp_path, capsys):
+def test_demo_quick_fits_the_bundled_afm_curve(tmp_path, capsys):
+    """`demo --quick` runs the Hertz fit of the bundled Chiaro curve only (the full demo, with the
+    Ecoflex compression, is timed by hand: see docs/cli.md)."""
     out = tmp_path / "demo"
-    assert main(["demo", "--out", str(out)]) == 0
-    summary = json.loads((out / "summary.json").read_text())
-    assert summary["tets"] == 19200 and [r["name"] for r in summary["regions"]] == ["epidermis", "dermis", "hypodermis"]
-    derm = summary["materials"]["dermis"]
-    assert derm["shear_modulus_Pa"] == pytest.approx(2e5 / (2 * 1.48))
-    assert summary["materials"]["epidermis"]["cell_size_m"] == pytest.approx([1e-3, 1e-3, 1e-4])
-    mesh = read_mesh(out / "skin.vtu")
-    assert mesh.n_tets == 19200
-    assert main(["demo", "--out", str(out)]) == 1  # refuses to overwrite
+    assert main(["demo", "--quick", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "E_eff" in text and "demo finished" in text
+    rec = json.loads((out / "afm_hertz" / "fit.json").read_text())
+    e_eff = rec["parameters"]["youngs_modulus"]["value"]  # nu is fixed at 0: E is E_eff
+    assert rec["fixed_parameters"]["poisson_ratio"]["value"] == 0.0 and rec["converged"]
+    assert e_eff == pytest.approx(156.0, rel=0.05)  # the instrument's own Hertz fit
+    assert rec["parameters"]["youngs_modulus"]["unit"] == "Pa" and rec["parameters"]["youngs_modulus"]["standard_error"] > 0
+    assert len(rec["data_files"]) == 1 and len(rec["data_files"][0]["sha256"]) == 64
+    for name in ("fit.png", "loss.png", "report.md", "config.toml"):
+        assert (out / "afm_hertz" / name).is_file()
+    assert main(["demo", "--quick", "--out", str(out)]) == 1  # refuses to write into a non-empty folder
     assert "not empty" in capsys.readouterr().err
-    assert main(["demo", "--out", str(out), "--force"]) == 0
+    assert main(["demo", "--quick", "--out", str(out), "--force"]) == 0
+
+
+def test_demo_data_and_configs_ship_with_the_package():
+    from pathlib import Path
+
+    import difftissue
+
+    pkg = Path(difftissue.__file__).parent / "configs"
+    root = Path(__file__).resolve().parents[1] / "data"
+    for rel in ("afm/chiaro_AEBP1_indentation_002.txt", "compression/EF10_50T_A1.csv"):
+        assert (pkg / "data" / rel).read_bytes() == (root / rel).read_bytes()
+    assert (pkg / "data" / "SOURCES.md").is_file()
+    assert {p.name for p in pkg.glob("*.toml")} >= {"afm_hertz.toml", "ecoflex_compression.toml"}
 
 
 def test_mesh_skin_to_medit_keeps_geometry_and_says_so(tmp_path, capsys):
