@@ -30,7 +30,10 @@ Internally the update is written in the stiffness form ``beta = h^2 / alpha``:
 (``alpha = inf``: the constraint does nothing) and for rigid constraints (``alpha = 0``).
 Inside the loops positions are ``(N, 4)`` rows (x, y, z and the node's inverse mass): one
 gather and one scatter row per node of a constraint, the cheapest layout measured on
-XLA:CPU (indirect rows dominate the cost). See ``docs/xpbd.md``.
+XLA:CPU (indirect rows dominate the cost). The Jacobi iteration is differentiated through an
+arithmetically identical copy on x, y, z component arrays (``custom_jvp``): reverse mode
+through it is about 2.5x faster on XLA:CPU than through the rows. See ``docs/xpbd.md`` and
+``docs/performance.md``.
 """
 
 from __future__ import annotations
