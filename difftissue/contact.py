@@ -180,8 +180,9 @@ class ContactModel(ElasticModel):
         depth: indenter depth [m] (a leaf: :meth:`with_depth` does not recompile).
         contact_nodes: ``(K,)`` candidate surface nodes.
         penalty_factors: ``(K,)`` ``penalty * A_i / h_i`` [m]; ``kappa_i`` = this x the largest
-            Young's modulus of the material (held constant under differentiation: the
-            penalty is a numerical device, not a physical parameter).
+            Young's modulus of the material. The penalty scales with ``E`` also under
+            differentiation, so the computed force is exactly proportional to ``E`` (as for a
+            truly rigid indenter) and its gradient is that of the function computed.
     """
 
     base: ElasticModel
@@ -229,7 +230,7 @@ class ContactModel(ElasticModel):
 
     def _kappa(self, material: Material):
         E = jnp.max(self.base.region_values(material)["youngs_modulus"])
-        return jax.lax.stop_gradient(E) * self.penalty_factors
+        return E * self.penalty_factors
 
     def terms(self, material):
         n = self.contact_nodes.shape[0]

@@ -194,7 +194,19 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         ok = model.min_volume_ratio(jnp.asarray(model.rest_points) + u) > 0
         return jnp.where(ok & jnp.isfinite(e), e, jnp.inf)
 
-    u0 = fixed_part + Pf * u_init
+    # Dirichlet predictor: linearise at the starting guess (with its own prescribed values)
+    # and solve for the free response to the jump in the prescribed values, as FE codes do.
+    # Starting from the bare jump instead squeezes the boundary layer of elements, which
+    # makes nearly incompressible or large-step problems crawl through line searches.
+    jump = (1.0 - Pf) * (displacement - u_init)
+    naive = fixed_part + Pf * u_init
+    _, h_jump = jax.jvp(lambda uu: _full_gradient(model, uu, material, force), (u_init,), (jump,))
+    rhs = Pf * (_full_gradient(model, u_init, material, force) + h_jump)
+    op0, solver0, opts0 = _projected_operator(model, u_init, material, free, options)
+    delta = lx.linear_solve(op0, -rhs.reshape(-1), solver0, options=opts0, throw=False).value.reshape(u_init.shape)
+    predicted = naive + Pf * delta
+    use = jnp.all(jnp.isfinite(predicted)) & (potential(predicted) <= potential(naive))
+    u0 = jnp.where(use, predicted, naive)
     cold = fixed_part
     tol = jnp.maximum(options.atol, options.rtol * jnp.linalg.norm(residual(cold)))
 

@@ -1,0 +1,217 @@
+"""Contact and scenarios: each against its analytic limit, gradients against finite differences,
+bad input refused with named errors."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from difftissue import analytic, errors
+from difftissue.contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, top_surface_nodes
+from difftissue.materials import Material
+from difftissue.mesh import block, read_mesh, write_mesh
+from difftissue.models import make_model
+from difftissue.scenarios import (
+    AnalyticIndentation,
+    Compression,
+    FEMField,
+    Indentation,
+    cylinder,
+    graded_axis,
+    indentation_block,
+    recover_lattice,
+)
+from difftissue.solvers import solve_static
+from difftissue.boundary import BoundaryConditions
+
+
+def _fd(f, x, h):
+    return (f(x + h) - f(x - h)) / (2 * h)
+
+
+# ------------------------------------------------------------------ compression
+@pytest.fixture(scope="module")
+def cube():
+    return block((0.01, 0.01, 0.01), (2, 2, 2))
+
+
+def test_frictionless_compression_is_homogeneous_uniaxial_stress(cube):
+    strains = [1e-3, 1e-2, 0.05]
+    lin = Compression(cube, strains, model="fem_linear")
+    np.testing.assert_allclose(lin.predict(Material(16e3, 0.45)), 16e3 * np.array(strains), rtol=1e-9)
+    springs = Compression(cube, [1e-4], model="springs_volume")
+    np.testing.assert_allclose(springs.predict(Material(16e3, 0.3)), 1.6, rtol=1e-3)
+    # bonded platens restrain the lateral expansion: stiffer than E eps
+    bonded = Compression(cube, [1e-3], model="fem_linear", bonded=True)
+    assert float(bonded.predict(Material(16e3, 0.45))[0]) > 1.05 * 16.0
+
+
+def test_true_stress_matches_incompressible_neo_hookean(cube):
+    eps_true = np.array([0.05, 0.1, 0.15, 0.2])
+    sc = Compression(cube, eps_true, model="fem_neo_hookean", measure="true")
+    mat = Material(3e3, 0.4999)
+    lam = np.exp(-eps_true)  # stretch along the load
+    mu = 3e3 / (2 * 1.4999)
+    expected = mu * (1 / lam - lam**2)  # compressive true stress of incompressible neo-Hookean
+    np.testing.assert_allclose(sc.predict(mat), expected, rtol=1e-2)
+
+
+def test_compression_gradient_matches_finite_differences(cube):
+    sc = Compression(cube, [0.05, 0.2], model="springs_volume")
+    base = dict(youngs_modulus=16e3, poisson_ratio=0.4, cubic_coefficient=2.0)
+
+    def out(**kw):
+        return sc.predict(Material(**{**base, **kw}))[-1]
+
+    g = jax.grad(lambda E, nu, b: out(youngs_modulus=E, poisson_ratio=nu, cubic_coefficient=b), argnums=(0, 1, 2))(16e3, 0.4, 2.0)
+    fd = [
+        _fd(lambda v: out(youngs_modulus=v), 16e3, 1.0),
+        _fd(lambda v: out(poisson_ratio=v), 0.4, 1e-6),
+        _fd(lambda v: out(cubic_coefficient=v), 2.0, 1e-5),
+    ]
+    np.testing.assert_allclose([float(v) for v in g], [float(v) for v in fd], rtol=1e-5)
+    # the cubic coefficient stiffens
+    assert float(out(cubic_coefficient=2.0)) > float(out(cubic_coefficient=0.0))
+
+
+def test_cylinder_mesh_has_the_right_volume():
+    m = cylinder(0.05, 0.03, cells_radial=4, cells_height=2)
+    np.testing.assert_allclose(m.volumes().sum(), np.pi * 0.025**2 * 0.03, rtol=0.03)
+    assert m.volumes().min() > 0
+
+
+# -------------------------------------------------------------------- analytic
+def test_analytic_indentation_is_the_closed_forms():
+    d = np.linspace(1e-6, 1e-5, 5)
+    F = np.asarray(analytic.hertz_force(d, 1e3, 0.5, 1e-4))
+    sc = AnalyticIndentation(d, F, indenter="sphere", radius=1e-4)
+    np.testing.assert_allclose(sc.predict(Material(1e3, 0.4999999)), F, rtol=1e-6)
+    layer = AnalyticIndentation(d, F, indenter="sphere", radius=1e-4, thickness=5e-5, solution="dimitriadis")
+    np.testing.assert_allclose(layer.predict(Material(1e3, 0.45)), analytic.dimitriadis_force(d, 1e3, 0.45, 1e-4, 5e-5), rtol=1e-12)
+    with pytest.raises(errors.ConfigError, match="radius"):
+        AnalyticIndentation(d, F, indenter="sphere")
+    with pytest.raises(errors.ConfigError, match="thickness"):
+        AnalyticIndentation(d, F, indenter="sphere", radius=1e-4, solution="exact_layer")
+    with pytest.raises(errors.DataError, match="NaN"):
+        AnalyticIndentation(d, F * np.nan, indenter="sphere", radius=1e-4)
+
+
+# ---------------------------------------------------------------- indentation
+def test_flat_punch_matches_hayes_on_a_refined_mesh():
+    a, H = 1e-3, 5e-3
+    mesh = indentation_block((25 * a, 25 * a, H), (16, 16, 16), symmetry="quarter", refine=a / 10)
+    d = [1e-5]
+    sc = Indentation(mesh, d, model="fem_linear", indenter="flat_punch", radius=a, symmetry="quarter")
+    F = float(sc.predict(Material(10e3, 0.3))[0])
+    hayes = float(analytic.layer_flat_punch_force(1e-5, 10e3, 0.3, a, H))
+    assert F == pytest.approx(hayes, rel=0.03)  # measured 1.5 % (linear tets, graded mesh)
+
+
+@pytest.fixture(scope="module")
+def small_sphere():
+    R, H = 1e-3, 1e-3
+    mesh = indentation_block((4e-3, 4e-3, H), (8, 8, 6), symmetry="quarter", refine=0.03e-3)
+    return mesh, Indentation(mesh, [2e-5, 4e-5], model="fem_linear", indenter="sphere", radius=R, symmetry="quarter")
+
+
+def test_sphere_contact_is_frictionless_and_barely_penetrates(small_sphere):
+    mesh, sc = small_sphere
+    mat = Material(10e3, 0.4)
+    forces, us = sc.solve(mat)
+    assert np.all(np.diff(np.asarray(forces)) > 0) and float(forces[0]) > 0
+    model = sc.model.with_depth(4e-5)
+    x = jnp.asarray(mesh.points) + us[-1]
+    pen = np.asarray(model.penetrations(x))
+    assert pen.max() < 0.01 * 4e-5  # penalty 100: about 0.3 % of the depth
+    assert int((pen > 0).sum()) >= 3  # several nodes in contact
+    # force balance: the indenter force equals the base reaction (quarter model, x4)
+    sol = solve_static(model, mat, sc.bc, initial_displacement=us[-1])
+    bottom = np.flatnonzero(np.isclose(np.asarray(mesh.points)[:, 2], 0.0))
+    np.testing.assert_allclose(4 * float(jnp.sum(sol.reaction[bottom, 2])), float(forces[-1]), rtol=1e-6)
+
+
+def test_sphere_force_gradient_matches_finite_differences(small_sphere):
+    _, sc = small_sphere
+
+    def f(E, nu):
+        return sc.predict(Material(E, nu))[-1]
+
+    g = jax.grad(f, argnums=(0, 1))(10e3, 0.4)
+    np.testing.assert_allclose(float(g[0]), float(_fd(lambda v: f(v, 0.4), 10e3, 1.0)), rtol=1e-5)
+    # steps large enough that the solver tolerance (1e-9) is far below the difference
+    np.testing.assert_allclose(float(g[1]), float(_fd(lambda v: f(10e3, v), 0.4, 1e-4)), rtol=1e-5)
+
+
+def test_indenters_geometry_and_errors():
+    s = SphereIndenter(1e-3, surface_z=0.0)
+    assert float(s.penetration(jnp.array([0.0, 0.0, 0.0]), 1e-4)) == pytest.approx(1e-4)
+    c = ConeIndenter(np.deg2rad(45), surface_z=0.0)
+    # a point on the surface at radius r is inside by (d - r) sin 45
+    assert float(c.penetration(jnp.array([1e-5, 0.0, 0.0]), 3e-5)) == pytest.approx(2e-5 * np.sin(np.pi / 4))
+    with pytest.raises(errors.ModelError, match="radius"):
+        SphereIndenter(-1.0)
+    with pytest.raises(errors.ModelError, match="half_angle"):
+        ConeIndenter(2.0)
+    mesh = block((1e-3, 1e-3, 1e-3), (2, 2, 2))
+    with pytest.raises(errors.ModelError, match="FlatPunch"):
+        ContactModel(make_model(mesh, "fem_linear"), FlatPunch(1e-4), mesh)
+    with pytest.raises(errors.BoundaryConditionError, match="refine"):
+        FlatPunch(1e-6, axis_xy=(0.25e-3, 0.25e-3)).nodes(mesh)
+    with pytest.raises(errors.DataError, match="non-decreasing"):
+        Indentation(mesh, [2e-5, 1e-5], model="fem_linear", indenter="sphere", radius=1e-3)
+    with pytest.raises(errors.ConfigError, match="radius"):
+        Indentation(mesh, [1e-5], model="fem_linear", indenter="sphere")
+    with pytest.raises(errors.BoundaryConditionError, match="quarter"):
+        Indentation(block((1e-3,) * 3, 2, origin=(-5e-4, -5e-4, 0)), [1e-5], model="fem_linear", radius=1e-3, symmetry="quarter")
+
+
+def test_graded_axis():
+    x = graded_axis(1.0, 10, 0.01)
+    assert x[0] == 0 and x[-1] == 1.0 and x[1] == pytest.approx(0.01)
+    assert np.all(np.diff(np.diff(x)) > 0)
+    np.testing.assert_allclose(graded_axis(1.0, 4), [0, 0.25, 0.5, 0.75, 1.0])
+
+
+# ------------------------------------------------------------------ FEM field
+def test_fem_field_reproduces_its_reference_and_recovers_the_lattice(tmp_path):
+    mesh = block((0.01, 0.01, 0.005), (4, 4, 2))
+    p = np.asarray(mesh.points)
+    bottom = np.isclose(p[:, 2], 0.0)
+    punch = np.isclose(p[:, 2], 0.005) & (np.hypot(p[:, 0] - 0.005, p[:, 1] - 0.005) <= 0.0026)
+    truth = Material(12e3, 0.42)
+    bc = BoundaryConditions.free(mesh).fix(mesh, np.flatnonzero(bottom)).fix(mesh, np.flatnonzero(punch), "z", (0, 0, -1e-4))
+    for kind in ("fem_linear", "springs_volume"):
+        ref = solve_static(make_model(mesh, kind), truth, bc)
+        path = write_mesh(
+            tmp_path / f"ref_{kind}.vtu",
+            mesh,
+            point_data={"displacement": np.asarray(ref.displacement), "bottom": bottom.astype(np.int32), "punch": punch.astype(np.int32), "reaction": np.asarray(ref.reaction)},
+        )
+        back = read_mesh(path)
+        assert back.lattice is None and recover_lattice(back).lattice is not None
+        sc = FEMField(
+            back,
+            back.point_data["displacement"],
+            prescribed=[{"set": "bottom"}, {"set": "punch", "components": "z"}],
+            model=kind,
+            reaction={"set": "punch", "field": "reaction", "components": "z"},
+        )
+        np.testing.assert_allclose(sc.predict(truth), sc.observed, rtol=1e-8, atol=1e-10 * np.abs(sc.observed).max())
+        assert sc.observed[-1] == pytest.approx(float(jnp.sum(ref.reaction[punch, 2])))
+        # a different material does not reproduce it
+        assert np.abs(np.asarray(sc.predict(Material(12e3, 0.3))) - sc.observed).max() > 1e-3 * np.abs(sc.observed).max()
+    with pytest.raises(errors.ConfigError, match="nosuch"):
+        FEMField(back, back.point_data["displacement"], prescribed=[{"set": "nosuch"}])
+    with pytest.raises(errors.ConfigError, match="prescribed"):
+        FEMField(
+            back,
+            back.point_data["displacement"],
+            prescribed=[{"set": "bottom"}, {"set": "punch", "components": "z"}],
+            reaction={"set": "punch", "force": [1.0], "components": "x"},
+        )
+
+
+def test_recover_lattice_refuses_unstructured_meshes():
+    m = cylinder(0.01, 0.01, 2, 2)
+    with pytest.raises(errors.ModelError, match="lattice"):
+        recover_lattice(m)
