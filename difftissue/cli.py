@@ -169,6 +169,36 @@ def _one_line(text) -> str:
 _CHECKPOINT = Path("checkpoint") / "fit.npz"
 
 
+class _quiet_callback_logs:
+    """Silence JAX's own logging of exceptions raised inside callbacks (the error is re-raised
+    and reported in one line by the CLI)."""
+
+    def __enter__(self):
+        import logging
+
+        self._loggers = [logging.getLogger(n) for n in ("jax._src.callback", "jax._src.interpreters.pxla")]
+        self._levels = [lg.level for lg in self._loggers]
+        for lg in self._loggers:
+            lg.setLevel(logging.CRITICAL)
+        return self
+
+    def __exit__(self, *exc):
+        for lg, lvl in zip(self._loggers, self._levels):
+            lg.setLevel(lvl)
+        return False
+
+
+def _runtime_message(e: BaseException) -> str:
+    """The useful line of a JAX runtime error (the equinox message, not the traceback)."""
+    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
+    for ln in reversed(lines):
+        for tag in ("EquinoxRuntimeError:", "ConvergenceError:"):
+            if tag in ln:
+                return ln.split(tag, 1)[1].strip()
+    text = next((ln for ln in lines if not ln.startswith(("File ", "Traceback", "---"))), "")
+    return _one_line(text)[:300]
+
+
 def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
     """Check DIR before fitting: refuse to overwrite outputs (or a checkpoint) without --force/--resume."""
     from .errors import OutputError, OutputExistsError
@@ -203,9 +233,18 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
     if ckpt is not None:
         overrides.update(checkpoint=ckpt, resume=resume)
     t0 = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
+    with warnings.catch_warnings(record=True) as caught, _quiet_callback_logs():
         warnings.simplefilter("always")
-        result = cfg.run(**overrides)
+        try:
+            result = cfg.run(**overrides)
+        except Exception as e:
+            if type(e).__name__ not in ("JaxRuntimeError", "XlaRuntimeError", "EquinoxRuntimeError", "_EquinoxRuntimeError"):
+                raise
+            from .errors import FitError
+
+            hint = f"; resume with --resume (checkpoint {ckpt})" if ckpt is not None and ckpt.exists() else ""
+            raise FitError(f"the fit stopped: a model evaluation failed at trial parameters: {_runtime_message(e)} "
+                           f"(narrow fit.bounds or change the initial material; --debug shows the traceback){hint}") from e
     elapsed = time.perf_counter() - t0
     paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name, force=force or resume)
     if cfg.path is not None:
@@ -213,6 +252,10 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
             tmp.write_bytes(Path(cfg.path).read_bytes())
     notes = [n for e in cfg.experiments for n in e.notes] + list(extra_notes)
     notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ != "IdentifiabilityWarning"]
+    for sc in getattr(cfg, "last_scenarios", ()):
+        fails = getattr(sc, "failures", None)
+        if fails:
+            notes.append(f"{sc.name}: {len(fails)} model evaluation(s) failed at trial parameters and were rejected (last: {fails[-1]})")
     _print_fit(result, cfg, out, elapsed, console, notes)
     return result, paths
 

@@ -312,6 +312,7 @@ class FitConfig:
 
         opts = {**self.options, **overrides}
         scenarios = self.fit_scenarios(opts.pop("separate_compilation", None))
+        object.__setattr__(self, "last_scenarios", scenarios)  # for the failures of SeparatelyCompiled
         return fit(scenarios, self.parameterization, self.material, **opts)
 
 
@@ -331,6 +332,11 @@ class SeparatelyCompiled:
     fit's compiled code calls them through :func:`jax.pure_callback` (batched calls run one
     after the other). The numbers are the same; only the compilation is shared. The material
     must have scalar fields.
+
+    An evaluation at an invalid material (E <= 0, nu outside (-1, 0.5), non-finite values) or
+    one whose static solve fails returns NaN instead of raising, so that Levenberg--Marquardt
+    rejects that trial point (shrinking its trust region) rather than the fit aborting; the
+    failures' messages are kept in :attr:`failures`.
     """
 
     def __init__(self, scenario, *, mode: str = "forward"):
@@ -343,6 +349,8 @@ class SeparatelyCompiled:
             raise ConfigError(f"mode must be 'forward' or 'reverse', got {mode!r}")
         self.inner = scenario
         self.mode = mode
+        #: messages of the model evaluations that failed (returned NaN) during fits
+        self.failures: list[str] = []
         for k in ("name", "observed", "sigma", "abscissa", "x_label", "y_label"):
             setattr(self, k, getattr(scenario, k))
         n = int(np.asarray(scenario.observed).size)
@@ -354,8 +362,26 @@ class SeparatelyCompiled:
         out = jax.ShapeDtypeStruct((n,), jnp.float64)
         vec = jax.ShapeDtypeStruct((len(_MATERIAL_LEAVES),), jnp.float64)
 
+        nan = np.full(n, np.nan)
+
+        def valid(v) -> bool:
+            v = np.asarray(v, dtype=float)
+            return bool(np.all(np.isfinite(v)) and v[0] > 0 and -1.0 < v[1] < 0.5 and v[3] > 0 and v[4] > 0)
+
+        def guarded(fn, v, *args):
+            # An invalid material (optimistix evaluates the Jacobian of a discarded branch at an
+            # all-zero placeholder) or a failed solve gives NaN instead of an exception, so the
+            # optimiser rejects that trial point instead of the whole fit aborting.
+            if not valid(v):
+                return nan
+            try:
+                return np.asarray(fn(jnp.asarray(v), *(jnp.asarray(a) for a in args)), dtype=np.float64)
+            except Exception as e:  # a static solve that failed to converge, an inverted element, ...
+                self.failures.append(" ".join(str(e).split())[-300:])
+                return nan
+
         def host_f(v):
-            return np.asarray(fwd(jnp.asarray(v)), dtype=np.float64)
+            return guarded(fwd, v)
 
         def call_f(v):
             return jax.pure_callback(host_f, out, v, vmap_method="sequential")
@@ -364,7 +390,7 @@ class SeparatelyCompiled:
             jvp = jax.jit(lambda v, t: jax.jvp(f, (v,), (t,))[1])
 
             def host_jvp(v, t):
-                return np.asarray(jvp(jnp.asarray(v), jnp.asarray(t)), dtype=np.float64)
+                return guarded(jvp, v, t)
 
             @jax.custom_jvp
             def call(v):
@@ -379,7 +405,8 @@ class SeparatelyCompiled:
             vjp = jax.jit(lambda v, ct: jax.vjp(f, v)[1](ct)[0])
 
             def host_vjp(v, ct):
-                return np.asarray(vjp(jnp.asarray(v), jnp.asarray(ct)), dtype=np.float64)
+                out = guarded(vjp, v, ct)
+                return out if out.shape == (len(_MATERIAL_LEAVES),) else np.full(len(_MATERIAL_LEAVES), np.nan)
 
             @jax.custom_vjp
             def call(v):
@@ -448,6 +475,7 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
             _fail(_join(p, "name"), f"{name!r} is used by experiment[{names.index(name)}] too; names must be unique")
         names.append(name)
     built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir) for i, e in enumerate(exps))
+    _check_model_ranges(built, material, param)
     return FitConfig(
         path=None if path is None else Path(path),
         raw=dict(raw),
@@ -456,6 +484,22 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
         options=options,
         experiments=built,
     )
+
+
+def _check_model_ranges(experiments, material, param) -> None:
+    """springs_volume represents nu in [0.25, 0.5) only: the fit must stay there."""
+    springs = [i for i, e in enumerate(experiments) if e.model == "springs_volume"]
+    if not springs:
+        return
+    who = f"the springs_volume model (experiment[{springs[0]}])"
+    nu = float(material.poisson_ratio)
+    if nu < 0.25:
+        _fail("material.poisson_ratio", f"{who} needs nu in [0.25, 0.5), got {nu:g}; use stable_neo_hookean or fem_* below 0.25")
+    if "poisson_ratio" in param.fields:
+        t = dict(zip(param.fields, param.transforms))["poisson_ratio"]
+        lo = getattr(t, "lower", None)
+        if lo is None or lo < 0.25:
+            _fail("fit.bounds.poisson_ratio", f"{who} needs nu in [0.25, 0.5): give bounds such as [0.25, 0.499] (got {'none' if lo is None else f'lower bound {lo:g}'})")
 
 
 def _parse_material(value):
@@ -735,7 +779,8 @@ def _compression(e, path, name, base_dir) -> Experiment:
             for k in ("diameter", "height", "cells_radial", "cells_height"):
                 if k in spec:
                     _fail(_join(p, k), "not used by shape = 'block' (give size and cells)")
-            size = _lengths(spec["size"], _join(p, "size"), unit) if "size" in spec else (d_data, d_data, h_data)
+            # default: a cube of the specimen's height (frictionless platens: any shape gives the same answer)
+            size = _lengths(spec["size"], _join(p, "size"), unit) if "size" in spec else (h_data, h_data, h_data)
             cells = _counts(spec.get("cells", [2, 2, 2]), _join(p, "cells"))
             mesh = block(size, cells)
         else:

@@ -194,6 +194,16 @@ def test_duplicate_names_and_scenario_specific_keys(hertz_csv):
         cfg["experiment"] = [{**bad, **extra}]
         with pytest.raises(ConfigError, match=msg):
             parse_config(cfg, base_dir=hertz_csv.parent)
+    # springs_volume represents nu in [0.25, 0.5) only
+    cfg["experiment"] = [{**bad, "max_strain": 0.3}]
+    cfg["fit"] = {"parameters": ["youngs_modulus", "poisson_ratio"]}
+    with pytest.raises(ConfigError, match=r"^fit\.bounds\.poisson_ratio: the springs_volume model \(experiment\[0\]\) needs nu in \[0\.25, 0\.5\)"):
+        parse_config(cfg, base_dir=hertz_csv.parent)
+    cfg["fit"] = {"parameters": ["youngs_modulus"]}
+    cfg["material"]["poisson_ratio"] = 0.2
+    with pytest.raises(ConfigError, match=r"^material\.poisson_ratio: the springs_volume model"):
+        parse_config(cfg, base_dir=hertz_csv.parent)
+    cfg["material"]["poisson_ratio"] = NU
     # fem_field and indentation specifics (structure checked before any data is read)
     fem = {"scenario": "fem_field", "data": {"format": "fem", "path": "missing.vtu"}}
     for extra, msg in [
@@ -372,6 +382,13 @@ def test_example_and_demo_configs_build():
         for sc in cfg.scenarios:
             assert sc.observed.size >= 2 and np.all(np.isfinite(sc.sigma))
     assert kinds == {"analytic_indentation", "indentation", "compression", "fem_field"}
+
+
+def test_runtime_errors_are_reported_in_one_line():
+    from difftissue.cli import _runtime_message
+
+    text = "INTERNAL: CpuCallback error calling callback: Traceback (most recent call last):\n  File \"x.py\", line 1\n_EquinoxRuntimeError: static solve did not converge within max_steps Newton steps\n\n------\nAn error occurred"
+    assert _runtime_message(RuntimeError(text)) == "static solve did not converge within max_steps Newton steps"
 
 
 def test_separately_compiled_scenario_matches_the_scenario():
