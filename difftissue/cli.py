@@ -188,6 +188,11 @@ class _quiet_callback_logs:
         return False
 
 
+def _interrupted(ckpt) -> None:
+    if ckpt is not None and ckpt.exists():
+        print(f"difftissue: fit interrupted; its state is saved in {ckpt}: continue with --resume", file=sys.stderr)
+
+
 def _runtime_message(e: BaseException) -> str:
     """The useful line of a JAX runtime error (the equinox message, not the traceback)."""
     lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
@@ -237,9 +242,15 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
         warnings.simplefilter("always")
         try:
             result = cfg.run(**overrides)
+        except KeyboardInterrupt:
+            _interrupted(ckpt)
+            raise
         except Exception as e:
             if type(e).__name__ not in ("JaxRuntimeError", "XlaRuntimeError", "EquinoxRuntimeError", "_EquinoxRuntimeError"):
                 raise
+            if "KeyboardInterrupt" in str(e):  # Ctrl-C while a model callback was running
+                _interrupted(ckpt)
+                raise KeyboardInterrupt from e
             from .errors import FitError
 
             hint = f"; resume with --resume (checkpoint {ckpt})" if ckpt is not None and ckpt.exists() else ""
