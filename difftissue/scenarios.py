@@ -267,6 +267,36 @@ class SolverOptions:
     xtol: float = 1e-8
     max_steps: int = 50
     linear_solver: str = "auto"
+    #: ``"raise"``: a static solve that fails (no convergence, inverted elements) raises
+    #: :class:`~difftissue.errors.ConvergenceError` (an equinox runtime error under jit);
+    #: ``"nan"``: its predictions become NaN, so an optimiser rejects the trial parameters
+    #: (what :mod:`difftissue.config` uses for fits; the fit refuses a NaN optimum).
+    failure: str = "raise"
+
+    def __post_init__(self):
+        if self.failure not in ("raise", "nan"):
+            raise ConfigError(f"solver failure must be 'raise' or 'nan', got {self.failure!r}")
+
+
+_JITTED: dict[int, tuple[Any, Any]] = {}
+
+
+def _jitted_solve(scenario):
+    """``scenario.solve`` compiled once per scenario object.
+
+    The scenario is closed over (its mesh arrays stay concrete NumPy, which the sparse solver
+    needs for its pattern), so repeated ``predict`` calls reuse one executable; inside an outer
+    ``jit`` (a fit) the call is simply inlined.
+    """
+    key = id(scenario)
+    hit = _JITTED.get(key)
+    if hit is not None and hit[0]() is scenario:
+        return hit[1]
+    import weakref
+
+    fn = jax.jit(lambda material: scenario._solve_protocol(material))
+    _JITTED[key] = (weakref.ref(scenario, lambda _, k=key: _JITTED.pop(k, None)), fn)
+    return fn
 
 
 def _extrapolate(u, previous_load, load):
@@ -281,7 +311,13 @@ def _solve(model, material, bc, u0, opts: SolverOptions):
     # The warm start (the previous depth's equilibrium) does not change the solution; it
     # must not carry derivatives into the implicit-gradient solve.
     u0 = None if u0 is None else jax.lax.stop_gradient(u0)
-    return solve_static(model, material, bc, rtol=opts.rtol, xtol=opts.xtol, max_steps=opts.max_steps, linear_solver=opts.linear_solver, initial_displacement=u0)
+    sol = solve_static(
+        model, material, bc, rtol=opts.rtol, xtol=opts.xtol, max_steps=opts.max_steps, linear_solver=opts.linear_solver, initial_displacement=u0, throw=opts.failure == "raise"
+    )
+    if opts.failure == "nan":
+        bad = ~sol.converged
+        sol = eqx.tree_at(lambda s: (s.displacement, s.reaction), sol, (jnp.where(bad, jnp.nan, sol.displacement), jnp.where(bad, jnp.nan, sol.reaction)))
+    return sol
 
 
 class Indentation(eqx.Module):
@@ -422,8 +458,11 @@ class Indentation(eqx.Module):
         return self.force_multiplier * force, sol.displacement
 
     def solve(self, material: Material):
-        """``(forces (n,) [N], displacements (n, N, 3) [m])`` along the protocol."""
-        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        """``(forces (n,) [N], displacements (n, N, 3) [m])`` along the protocol (compiled once
+        per scenario)."""
+        return _jitted_solve(self)(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material))
+
+    def _solve_protocol(self, material: Material):
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
 
         def step(carry, depth):
@@ -520,8 +559,11 @@ class Compression(eqx.Module):
         self.model = make_model(mesh, model)
 
     def solve(self, material: Material):
-        """``(stress (n,) [Pa], displacements (n, N, 3) [m])`` along the protocol."""
-        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        """``(stress (n,) [Pa], displacements (n, N, 3) [m])`` along the protocol (compiled once
+        per scenario)."""
+        return _jitted_solve(self)(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material))
+
+    def _solve_protocol(self, material: Material):
         nominal = jnp.asarray(self.abscissa if self.measure == "engineering" else -np.expm1(-self.abscissa))
         top = jnp.asarray(self.top_mask)
         x0 = jnp.asarray(self.model.rest_points)
@@ -672,8 +714,11 @@ class FEMField(eqx.Module):
         self.model = make_model(mesh, model)
 
     def solve(self, material: Material):
-        """The static solution of the model under the reference's boundary conditions."""
-        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        """The static solution of the model under the reference's boundary conditions
+        (compiled once per scenario)."""
+        return _jitted_solve(self)(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material))
+
+    def _solve_protocol(self, material: Material):
         return _solve(self.model, material, self.bc, None, self.options)
 
     def predict(self, material: Material):

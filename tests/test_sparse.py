@@ -65,3 +65,11 @@ def test_sparse_vmaps_and_does_not_recompile(problem, caplog):
         caplog.clear()
         solve_static(model, Material(3e4, 0.35), bc, linear_solver="sparse")
     assert [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()] == []
+
+
+def test_jacfwd_factorises_once_for_all_tangents_and_agrees_with_grad(problem):
+    _, model, top, bc = problem
+    f = lambda E, nu: _top_force(model, bc, top, "sparse", E, nu)  # noqa: E731
+    jf = jax.jacfwd(f, argnums=(0, 1))(1e4, 0.45)
+    g = jax.grad(f, argnums=(0, 1))(1e4, 0.45)
+    np.testing.assert_allclose([float(v) for v in jf], [float(v) for v in g], rtol=1e-9)

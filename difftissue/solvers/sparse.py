@@ -105,21 +105,43 @@ def assemble_csr_data(pattern: SparsePattern, element_hessians, free_dofs):
     return jnp.zeros(pattern.nnz, dtype=v.dtype).at[jnp.asarray(pattern.scatter)].add(v)
 
 
-def _host_solve(pattern: SparsePattern, data, b):
-    A = sps.csr_matrix((np.asarray(data), pattern.indices, pattern.indptr), shape=(pattern.n, pattern.n))
+def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve with one factorisation for ``b`` of shape ``(n,)`` or ``(n, k)``."""
+    if not (np.all(np.isfinite(data)) and np.all(np.isfinite(b))):
+        return np.full(b.shape, np.nan)
+    A = sps.csc_matrix(sps.csr_matrix((data, pattern.indices, pattern.indptr), shape=(pattern.n, pattern.n)))
     try:
-        lu = spla.splu(A.tocsc(), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        x = lu.solve(np.asarray(b))
-    except RuntimeError:  # exactly singular: report NaN, the Newton loop falls back / flags it
-        x = np.full(np.shape(b), np.nan)
-    return x.astype(np.asarray(b).dtype)
+        lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
+        return lu.solve(b)
+    except RuntimeError:  # exactly singular: NaN, the Newton loop falls back / flags it
+        return np.full(b.shape, np.nan)
+
+
+def _host_solve(pattern: SparsePattern, data, b):
+    """Callback body. Under ``vmap`` (``vmap_method="expand_dims"``) ``data`` is
+    ``(B or 1, ..., nnz)`` and ``b`` ``(B or 1, ..., n)``: an unbatched matrix (the common
+    case: several tangents or adjoints of one solve) is factorised once for all right-hand sides."""
+    data, b = np.asarray(data), np.asarray(b)
+    dtype = b.dtype
+    if data.ndim == 1:
+        return _factor_solve(pattern, data, b).astype(dtype)
+    batch = np.broadcast_shapes(data.shape[:-1], b.shape[:-1])
+    d2 = data.reshape(-1, data.shape[-1])
+    b2 = np.broadcast_to(b, batch + b.shape[-1:]).reshape(-1, b.shape[-1])
+    if d2.shape[0] == 1:
+        x = _factor_solve(pattern, d2[0], np.ascontiguousarray(b2.T)).T
+    else:
+        d2 = np.broadcast_to(data, batch + data.shape[-1:]).reshape(-1, data.shape[-1])
+        x = np.stack([_factor_solve(pattern, d2[i], b2[i]) for i in range(b2.shape[0])])
+    return x.reshape(batch + b.shape[-1:]).astype(dtype)
 
 
 class SparseLU(lx.AbstractLinearSolver):
     """:mod:`lineax` solver: SciPy sparse LU of the CSR matrix passed as ``options["csr_data"]``.
 
     The matrix must be symmetric (transposed solves reuse it). Runs on the host through
-    ``jax.pure_callback`` (sequential under ``vmap``).
+    ``jax.pure_callback``; under ``vmap`` one matrix with many right-hand sides (``jacfwd``
+    tangents) is factorised once.
     """
 
     pattern: SparsePattern = eqx.field(static=True)
@@ -130,7 +152,7 @@ class SparseLU(lx.AbstractLinearSolver):
     def compute(self, state, vector, options):
         data = state
         shape = jax.ShapeDtypeStruct(vector.shape, vector.dtype)
-        x = jax.pure_callback(lambda d, b: _host_solve(self.pattern, d, b), shape, data, vector, vmap_method="sequential")
+        x = jax.pure_callback(lambda d, b: _host_solve(self.pattern, d, b), shape, data, vector, vmap_method="expand_dims")
         ok = jnp.all(jnp.isfinite(x))
         return x, lx.RESULTS.where(ok, lx.RESULTS.successful, lx.RESULTS.singular), {}
 

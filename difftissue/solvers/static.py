@@ -291,7 +291,9 @@ def _equilibrium_jvp(primals, tangents, *, model, free, u_init, options):
     t_u_fixed = (1.0 - P) * t_disp
     _, dgrad = jax.jvp(lambda uu, mm, ff: _full_gradient(model, uu, mm, ff), (u, material_f, force), (t_u_fixed, t_material, t_f))
     op, solver, opts = _projected_operator(model, u, material_f, free, options)
-    w = lx.linear_solve(op, (-P * dgrad).reshape(-1), solver, options=opts).value.reshape(u.shape)
+    # throw=False: a failed primal solve (NaN) gives NaN tangents instead of a crash, so an
+    # optimiser can reject the step; the primal result code still reports the failure.
+    w = lx.linear_solve(op, (-P * dgrad).reshape(-1), solver, options=opts, throw=False).value.reshape(u.shape)
     t_u = P * w + t_u_fixed
     return (u, info), (t_u, jnp.zeros_like(info))
 

@@ -1,0 +1,94 @@
+"""Benchmark: fit E and nu to a 20-point force-depth curve on a ~5k-tet specimen (issue 4).
+
+
+Run by hand (not in CI)::
+
+    python benchmarks/fit.py            # default: springs_volume and fem_linear, ~5k tets
+
+Synthetic data: the simulated spherical indentation (R = 1 mm, depths 0.01-0.2 mm) of a
+bonded 4 x 4 x 1.6 mm block (quarter model, 4,800 tets, 0.2 mm cubes) at a known material, 20 depths. The fit starts from E x 1.6, nu = 0.3 and runs Levenberg-Marquardt
+on E and nu (a single curve on a finite-thickness layer determines nu only weakly: expect
+an identifiability warning or a large standard error). Printed: wall time of the whole fit
+(compilation included), of its steps, of one forward protocol solve (the baseline, measured
+in the same run), and the ratio fit / forward.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+import warnings
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import numpy as np  # noqa: E402
+
+from difftissue.fit import fit  # noqa: E402
+from difftissue.materials import Material, MaterialParameterization, ScaledLogit  # noqa: E402
+from difftissue.scenarios import Indentation, SolverOptions, indentation_block  # noqa: E402
+
+
+def run(model: str, cells, points: int, max_steps: int) -> dict:
+    R, H = 1e-3, 1.6e-3
+    mesh = indentation_block((4e-3, 4e-3, H), cells, symmetry="quarter")
+    truth = Material(12e3, 0.42)
+    depths = np.linspace(0.01, 0.2, points) * 1e-3
+    make = lambda forces=None: Indentation(mesh, depths, forces, model=model, indenter="sphere", radius=R, symmetry="quarter", name="sphere", options=SolverOptions(failure="nan"))  # noqa: E731
+    probe = make()
+    t0 = time.perf_counter()
+    data = np.asarray(probe.predict(truth))
+    t_first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    np.asarray(probe.predict(Material(10e3, 0.4)))
+    t_forward = time.perf_counter() - t0
+    sc = make(data)
+    param = MaterialParameterization(("youngs_modulus", "poisson_ratio"), transforms={"poisson_ratio": ScaledLogit(0.25 if model == "springs_volume" else 0.0, 0.499)})
+    t0 = time.perf_counter()
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = fit([sc], param, Material(1.6 * 12e3, 0.3), max_steps=max_steps)
+    t_fit = time.perf_counter() - t0
+    return dict(
+        model=model,
+        tets=mesh.n_tets,
+        nodes=mesh.n_nodes,
+        first_forward_s=t_first,
+        forward_s=t_forward,
+        fit_s=t_fit,
+        steps=int(res.steps),
+        E=float(res.values["youngs_modulus"]),
+        nu=float(res.values["poisson_ratio"]),
+        se_E=float(res.standard_errors["youngs_modulus"]),
+        se_nu=float(res.standard_errors["poisson_ratio"]),
+        converged=bool(res.converged),
+        warnings=len(caught),
+    )
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--models", default="springs_volume,fem_linear")
+    ap.add_argument("--cells", default="10,10,8", help="nx,ny,nz of the quarter block (10,10,8 -> 4,800 tets, 0.2 mm cubes)")
+    ap.add_argument("--points", type=int, default=20)
+    ap.add_argument("--max-steps", type=int, default=30)
+    args = ap.parse_args()
+    cells = tuple(int(c) for c in args.cells.split(","))
+    print(f"# fit benchmark: jax {jax.__version__}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
+    print()
+    print("| model | tets | first forward (s, incl. compile) | forward (s) | fit (s, incl. compile) | steps | fit / forward | E (truth 12000 Pa) | nu (truth 0.42) | converged |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for model in args.models.split(","):
+        r = run(model, cells, args.points, args.max_steps)
+        print(
+            f"| {r['model']} | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | {r['fit_s']:.1f} | {r['steps']} | "
+            f"{r['fit_s'] / r['forward_s']:.1f} | {r['E']:.1f} ± {r['se_E']:.2g} | {r['nu']:.4f} ± {r['se_nu']:.2g} | {r['converged']} |"
+        )
+    print(f"\nload after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()
