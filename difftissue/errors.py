@@ -254,3 +254,14 @@ __all__ += ["ConfigError"]
 class ConfigError(DifftissueError):
     """A scenario or fit configuration is invalid: a missing or unknown key, a value of the
     wrong type or out of range. The message names the key (e.g. ``experiment[0].radius``)."""
+
+
+# ============================================================================ export
+# (appended block: errors of difftissue.export -- material cards and simulator writers)
+__all__ += ["ExportError"]
+
+
+class ExportError(DifftissueError):
+    """A material card is invalid (missing or out-of-range parameter, unknown card_version), or
+    cannot be exported to the asked target without an approximation that was not allowed.
+    The message names the field (e.g. ``parameters.poisson_ratio``)."""

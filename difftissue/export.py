@@ -1,0 +1,798 @@
+"""Material cards and writers for other simulators (DESIGN.md §4, docs/export.md).
+
+A :class:`MaterialCard` (JSON, ``"card_version": 1``) is the source of truth: the elastic model
+that was fitted, the energy it refers to, every parameter with unit and standard error, and
+provenance. Writers derive simulator inputs from it, each with its conversion spelled out:
+
+* FEBio ``.feb`` (febio_spec 4.0): :func:`write_febio`
+* SOFA ``.scn``: :func:`write_sofa`
+* Abaqus ``.inp``: :func:`write_abaqus`
+* XPBD compliances for a stated time step and iteration count (JSON): :func:`write_xpbd`
+* VTU with per-cell material fields: :func:`write_vtu`
+
+All quantities are SI. Every file is written atomically and an existing file is refused
+unless ``force=True``. The module imports only numpy and the standard library at import
+time (meshes and meshio are loaded when a mesh is written).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import os
+import re
+import time
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from ._io import atomic_output
+from .errors import ExportError
+
+__all__ = [
+    "CARD_VERSION",
+    "MODEL_ENERGIES",
+    "PARAMETER_UNITS",
+    "TARGETS",
+    "MaterialCard",
+    "card_from_fit",
+    "card_from_fit_json",
+    "read_card",
+    "write_card",
+    "abaqus_name",
+    "febio_material",
+    "sofa_force_field",
+    "abaqus_material",
+    "xpbd_parameters",
+    "write_febio",
+    "write_sofa",
+    "write_abaqus",
+    "write_xpbd",
+    "write_vtu",
+    "export",
+]
+
+#: Version of the card schema written by :meth:`MaterialCard.to_json`.
+CARD_VERSION = 1
+
+#: The energy each elastic model of difftissue refers to, in words.
+MODEL_ENERGIES: dict[str, str] = {
+    "springs_volume": (
+        "cube lattice of central springs (edges and face diagonals, force k x + a x^3 with "
+        "a = b k / L0^2) plus a per-tetrahedron volume term K (V - V0)^2 / (2 V0); small-strain "
+        "response equals isotropic linear elasticity (E, nu) with uniaxial stiffening "
+        "sigma = E (eps + b eps^3)"
+    ),
+    "fem_linear": "linear isotropic elasticity, W = lambda/2 tr(eps)^2 + mu eps:eps (small strain)",
+    "fem_neo_hookean": "compressible neo-Hookean, W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2",
+    "stable_neo_hookean": (
+        "stable neo-Hookean (Smith et al. 2018), W = mu/2 (I1 - 3) + lambda'/2 (J - 1 - mu/lambda')^2 "
+        "with lambda' = lambda + mu, so that its small-strain response is (E, nu)"
+    ),
+    "analytic": "small-strain linear isotropic elasticity (closed-form contact / compression solutions)",
+}
+
+#: SI unit of every parameter a card may hold.
+PARAMETER_UNITS: dict[str, str] = {
+    "youngs_modulus": "Pa",
+    "poisson_ratio": "1",
+    "cubic_coefficient": "1",
+    "density": "kg/m^3",
+    "pre_stretch": "1",
+    "surface_tension": "N/m",
+}
+
+_DEFAULTS = {"cubic_coefficient": 0.0, "density": 1000.0, "pre_stretch": 1.0}
+_REQUIRED = ("youngs_modulus", "poisson_ratio")
+_RULES = {
+    "youngs_modulus": (lambda v: v > 0, "must be > 0"),
+    "poisson_ratio": (lambda v: -1.0 < v < 0.5, "must lie in (-1, 0.5) (0.5 is the incompressible limit)"),
+    "density": (lambda v: v > 0, "must be > 0"),
+    "pre_stretch": (lambda v: v > 0, "must be > 0"),
+}
+
+#: Export targets understood by :func:`export` and ``difftissue export --to``.
+TARGETS = ("febio", "sofa", "abaqus", "xpbd", "vtu")
+
+_LINEAR_MODELS = ("fem_linear", "analytic")
+
+
+# =============================================================================== card
+@dataclasses.dataclass
+class MaterialCard:
+    """A fitted (or hand-written) material, versioned, with units, uncertainty and provenance.
+
+    Attributes:
+        model: the elastic model the parameters belong to (``springs_volume``, ``fem_linear``,
+            ``fem_neo_hookean``, ``stable_neo_hookean``, ``analytic`` or another name).
+        parameters: ``{field: {"value": float, "unit": str, "standard_error": float | None}}``;
+            ``youngs_modulus`` and ``poisson_ratio`` are required, ``cubic_coefficient``,
+            ``density`` and ``pre_stretch`` default to 0, 1000 kg/m^3 and 1. A ``standard_error``
+            of ``None`` means "not fitted" (fixed) or "not determined by the data".
+        energy: the energy the parameters refer to, in words (defaults from :data:`MODEL_ENERGIES`).
+        name: a material name for the writers (escaped or sanitised per target).
+        provenance: free-form record: ``data_files`` (path, sha256), ``scenarios``,
+            ``difftissue_version``, ``created`` and whatever else the producer adds.
+        card_version: schema version (:data:`CARD_VERSION`).
+    """
+
+    model: str
+    parameters: dict[str, dict[str, Any]]
+    energy: str = ""
+    name: str = "tissue"
+    provenance: dict[str, Any] = dataclasses.field(default_factory=dict)
+    card_version: int = CARD_VERSION
+
+    def __post_init__(self):
+        if not self.energy:
+            self.energy = MODEL_ENERGIES.get(self.model, "")
+        self.validate()
+
+    # ------------------------------------------------------------------ checks
+    def validate(self) -> "MaterialCard":
+        """Check the card; raise :class:`~difftissue.errors.ExportError` naming the field."""
+        if not isinstance(self.card_version, int) or isinstance(self.card_version, bool) or self.card_version != CARD_VERSION:
+            raise ExportError(f"card_version = {self.card_version!r} is not supported (this difftissue reads card_version {CARD_VERSION})")
+        if not isinstance(self.model, str) or not self.model.strip():
+            raise ExportError(f"model = {self.model!r}: expected a non-empty model name such as {sorted(MODEL_ENERGIES)}")
+        if not isinstance(self.name, str) or not self.name.strip():
+            raise ExportError(f"name = {self.name!r}: expected a non-empty material name")
+        if not isinstance(self.parameters, Mapping):
+            raise ExportError("parameters: expected an object {field: {value, unit, standard_error}}")
+        for req in _REQUIRED:
+            if req not in self.parameters:
+                raise ExportError(f"parameters.{req} is missing; a card needs {list(_REQUIRED)}")
+        clean: dict[str, dict[str, Any]] = {}
+        for key, entry in self.parameters.items():
+            if not isinstance(entry, Mapping) or "value" not in entry:
+                raise ExportError(f"parameters.{key}: expected an object with a 'value'")
+            value = _finite(entry["value"], f"parameters.{key}.value")
+            if key in _RULES and not _RULES[key][0](value):
+                raise ExportError(f"parameters.{key}.value = {value:g} {_RULES[key][1]}")
+            unit = entry.get("unit", PARAMETER_UNITS.get(key, ""))
+            if key in PARAMETER_UNITS and unit != PARAMETER_UNITS[key]:
+                raise ExportError(f"parameters.{key}.unit = {unit!r}; cards are SI, expected {PARAMETER_UNITS[key]!r}")
+            se = entry.get("standard_error")
+            if se is not None:
+                try:
+                    se = float(se)
+                except (TypeError, ValueError):
+                    raise ExportError(f"parameters.{key}.standard_error = {se!r} is not a number") from None
+                if math.isnan(se) or se < 0:
+                    raise ExportError(f"parameters.{key}.standard_error = {se!r} must be >= 0 (or null)")
+                if math.isinf(se):
+                    se = None
+            clean[str(key)] = {**{k: v for k, v in entry.items() if k not in ("value", "unit", "standard_error")},
+                               "value": value, "unit": unit, "standard_error": se}
+        self.parameters = clean
+        return self
+
+    # ------------------------------------------------------------------ values
+    def value(self, field: str) -> float:
+        """Value of ``field`` [SI], with the defaults for the optional fields."""
+        if field in self.parameters:
+            return float(self.parameters[field]["value"])
+        if field in _DEFAULTS:
+            return _DEFAULTS[field]
+        raise ExportError(f"parameters.{field} is missing")
+
+    @property
+    def youngs_modulus(self) -> float:
+        return self.value("youngs_modulus")
+
+    @property
+    def poisson_ratio(self) -> float:
+        return self.value("poisson_ratio")
+
+    @property
+    def cubic_coefficient(self) -> float:
+        return self.value("cubic_coefficient")
+
+    @property
+    def density(self) -> float:
+        return self.value("density")
+
+    @property
+    def pre_stretch(self) -> float:
+        return self.value("pre_stretch")
+
+    @property
+    def shear_modulus(self) -> float:
+        """``mu = E / (2 (1 + nu))`` [Pa]."""
+        return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
+
+    @property
+    def lame_lambda(self) -> float:
+        """``lambda = E nu / ((1 + nu)(1 - 2 nu))`` [Pa]."""
+        E, nu = self.youngs_modulus, self.poisson_ratio
+        return E * nu / ((1.0 + nu) * (1.0 - 2.0 * nu))
+
+    @property
+    def bulk_modulus(self) -> float:
+        """``K = E / (3 (1 - 2 nu))`` [Pa]."""
+        return self.youngs_modulus / (3.0 * (1.0 - 2.0 * self.poisson_ratio))
+
+    def material(self):
+        """The card as a :class:`~difftissue.materials.Material` (imports JAX)."""
+        from .materials import Material
+
+        return Material(**{k: self.value(k) for k in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")})
+
+    # ------------------------------------------------------------------ JSON
+    def to_dict(self) -> dict:
+        return {
+            "card_version": self.card_version,
+            "model": self.model,
+            "energy": self.energy,
+            "name": self.name,
+            "parameters": {k: dict(v) for k, v in self.parameters.items()},
+            "provenance": self.provenance,
+        }
+
+    def to_json(self) -> str:
+        """Strict JSON (no NaN/Infinity), indented, ending in a newline."""
+        return json.dumps(self.to_dict(), indent=2, allow_nan=False) + "\n"
+
+    @classmethod
+    def from_dict(cls, doc: Mapping) -> "MaterialCard":
+        if not isinstance(doc, Mapping):
+            raise ExportError("a material card must be a JSON object")
+        if "card_version" not in doc:
+            raise ExportError("card_version is missing (not a difftissue material card?)")
+        if "model" not in doc:
+            raise ExportError("model is missing")
+        if "parameters" not in doc:
+            raise ExportError("parameters is missing")
+        unknown = set(doc) - {"card_version", "model", "energy", "name", "parameters", "provenance"}
+        if unknown:
+            raise ExportError(f"unknown card key(s) {sorted(unknown)}")
+        return cls(model=doc["model"], parameters=doc["parameters"], energy=doc.get("energy", ""),
+                   name=doc.get("name", "tissue"), provenance=dict(doc.get("provenance") or {}), card_version=doc["card_version"])
+
+    @classmethod
+    def from_json(cls, text: str) -> "MaterialCard":
+        try:
+            doc = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise ExportError(f"not valid JSON: {e}") from None
+        if isinstance(doc, Mapping) and str(doc.get("schema", "")).startswith("difftissue-fit/"):
+            return card_from_fit_json(doc)
+        return cls.from_dict(doc)
+
+    def __eq__(self, other):
+        if not isinstance(other, MaterialCard):
+            return NotImplemented
+        return self.to_dict() == other.to_dict()
+
+
+def _finite(v, where: str) -> float:
+    if isinstance(v, bool) or v is None:
+        raise ExportError(f"{where} = {v!r} is not a number")
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise ExportError(f"{where} = {v!r} is not a number") from None
+    if not math.isfinite(f):
+        raise ExportError(f"{where} = {v!r} is not finite")
+    return f
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _version() -> str:
+    from ._version import __version__
+
+    return __version__
+
+
+def card_from_fit(result, *, model: str, scenario_names: Sequence[str] | None = None,
+                  data_files: Sequence[str | os.PathLike] = (), name: str = "tissue") -> MaterialCard:
+    """A card from a :class:`~difftissue.fit.FitResult`.
+
+    Every field of the fitted material is recorded; fitted fields carry their standard error
+    (``None`` where the data do not determine it), fixed fields ``standard_error: None`` and
+    ``"fitted": false``.
+    """
+    if not isinstance(model, str):
+        model = getattr(model, "name", None) or type(model).__name__
+    values = result.material.to_dict()
+    params = {}
+    for k, v in values.items():
+        fitted = k in result.fields
+        se = result.standard_errors.get(k) if fitted else None
+        params[k] = {"value": float(v), "unit": PARAMETER_UNITS.get(k, ""),
+                     "standard_error": None if se is None or not math.isfinite(se) else float(se), "fitted": fitted}
+    names = list(scenario_names) if scenario_names is not None else list(getattr(result, "scenario_names", ()))
+    prov = {
+        "scenarios": [str(n) for n in names],
+        "data_files": [{"path": str(p), "sha256": _sha256(Path(p))} for p in data_files],
+        "difftissue_version": _version(),
+        "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+        "fit": {"loss": float(result.loss), "converged": bool(result.converged), "method": result.method},
+    }
+    return MaterialCard(model=model, parameters=params, name=name, provenance=prov)
+
+
+def card_from_fit_json(doc: Mapping) -> MaterialCard:
+    """A card from the content of a ``fit.json`` written by :func:`~difftissue.fit.write_fit_outputs`."""
+    params: dict[str, dict] = {}
+    for k, v in (doc.get("fixed_parameters") or {}).items():
+        params[k] = {"value": v.get("value"), "unit": v.get("unit", PARAMETER_UNITS.get(k, "")), "standard_error": None, "fitted": False}
+    for k, v in (doc.get("parameters") or {}).items():
+        params[k] = {"value": v.get("value"), "unit": v.get("unit", PARAMETER_UNITS.get(k, "")),
+                     "standard_error": v.get("standard_error"), "fitted": True}
+    model = doc.get("model")
+    if not model:
+        raise ExportError("model is missing in fit.json (write_fit_outputs was called without model=); write a card with card_from_fit(model=...)")
+    prov = {
+        "scenarios": [s.get("name") for s in doc.get("scenarios", [])],
+        "data_files": list(doc.get("data_files", [])),
+        "difftissue_version": (doc.get("versions") or {}).get("difftissue"),
+        "created": doc.get("created"),
+        "source": "fit.json",
+    }
+    return MaterialCard(model=str(model), parameters=params, provenance=prov)
+
+
+def read_card(path) -> MaterialCard:
+    """Read and validate a card (``material.json``) or a ``fit.json``; errors name the file and field."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as e:
+        raise ExportError(f"cannot read {path}: {e.strerror or e}") from None
+    try:
+        return MaterialCard.from_json(text)
+    except ExportError as e:
+        raise ExportError(f"{path}: {e}") from None
+
+
+def write_card(card: MaterialCard, path, *, force: bool = False) -> Path:
+    """Write ``card`` as JSON, atomically; an existing file is refused unless ``force``."""
+    card.validate()
+    text = card.to_json()
+    with atomic_output(path, overwrite=force) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+# ======================================================================= approximations
+def _law(card: MaterialCard, law: str | None) -> str:
+    if law is None:
+        return "linear" if card.model in _LINEAR_MODELS else "neo_hookean"
+    if law not in ("linear", "neo_hookean"):
+        raise ExportError(f"law = {law!r}: expected 'linear' or 'neo_hookean'")
+    return law
+
+
+def _approximations(card: MaterialCard, target: str, *, approximate: bool) -> list[str]:
+    """Notes on what ``target`` cannot represent; raise unless ``approximate``."""
+    notes = []
+    b = card.cubic_coefficient
+    if b != 0.0:
+        msg = (f"cubic_coefficient b = {b:g} (strain stiffening sigma = E (eps + b eps^3)) cannot be represented by {target}")
+        if not approximate:
+            raise ExportError(msg + "; pass approximate=True (--approximate) to drop it, which changes the stress by a relative b*eps^2 at strain eps")
+        notes.append(f"APPROXIMATION: cubic_coefficient b = {b:g} dropped (target {target} has no strain stiffening); "
+                     f"the stress is lower by a relative b*eps^2: {abs(b) * 0.01:.3g} at 10 % strain, {abs(b) * 0.04:.3g} at 20 % strain")
+    lam0 = card.pre_stretch
+    if lam0 != 1.0:
+        msg = f"pre_stretch = {lam0:g} (pre-tension) is not written for {target}"
+        if not approximate:
+            raise ExportError(msg + "; pass approximate=True (--approximate) to export the material without pre-tension")
+        notes.append(f"APPROXIMATION: pre_stretch = {lam0:g} dropped; the exported material starts stress-free")
+    return notes
+
+
+def _header_lines(card: MaterialCard, target: str, law: str | None = None) -> list[str]:
+    lines = [f"difftissue {_version()} material card export to {target}",
+             f"model: {card.model} ({card.energy})" if card.energy else f"model: {card.model}",
+             f"E = {card.youngs_modulus:.10g} Pa, nu = {card.poisson_ratio:.10g}, density = {card.density:.10g} kg/m^3"]
+    for k, v in card.parameters.items():
+        if v.get("standard_error") is not None:
+            lines.append(f"standard error of {k}: {v['standard_error']:.4g} {v['unit']}")
+    if law:
+        lines.append(f"exported law: {law}")
+    prov = card.provenance or {}
+    for f in prov.get("data_files", []) or []:
+        if isinstance(f, Mapping):
+            lines.append(f"data: {f.get('path')} sha256 {f.get('sha256')}")
+    if prov.get("scenarios"):
+        lines.append("scenarios: " + ", ".join(str(s) for s in prov["scenarios"]))
+    return lines
+
+
+# ============================================================================ FEBio
+def _fmt(x: float) -> str:
+    return repr(float(x))
+
+
+def _xml_comment(text: str) -> ET.Element:
+    # '--' is not allowed inside an XML comment, and a trailing '-' would close it badly
+    return ET.Comment(" " + text.replace("--", "- -").rstrip("-") + " ")
+
+
+def febio_material(card: MaterialCard, *, law: str | None = None, approximate: bool = False, mat_id: int = 1) -> ET.Element:
+    """The FEBio ``<Material>`` element for ``card``.
+
+    Conversion: none needed, FEBio takes Young's modulus and Poisson's ratio directly.
+
+    * ``law="neo_hookean"`` -> ``<material type="neo-Hookean"><E>E</E><v>nu</v>`` whose energy is
+      ``W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2`` with ``mu, lambda`` the Lamé parameters
+      of ``(E, nu)``: identical to difftissue's ``fem_neo_hookean`` and to the small-strain
+      response of every model.
+    * ``law="linear"`` -> ``type="isotropic elastic"`` (same ``E``, ``v``).
+    * ``<density>`` is the card's density [kg/m^3].
+
+    The default law is ``linear`` for ``fem_linear``/``analytic`` cards and ``neo_hookean``
+    otherwise. A nonzero ``cubic_coefficient`` or a ``pre_stretch`` other than 1 is refused
+    unless ``approximate``, which drops it and records the error in a comment.
+    """
+    law = _law(card, law)
+    notes = _approximations(card, "FEBio " + law, approximate=approximate)
+    mats = ET.Element("Material")
+    for line in _header_lines(card, "FEBio", law) + notes:
+        mats.append(_xml_comment(line))
+    m = ET.SubElement(mats, "material", {"id": str(mat_id), "name": card.name,
+                                         "type": "neo-Hookean" if law == "neo_hookean" else "isotropic elastic"})
+    ET.SubElement(m, "density").text = _fmt(card.density)
+    ET.SubElement(m, "E").text = _fmt(card.youngs_modulus)
+    ET.SubElement(m, "v").text = _fmt(card.poisson_ratio)
+    return mats
+
+
+def _specimen_sets(mesh, axis: int = 2, tol: float = 1e-9):
+    pts = np.asarray(mesh.points, dtype=float)
+    lo, hi = pts[:, axis].min(), pts[:, axis].max()
+    t = tol * max(hi - lo, 1e-300)
+    base = np.flatnonzero(pts[:, axis] <= lo + t)
+    top = np.flatnonzero(pts[:, axis] >= hi - t)
+    if base.size == 0 or top.size == 0 or hi <= lo:
+        raise ExportError("the specimen mesh has no distinct base and top faces along z")
+    return base, top, hi - lo
+
+
+def _default_displacement(height: float, displacement: float | None) -> float:
+    d = -0.1 * height if displacement is None else float(displacement)
+    if not math.isfinite(d):
+        raise ExportError(f"displacement = {displacement!r} is not finite")
+    return d
+
+
+def febio_model(card: MaterialCard, mesh=None, *, law: str | None = None, approximate: bool = False,
+                displacement: float | None = None, steps: int = 10) -> ET.Element:
+    """A complete ``<febio_spec version="4.0">`` tree (material only when ``mesh`` is None).
+
+    With a mesh: nodes, ``tet4`` elements, a ``SolidDomain``, the base (min z) fixed with
+    ``zero displacement`` and the top (max z) moved by ``displacement`` [m] along z
+    (``prescribed displacement`` ramped by a linear load curve over ``steps`` static steps).
+    Default displacement: -10 % of the height (compression).
+    """
+    root = ET.Element("febio_spec", {"version": "4.0"})
+    ET.SubElement(root, "Module", {"type": "solid"})
+    mats = febio_material(card, law=law, approximate=approximate)
+    if mesh is None:
+        root.append(mats)
+        return root
+    base, top, height = _specimen_sets(mesh)
+    d = _default_displacement(height, displacement)
+    ctrl = ET.SubElement(root, "Control")
+    ET.SubElement(ctrl, "analysis").text = "STATIC"
+    ET.SubElement(ctrl, "time_steps").text = str(int(steps))
+    ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / steps)
+    root.append(mats)
+    meshel = ET.SubElement(root, "Mesh")
+    nodes = ET.SubElement(meshel, "Nodes", {"name": "specimen"})
+    for i, p in enumerate(np.asarray(mesh.points, dtype=float), start=1):
+        ET.SubElement(nodes, "node", {"id": str(i)}).text = ",".join(_fmt(c) for c in p)
+    elems = ET.SubElement(meshel, "Elements", {"type": "tet4", "name": "tissue"})
+    for i, t in enumerate(np.asarray(mesh.tets), start=1):
+        ET.SubElement(elems, "elem", {"id": str(i)}).text = ",".join(str(int(n) + 1) for n in t)
+    ET.SubElement(meshel, "NodeSet", {"name": "base"}).text = ",".join(str(int(n) + 1) for n in base)
+    ET.SubElement(meshel, "NodeSet", {"name": "top"}).text = ",".join(str(int(n) + 1) for n in top)
+    doms = ET.SubElement(root, "MeshDomains")
+    ET.SubElement(doms, "SolidDomain", {"name": "tissue", "mat": card.name})
+    bnd = ET.SubElement(root, "Boundary")
+    fix = ET.SubElement(bnd, "bc", {"name": "fixed_base", "node_set": "base", "type": "zero displacement"})
+    for dof in ("x_dof", "y_dof", "z_dof"):
+        ET.SubElement(fix, dof).text = "1"
+    pre = ET.SubElement(bnd, "bc", {"name": "top_displacement", "node_set": "top", "type": "prescribed displacement"})
+    ET.SubElement(pre, "dof").text = "z"
+    ET.SubElement(pre, "value", {"lc": "1"}).text = _fmt(d)
+    ET.SubElement(pre, "relative").text = "0"
+    ld = ET.SubElement(root, "LoadData")
+    lc = ET.SubElement(ld, "load_controller", {"id": "1", "name": "ramp", "type": "loadcurve"})
+    ET.SubElement(lc, "interpolate").text = "LINEAR"
+    pts = ET.SubElement(lc, "points")
+    ET.SubElement(pts, "pt").text = "0,0"
+    ET.SubElement(pts, "pt").text = "1,1"
+    out = ET.SubElement(root, "Output")
+    plot = ET.SubElement(out, "plotfile", {"type": "febio"})
+    for var in ("displacement", "stress", "reaction forces"):
+        ET.SubElement(plot, "var", {"type": var})
+    return root
+
+
+def _xml_text(root: ET.Element) -> str:
+    ET.indent(root, space="  ")
+    return '<?xml version="1.0" encoding="UTF-8"?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def write_febio(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
+                displacement: float | None = None, force: bool = False) -> Path:
+    """Write an FEBio ``.feb`` file (febio_spec 4.0): the material alone, or with ``mesh`` a
+    complete compression specimen (see :func:`febio_model`). Conversion: :func:`febio_material`."""
+    text = _xml_text(febio_model(card, mesh, law=law, approximate=approximate, displacement=displacement))
+    return _write_text(path, text, force)
+
+
+# ============================================================================= SOFA
+def sofa_force_field(card: MaterialCard, *, law: str | None = None, approximate: bool = False) -> ET.Element:
+    """The SOFA force field for ``card``.
+
+    * ``law="linear"`` -> ``<TetrahedronFEMForceField youngModulus="E" poissonRatio="nu" method="large"/>``
+      (corotational linear elasticity; ``method="small"`` would be strictly linear).
+    * ``law="neo_hookean"`` -> ``<TetrahedronHyperelasticityFEMForceField materialName="NeoHookean"
+      ParameterSet="mu lambda"/>`` with ``mu = E / (2 (1 + nu))`` and
+      ``lambda = E nu / ((1 + nu)(1 - 2 nu))``. SOFA's ``NeoHookean.h`` reads
+      ``parameterArray[0]`` as mu and ``parameterArray[1]`` as lambda, energy
+      ``mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2`` (Bonet & Wood), the same energy as FEBio's
+      neo-Hookean. Older SOFA documentation listed ``[mu, k]``; check the SOFA version in use.
+
+    Inverse (tested): ``E = mu (3 lambda + 2 mu) / (lambda + mu)``, ``nu = lambda / (2 (lambda + mu))``.
+    """
+    law = _law(card, law)
+    _approximations(card, "SOFA " + law, approximate=approximate)
+    if law == "linear":
+        return ET.Element("TetrahedronFEMForceField", {"name": card.name, "youngModulus": _fmt(card.youngs_modulus),
+                                                       "poissonRatio": _fmt(card.poisson_ratio), "method": "large"})
+    return ET.Element("TetrahedronHyperelasticityFEMForceField", {
+        "name": card.name, "materialName": "NeoHookean",
+        "ParameterSet": f"{_fmt(card.shear_modulus)} {_fmt(card.lame_lambda)}"})
+
+
+def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approximate: bool = False) -> ET.Element:
+    """A SOFA scene: the force field in a ``Node`` (material alone), or with ``mesh`` a static
+    specimen: ``MeshTopology`` (points, tetrahedra), ``MechanicalObject``, ``MeshMatrixMass``
+    (``massDensity``), the force field and a ``FixedProjectiveConstraint`` on the base (min z)."""
+    law = _law(card, law)
+    notes = _approximations(card, "SOFA " + law, approximate=approximate)
+    ff = sofa_force_field(card, law=law, approximate=True)
+    root = ET.Element("Node", {"name": "root", "gravity": "0 0 0", "dt": "0.01"})
+    for line in _header_lines(card, "SOFA", law) + notes:
+        root.append(_xml_comment(line))
+    plugin = "Sofa.Component.SolidMechanics.FEM.Elastic" if law == "linear" else "Sofa.Component.SolidMechanics.FEM.HyperElastic"
+    ET.SubElement(root, "RequiredPlugin", {"name": plugin})
+    node = ET.SubElement(root, "Node", {"name": "tissue"})
+    if mesh is None:
+        node.append(_xml_comment("add a tetrahedral topology and a MechanicalObject here"))
+        node.append(ff)
+        return root
+    for p in ("Sofa.Component.ODESolver.Backward", "Sofa.Component.LinearSolver.Direct", "Sofa.Component.Mass",
+              "Sofa.Component.StateContainer", "Sofa.Component.Topology.Container.Constant", "Sofa.Component.Constraint.Projective"):
+        ET.SubElement(root, "RequiredPlugin", {"name": p})
+    base, _, _ = _specimen_sets(mesh)
+    ET.SubElement(node, "StaticSolver")
+    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
+    pts = np.asarray(mesh.points, dtype=float)
+    ET.SubElement(node, "MeshTopology", {"name": "topology", "position": " ".join(_fmt(c) for c in pts.reshape(-1)),
+                                         "tetrahedra": " ".join(str(int(n)) for n in np.asarray(mesh.tets).reshape(-1))})
+    ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "src": "@topology"})
+    ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
+    node.append(ff)
+    ET.SubElement(node, "FixedProjectiveConstraint", {"name": "fixed_base", "indices": " ".join(str(int(i)) for i in base)})
+    return root
+
+
+def write_sofa(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False, force: bool = False) -> Path:
+    """Write a SOFA ``.scn`` scene (see :func:`sofa_scene`; conversion in :func:`sofa_force_field`)."""
+    return _write_text(path, _xml_text(sofa_scene(card, mesh, law=law, approximate=approximate)), force)
+
+
+# =========================================================================== Abaqus
+_ABAQUS_BAD = re.compile(r"[^A-Za-z0-9_-]")
+
+
+def abaqus_name(name: str) -> str:
+    """A safe Abaqus label: only ``[A-Za-z0-9_-]`` (others become ``_``), starting with a
+    letter (``M_`` is prefixed otherwise), at most 80 characters."""
+    s = _ABAQUS_BAD.sub("_", str(name))
+    if not s or not s[0].isalpha():
+        s = "M_" + s
+    return s[:80]
+
+
+def _abaqus_comment(text: str) -> str:
+    return "** " + " ".join(str(text).split())
+
+
+def abaqus_material(card: MaterialCard, *, law: str | None = None, approximate: bool = False) -> list[str]:
+    """Abaqus keyword lines of the material.
+
+    * ``law="linear"``: ``*ELASTIC`` with the data line ``E, nu``.
+    * ``law="neo_hookean"``: ``*HYPERELASTIC, NEO HOOKE`` with the data line ``C10, D1`` where
+      ``C10 = mu / 2`` and ``D1 = 2 / K`` (Abaqus: initial shear modulus ``mu0 = 2 C10``, bulk
+      modulus ``K0 = 2 / D1``), ``mu = E / (2 (1 + nu))``, ``K = E / (3 (1 - 2 nu))``. Abaqus's
+      energy ``C10 (I1bar - 3) + (J - 1)^2 / D1`` differs from FEBio's at finite strain but has
+      the same small-strain response (E, nu).
+    * ``*DENSITY`` with the density.
+
+    Inverse (tested): ``mu = 2 C10``, ``K = 2 / D1``, ``E = 9 K mu / (3 K + mu)``,
+    ``nu = (3 K - 2 mu) / (2 (3 K + mu))``.
+    """
+    law = _law(card, law)
+    notes = _approximations(card, "Abaqus " + law, approximate=approximate)
+    lines = [_abaqus_comment(s) for s in _header_lines(card, "Abaqus", law) + notes]
+    if card.name != abaqus_name(card.name):
+        lines.append(_abaqus_comment(f"material name sanitised from {card.name!r}"))
+    lines.append(f"*MATERIAL, NAME={abaqus_name(card.name)}")
+    if law == "linear":
+        lines += ["*ELASTIC", f"{_fmt(card.youngs_modulus)}, {_fmt(card.poisson_ratio)}"]
+    else:
+        c10 = card.shear_modulus / 2.0
+        d1 = 2.0 / card.bulk_modulus
+        lines += ["*HYPERELASTIC, NEO HOOKE", f"{_fmt(c10)}, {_fmt(d1)}"]
+    lines += ["*DENSITY", _fmt(card.density)]
+    return lines
+
+
+def _wrap_ids(ids, per_line: int = 16) -> list[str]:
+    ids = [str(int(i)) for i in ids]
+    return [", ".join(ids[i:i + per_line]) for i in range(0, len(ids), per_line)]
+
+
+def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, approximate: bool = False,
+                 displacement: float | None = None) -> str:
+    """Abaqus input: the material alone, or with ``mesh`` a complete specimen: ``*NODE``,
+    ``*ELEMENT, TYPE=C3D4``, node sets ``BASE`` (min z, encastre) and ``TOP`` (max z, moved by
+    ``displacement`` [m] in direction 3), ``*SOLID SECTION`` and one ``*STATIC`` step
+    (``NLGEOM=YES`` for the neo-Hookean law)."""
+    law = _law(card, law)
+    mat = abaqus_material(card, law=law, approximate=approximate)
+    if mesh is None:
+        return "\n".join(mat) + "\n"
+    base, top, height = _specimen_sets(mesh)
+    d = _default_displacement(height, displacement)
+    mname = abaqus_name(card.name)
+    lines = ["*HEADING", f"difftissue specimen for material {mname} (SI units: m, N, Pa, kg)", "*NODE"]
+    for i, p in enumerate(np.asarray(mesh.points, dtype=float), start=1):
+        lines.append(f"{i}, " + ", ".join(_fmt(c) for c in p))
+    lines.append("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")
+    for i, t in enumerate(np.asarray(mesh.tets), start=1):
+        lines.append(f"{i}, " + ", ".join(str(int(n) + 1) for n in t))
+    lines.append("*NSET, NSET=BASE")
+    lines += _wrap_ids(base + 1)
+    lines.append("*NSET, NSET=TOP")
+    lines += _wrap_ids(top + 1)
+    lines += [f"*SOLID SECTION, ELSET=TISSUE, MATERIAL={mname}", ","]
+    lines += mat
+    lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}", "*STATIC", "0.1, 1.0, 1e-05, 0.1",
+              "*BOUNDARY", "BASE, ENCASTRE", "*BOUNDARY", f"TOP, 3, 3, {_fmt(d)}",
+              "*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E", "*END STEP"]
+    return "\n".join(lines) + "\n"
+
+
+def write_abaqus(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
+                 displacement: float | None = None, force: bool = False) -> Path:
+    """Write an Abaqus ``.inp`` (see :func:`abaqus_model`; conversion in :func:`abaqus_material`)."""
+    return _write_text(path, abaqus_model(card, mesh, law=law, approximate=approximate, displacement=displacement), force)
+
+
+# ============================================================================= XPBD
+def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps: int = 1, mesh=None,
+                    approximate: bool = False) -> dict:
+    """Stable neo-Hookean XPBD constraint data (Macklin & Müller 2021) for a stated time step.
+
+    Per tetrahedron of rest volume ``V0``: deviatoric constraint ``C_D = sqrt(tr F^T F)`` with
+    compliance ``alpha_D = 1 / (mu V0)``, hydrostatic ``C_H = det F - gamma`` with
+    ``alpha_H = 1 / (lambda' V0)``, ``lambda' = lambda + mu`` and ``gamma = 1 + mu / lambda'``
+    (the shift makes the small-strain response equal (E, nu)). The solver uses
+    ``alpha_tilde = alpha / h^2`` with the substep ``h = dt / substeps``. Without ``mesh`` the
+    values are given per unit volume (``alpha V0``, in 1/Pa); with ``mesh`` per tetrahedron.
+
+    ``iterations`` is recorded as metadata: XPBD with a finite iteration count is softer than
+    its compliances imply, so these parameters reproduce (E, nu) only in the converged limit;
+    calibration for a budget (iterations, substeps) is not part of this export.
+    """
+    dt = _finite(dt, "dt")
+    if dt <= 0:
+        raise ExportError(f"dt = {dt:g} s must be > 0")
+    if int(iterations) != iterations or iterations < 1:
+        raise ExportError(f"iterations = {iterations!r} must be a positive integer")
+    if int(substeps) != substeps or substeps < 1:
+        raise ExportError(f"substeps = {substeps!r} must be a positive integer")
+    notes = _approximations(card, "XPBD stable neo-Hookean", approximate=approximate)
+    mu, lam = card.shear_modulus, card.lame_lambda
+    lam_s = lam + mu
+    h = dt / substeps
+    out = {
+        "format": "difftissue-xpbd/1",
+        "constraints": "stable neo-Hookean pair (Macklin & Mueller 2021): C_D = sqrt(tr F^T F), C_H = det F - gamma",
+        "material": card.name,
+        "model": card.model,
+        "setting": {"dt": dt, "iterations": int(iterations), "substeps": int(substeps), "substep": h},
+        "lame": {"mu": mu, "lambda": lam, "lambda_shifted": lam_s},
+        "gamma": 1.0 + mu / lam_s,
+        "per_unit_volume": {"deviatoric_compliance": 1.0 / mu, "hydrostatic_compliance": 1.0 / lam_s,
+                            "unit": "1/Pa (divide by the tet rest volume V0 [m^3])"},
+        "density": card.density,
+        "validity": (f"compliances reproduce E = {card.youngs_modulus:.6g} Pa, nu = {card.poisson_ratio:.6g} only when "
+                     f"the XPBD iterations converge; with {int(iterations)} iteration(s) the response is softer "
+                     "(budget-aware calibration not applied)"),
+        "notes": notes,
+        "card_provenance": card.provenance,
+    }
+    if mesh is not None:
+        pts = np.asarray(mesh.points, dtype=float)
+        t = np.asarray(mesh.tets)
+        v0 = np.abs(np.einsum("ij,ij->i", np.cross(pts[t[:, 1]] - pts[t[:, 0]], pts[t[:, 2]] - pts[t[:, 0]]), pts[t[:, 3]] - pts[t[:, 0]])) / 6.0
+        out["per_tet"] = {
+            "rest_volume": v0.tolist(),
+            "deviatoric_compliance": (1.0 / (mu * v0)).tolist(),
+            "hydrostatic_compliance": (1.0 / (lam_s * v0)).tolist(),
+            "deviatoric_alpha_tilde": (1.0 / (mu * v0) / h**2).tolist(),
+            "hydrostatic_alpha_tilde": (1.0 / (lam_s * v0) / h**2).tolist(),
+            "unit": "compliance 1/(Pa m^3); alpha_tilde = compliance / h^2",
+        }
+    return out
+
+
+def write_xpbd(card: MaterialCard, path, *, dt: float, iterations: int, substeps: int = 1, mesh=None,
+               approximate: bool = False, force: bool = False) -> Path:
+    """Write :func:`xpbd_parameters` as JSON."""
+    doc = xpbd_parameters(card, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate)
+    return _write_text(path, json.dumps(doc, indent=2, allow_nan=False) + "\n", force)
+
+
+# ============================================================================== VTU
+def write_vtu(card: MaterialCard, mesh, path, *, force: bool = False) -> Path:
+    """Write ``mesh`` as VTU with per-cell material fields: ``youngs_modulus``, ``poisson_ratio``,
+    ``cubic_coefficient``, ``density``, ``pre_stretch``, ``shear_modulus`` (mu), ``lame_lambda``,
+    ``bulk_modulus`` (all SI), constant over the cells. No conversion is involved."""
+    from .mesh import write_mesh
+
+    if mesh is None:
+        raise ExportError("a VTU export needs a mesh (--specimen)")
+    if Path(path).suffix.lower() != ".vtu":
+        raise ExportError(f"{path}: a VTU export must end in .vtu")
+    n = int(np.asarray(mesh.tets).shape[0])
+    vals = {k: card.value(k) for k in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
+    vals.update(shear_modulus=card.shear_modulus, lame_lambda=card.lame_lambda, bulk_modulus=card.bulk_modulus)
+    cell = {k: np.full(n, float(v)) for k, v in vals.items()}
+    return write_mesh(path, mesh, cell_data=cell, overwrite=force)
+
+
+# =========================================================================== common
+def _write_text(path, text: str, force: bool) -> Path:
+    with atomic_output(path, overwrite=force) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return Path(path)
+
+
+def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
+           law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int = 1,
+           displacement: float | None = None) -> Path:
+    """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``."""
+    if to == "febio":
+        return write_febio(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
+    if to == "sofa":
+        return write_sofa(card, path, mesh=mesh, law=law, approximate=approximate, force=force)
+    if to == "abaqus":
+        return write_abaqus(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
+    if to == "xpbd":
+        if dt is None or iterations is None:
+            raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")
+        return write_xpbd(card, path, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate, force=force)
+    if to == "vtu":
+        return write_vtu(card, mesh, path, force=force)
+    raise ExportError(f"unknown export target {to!r}; choose one of {list(TARGETS)}")
