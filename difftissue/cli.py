@@ -143,6 +143,41 @@ def _print_summary(title: str, summary: dict, findings, notes) -> None:
         console.print(f"{f.severity}: {f.kind.__name__}: {f.message}", markup=False)
 
 
+def _parse_specimen(spec: str, factor: float):
+    """``block:LX,LY,LZ:NX,NY,NZ`` (lengths in --unit) -> TetMesh."""
+    from .mesh import block
+
+    parts = spec.split(":")
+    if len(parts) != 3 or parts[0] != "block":
+        raise _UsageError(f"--specimen {spec!r}: expected block:LX,LY,LZ:NX,NY,NZ")
+    try:
+        size = [float(v) for v in parts[1].split(",")]
+        res = [int(v) for v in parts[2].split(",")]
+    except ValueError as e:
+        raise _UsageError(f"--specimen {spec!r}: {e}") from None
+    if len(size) != 3 or len(res) != 3 or any(not (v > 0) for v in size) or any(n < 1 for n in res):
+        raise _UsageError(f"--specimen {spec!r}: expected three positive lengths and three positive cell counts")
+    return block(tuple(v * factor for v in size), tuple(res))
+
+
+def _cmd_export(args) -> int:
+    from .export import export, read_card
+
+    card = read_card(args.card)
+    f = _length_factor(args.unit)
+    mesh = _parse_specimen(args.specimen, f) if args.specimen else None
+    if args.to == "vtu" and mesh is None:
+        raise _UsageError("--to vtu needs --specimen block:LX,LY,LZ:NX,NY,NZ")
+    if args.to == "xpbd" and (args.dt is None or args.iterations is None):
+        raise _UsageError("--to xpbd needs --dt SECONDS and --iterations N")
+    disp = None if args.displacement is None else args.displacement * f
+    path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
+                  dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp)
+    what = "complete specimen model" if mesh is not None and args.to in ("febio", "sofa", "abaqus") else "material"
+    print(f"wrote {path}: {card.model} card as {args.to} ({what})")
+    return 0
+
+
 def _cmd_info(args) -> int:
     from .mesh import inspect_file
 
@@ -407,6 +442,24 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--reorient", action="store_true", help="accept negatively ordered tets (renumbered) instead of reporting them as inverted")
     i.add_argument("--json", action="store_true", help="print JSON instead of tables")
     i.set_defaults(func=_cmd_info)
+
+    x = sub.add_parser("export", help="export a material card (material.json or fit.json) to FEBio, SOFA, Abaqus, XPBD or VTU (see docs/export.md)")
+    x.add_argument("card", help="material card (material.json written by fit) or a fit.json with a model")
+    x.add_argument("--to", required=True, choices=("febio", "sofa", "abaqus", "xpbd", "vtu"), help="target format")
+    x.add_argument("--out", required=True, help="output file (.feb, .scn, .inp, .json, .vtu)")
+    x.add_argument("--force", action="store_true", help="overwrite --out if it exists")
+    x.add_argument("--approximate", action="store_true",
+                   help="drop what the target cannot represent (cubic stiffening, pre-stretch) and record the approximation in the file")
+    x.add_argument("--law", choices=("linear", "neo_hookean"), default=None,
+                   help="constitutive law for febio/sofa/abaqus (default: linear for fem_linear/analytic cards, neo_hookean otherwise)")
+    x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ",
+                   help="write a complete specimen model (fixed base, prescribed top displacement) on this block; required for vtu")
+    x.add_argument("--displacement", type=float, default=None, help="top displacement along z in --unit (default: -10%% of the height)")
+    x.add_argument("--unit", choices=_UNITS, default="mm", help="length unit of --specimen and --displacement (default mm); files are in metres")
+    x.add_argument("--dt", type=float, default=None, help="XPBD time step [s] (xpbd only)")
+    x.add_argument("--iterations", type=int, default=None, help="XPBD iterations per substep, recorded with the compliances (xpbd only)")
+    x.add_argument("--substeps", type=int, default=1, help="XPBD substeps per time step (default 1)")
+    x.set_defaults(func=_cmd_export)
     return p
 
 

@@ -88,7 +88,7 @@ METHODS = ("levenberg_marquardt", "gauss_newton", "adam", "lbfgs")
 #: Loss functions understood by :func:`fit` (scipy.optimize.least_squares names).
 LOSSES = ("linear", "soft_l1", "huber")
 #: Files written by :func:`write_fit_outputs`.
-OUTPUT_FILES = ("fit.json", "fit.png", "loss.png", "report.md")
+OUTPUT_FILES = ("fit.json", "material.json", "fit.png", "loss.png", "report.md")
 
 #: Floors of the parameter scale used for relative standard errors and the scaled J^T J:
 #: ``scale = max(|value|, floor)``. Parameters that may sit at zero get a natural unit.
@@ -1223,7 +1223,11 @@ def write_fit_outputs(
     scenario_names: Sequence[str] | None = None,
     force: bool = False,
 ) -> dict[str, Path]:
-    """Write ``fit.json``, ``fit.png``, ``loss.png`` and ``report.md`` into ``out_dir``.
+    """Write ``fit.json``, ``material.json``, ``fit.png``, ``loss.png`` and ``report.md`` into ``out_dir``.
+
+    ``material.json`` is the versioned material card (:class:`~difftissue.export.MaterialCard`)
+    that ``difftissue export`` reads: model, energy, parameters with units and standard
+    errors, provenance.
 
     Args:
         result: a :class:`FitResult`.
@@ -1233,7 +1237,7 @@ def write_fit_outputs(
         data_files: measured-data files used by the fit; each is recorded with its sha256.
         model: model name (str) or object (its ``name`` or type name is recorded).
         scenario_names: names to record instead of the result's scenarios.
-        force: overwrite existing output files. Without it, an existing file among the four
+        force: overwrite existing output files. Without it, an existing file among the five
             raises :class:`~difftissue.errors.OutputExistsError` naming it, before anything is written.
 
     Every file is written atomically (temporary file beside it, then ``os.replace``).
@@ -1257,6 +1261,12 @@ def write_fit_outputs(
     out.mkdir(parents=True, exist_ok=True)
     with atomic_output(paths["fit.json"], overwrite=force) as tmp:
         tmp.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n", encoding="utf-8")
+    from .export import card_from_fit
+
+    model_name = None if model is None else (model if isinstance(model, str) else getattr(model, "name", None) or type(model).__name__)
+    card = card_from_fit(result, model=model_name or "unspecified", scenario_names=names, data_files=data_files)
+    with atomic_output(paths["material.json"], overwrite=force) as tmp:
+        tmp.write_text(card.to_json(), encoding="utf-8")
     with atomic_output(paths["fit.png"], overwrite=force) as tmp:
         _plot_fit(result, tmp)
     with atomic_output(paths["loss.png"], overwrite=force) as tmp:

@@ -404,7 +404,10 @@ def test_write_fit_outputs(tmp_path, joint_fit):
     cfg.write_text('[fit]\nmethod = "levenberg_marquardt"\n')
     out = tmp_path / "out"
     paths = write_fit_outputs(res, out, config=cfg, data_files=[data], model="hertz")
-    assert sorted(p.name for p in out.iterdir()) == ["fit.json", "fit.png", "loss.png", "report.md"]
+    assert sorted(p.name for p in out.iterdir()) == ["fit.json", "fit.png", "loss.png", "material.json", "report.md"]
+    card = json.loads((out / "material.json").read_text())
+    assert card["card_version"] == 1 and card["model"] == "hertz"
+    assert card["parameters"]["youngs_modulus"]["value"] == pytest.approx(res.values["youngs_modulus"])
     doc = json.loads((out / "fit.json").read_text())
     E = doc["parameters"]["youngs_modulus"]
     assert E["unit"] == "Pa" and E["value"] == pytest.approx(res.values["youngs_modulus"])
