@@ -1,0 +1,295 @@
+"""Material card and simulator writers (difftissue.export)."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+import xml.etree.ElementTree as ET
+
+import numpy as np
+import pytest
+
+from difftissue.errors import ExportError, OutputExistsError
+from difftissue.export import (
+    MaterialCard,
+    abaqus_material,
+    abaqus_name,
+    card_from_fit_json,
+    export,
+    read_card,
+    write_abaqus,
+    write_card,
+    write_febio,
+    write_sofa,
+    write_vtu,
+    write_xpbd,
+)
+from difftissue.mesh import block
+
+E, NU = 12_000.0, 0.45
+
+
+def make_card(model="fem_neo_hookean", name="skin", **extra):
+    params = {
+        "youngs_modulus": {"value": E, "unit": "Pa", "standard_error": 250.0},
+        "poisson_ratio": {"value": NU, "unit": "1", "standard_error": None},
+        "density": {"value": 1100.0, "unit": "kg/m^3", "standard_error": None},
+    }
+    for k, v in extra.items():
+        params[k] = {"value": v, "unit": "1", "standard_error": None}
+    return MaterialCard(model=model, parameters=params, name=name,
+                        provenance={"scenarios": ["afm"], "data_files": [{"path": "a.csv", "sha256": "0" * 64}]})
+
+
+@pytest.fixture(scope="module")
+def mesh():
+    return block((0.01, 0.01, 0.005), (2, 2, 1))
+
+
+# ------------------------------------------------------------------ card
+def test_card_round_trip(tmp_path):
+    card = make_card()
+    path = write_card(card, tmp_path / "material.json")
+    back = read_card(path)
+    assert back == card
+    doc = json.loads(path.read_text())
+    assert doc["card_version"] == 1 and doc["model"] == "fem_neo_hookean" and "neo-Hookean" in doc["energy"]
+    assert doc["parameters"]["youngs_modulus"] == {"value": E, "unit": "Pa", "standard_error": 250.0}
+    assert back.shear_modulus == pytest.approx(E / (2 * (1 + NU)))
+    assert back.cubic_coefficient == 0.0 and back.pre_stretch == 1.0
+
+
+@pytest.mark.parametrize(
+    "mutate, field",
+    [
+        (lambda d: d["parameters"].pop("youngs_modulus"), "parameters.youngs_modulus"),
+        (lambda d: d["parameters"]["youngs_modulus"].update(value=0.0), "parameters.youngs_modulus"),
+        (lambda d: d["parameters"]["youngs_modulus"].update(value=-5.0), "parameters.youngs_modulus"),
+        (lambda d: d["parameters"]["poisson_ratio"].update(value=0.5), "parameters.poisson_ratio"),
+        (lambda d: d["parameters"]["poisson_ratio"].update(value=-1.0), "parameters.poisson_ratio"),
+        (lambda d: d["parameters"]["poisson_ratio"].update(value="NaN"), "parameters.poisson_ratio"),
+        (lambda d: d["parameters"]["density"].update(value=None), "parameters.density"),
+        (lambda d: d["parameters"]["youngs_modulus"].update(unit="kPa"), "parameters.youngs_modulus.unit"),
+        (lambda d: d.update(card_version=2), "card_version"),
+        (lambda d: d.pop("card_version"), "card_version"),
+        (lambda d: d.update(model=""), "model"),
+    ],
+)
+def test_validation_names_the_field(tmp_path, mutate, field):
+    doc = make_card().to_dict()
+    mutate(doc)
+    p = tmp_path / "bad.json"
+    p.write_text(json.dumps(doc))
+    with pytest.raises(ExportError, match=re.escape(field)):
+        read_card(p)
+
+
+def test_nan_in_json_is_refused(tmp_path):
+    p = tmp_path / "nan.json"
+    p.write_text(make_card().to_json().replace("12000.0", "NaN"))
+    with pytest.raises(ExportError, match="youngs_modulus"):
+        read_card(p)
+
+
+def test_card_from_fit_json():
+    doc = {
+        "schema": "difftissue-fit/1",
+        "parameters": {"youngs_modulus": {"value": 3000.0, "unit": "Pa", "standard_error": 30.0}},
+        "fixed_parameters": {"poisson_ratio": {"value": 0.4, "unit": "1"}, "density": {"value": 1000.0, "unit": "kg/m^3"}},
+        "model": "springs_volume",
+        "scenarios": [{"name": "compression"}],
+        "data_files": [{"path": "c.csv", "sha256": "ab"}],
+        "versions": {"difftissue": "0.1.0"},
+        "created": "2026-01-01T00:00:00+0000",
+    }
+    card = MaterialCard.from_json(json.dumps(doc))
+    assert card == card_from_fit_json(doc)
+    assert card.model == "springs_volume" and card.youngs_modulus == 3000.0 and card.poisson_ratio == 0.4
+    assert card.parameters["youngs_modulus"]["standard_error"] == 30.0
+    assert card.provenance["scenarios"] == ["compression"]
+    with pytest.raises(ExportError, match="model"):
+        card_from_fit_json({**doc, "model": None})
+
+
+# ------------------------------------------------------------------ FEBio
+def test_febio_material_and_specimen(tmp_path, mesh):
+    card = make_card()
+    root = ET.parse(write_febio(card, tmp_path / "m.feb")).getroot()
+    assert root.tag == "febio_spec" and root.get("version") == "4.0"
+    mat = root.find("Material/material")
+    assert mat.get("type") == "neo-Hookean" and mat.get("name") == "skin" and mat.get("id") == "1"
+    assert float(mat.find("E").text) == E and float(mat.find("v").text) == NU and float(mat.find("density").text) == 1100.0
+
+    lin = ET.parse(write_febio(make_card(model="fem_linear"), tmp_path / "l.feb")).getroot()
+    assert lin.find("Material/material").get("type") == "isotropic elastic"
+
+    full = ET.parse(write_febio(card, tmp_path / "s.feb", mesh=mesh, displacement=-5e-4)).getroot()
+    assert len(full.findall("Mesh/Nodes/node")) == mesh.n_nodes
+    elems = full.findall("Mesh/Elements/elem")
+    assert full.find("Mesh/Elements").get("type") == "tet4" and len(elems) == mesh.n_tets
+    assert [int(n) - 1 for n in elems[0].text.split(",")] == list(mesh.tets[0])
+    assert full.find("MeshDomains/SolidDomain").get("mat") == "skin"
+    bcs = {bc.get("type"): bc for bc in full.findall("Boundary/bc")}
+    assert bcs["zero displacement"].get("node_set") == "base"
+    assert float(bcs["prescribed displacement"].find("value").text) == -5e-4
+    base = [int(i) - 1 for i in full.find("Mesh/NodeSet[@name='base']").text.split(",")]
+    assert np.allclose(mesh.points[base, 2], 0.0) and len(base) == 9
+
+
+# ------------------------------------------------------------------ SOFA
+def test_sofa_conversions_both_ways(tmp_path, mesh):
+    root = ET.parse(write_sofa(make_card(), tmp_path / "nh.scn")).getroot()
+    ff = root.find(".//TetrahedronHyperelasticityFEMForceField")
+    assert ff.get("materialName") == "NeoHookean"
+    mu, lam = (float(v) for v in ff.get("ParameterSet").split())
+    assert mu == pytest.approx(E / (2 * (1 + NU)), rel=1e-14)
+    # back: E = mu (3 lambda + 2 mu) / (lambda + mu), nu = lambda / (2 (lambda + mu))
+    assert mu * (3 * lam + 2 * mu) / (lam + mu) == pytest.approx(E, rel=1e-12)
+    assert lam / (2 * (lam + mu)) == pytest.approx(NU, rel=1e-12)
+
+    lin = ET.parse(write_sofa(make_card(model="fem_linear"), tmp_path / "lin.scn", mesh=mesh)).getroot()
+    ff = lin.find(".//TetrahedronFEMForceField")
+    assert float(ff.get("youngModulus")) == E and float(ff.get("poissonRatio")) == NU
+    topo = lin.find(".//MeshTopology")
+    assert len(topo.get("tetrahedra").split()) == 4 * mesh.n_tets
+    assert len(lin.find(".//FixedProjectiveConstraint").get("indices").split()) == 9
+
+
+# ------------------------------------------------------------------ Abaqus
+def _inp_keywords(text):
+    return [ln.split(",")[0].strip().upper() for ln in text.splitlines() if ln.startswith("*") and not ln.startswith("**")]
+
+
+def test_abaqus_conversions_both_ways(tmp_path):
+    text = write_abaqus(make_card(), tmp_path / "m.inp").read_text()
+    assert _inp_keywords(text) == ["*MATERIAL", "*HYPERELASTIC", "*DENSITY"]
+    lines = text.splitlines()
+    i = lines.index("*HYPERELASTIC, NEO HOOKE")
+    c10, d1 = (float(v) for v in lines[i + 1].split(","))
+    mu, K = E / (2 * (1 + NU)), E / (3 * (1 - 2 * NU))
+    assert c10 == pytest.approx(mu / 2, rel=1e-14) and d1 == pytest.approx(2 / K, rel=1e-14)
+    mu_b, K_b = 2 * c10, 2 / d1
+    assert 9 * K_b * mu_b / (3 * K_b + mu_b) == pytest.approx(E, rel=1e-12)
+    assert (3 * K_b - 2 * mu_b) / (2 * (3 * K_b + mu_b)) == pytest.approx(NU, rel=1e-12)
+    assert float(lines[lines.index("*DENSITY") + 1]) == 1100.0
+
+    lin = abaqus_material(make_card(model="fem_linear"))
+    j = lin.index("*ELASTIC")
+    assert [float(v) for v in lin[j + 1].split(",")] == [E, NU]
+
+
+def test_abaqus_specimen(tmp_path, mesh):
+    text = write_abaqus(make_card(), tmp_path / "s.inp", mesh=mesh).read_text()
+    kws = _inp_keywords(text)
+    for kw in ("*HEADING", "*NODE", "*ELEMENT", "*NSET", "*SOLID SECTION", "*MATERIAL", "*STEP", "*STATIC", "*BOUNDARY", "*END STEP"):
+        assert kw in kws
+    assert "*ELEMENT, TYPE=C3D4, ELSET=TISSUE" in text and "*SOLID SECTION, ELSET=TISSUE, MATERIAL=skin" in text
+    # every data line of *NODE has an id and 3 coordinates
+    lines = text.splitlines()
+    k = lines.index("*NODE")
+    assert all(len(lines[k + 1 + n].split(",")) == 4 for n in range(mesh.n_nodes))
+    assert "TOP, 3, 3, -0.0005" in text
+
+
+def test_hostile_names_are_escaped(tmp_path, mesh):
+    card = make_card(name='a<&">b -- x')
+    for writer, path in ((write_febio, "h.feb"), (write_sofa, "h.scn")):
+        p = writer(card, tmp_path / path, mesh=mesh)
+        root = ET.parse(p).getroot()  # well-formed
+        names = [el.get("name") for el in root.iter() if el.get("name") == card.name]
+        assert names, path
+        assert '<&">' not in p.read_text()
+    inp = write_abaqus(card, tmp_path / "h.inp").read_text()
+    assert "*MATERIAL, NAME=a____b_--_x" in inp
+    assert abaqus_name("1abc") == "M_1abc" and abaqus_name("x" * 200) == "x" * 80
+    assert re.fullmatch(r"[A-Za-z][A-Za-z0-9_-]{0,79}", abaqus_name("ünï cødé\n*STEP"))
+    # a newline in a name cannot start a keyword line in the .inp
+    inj = write_abaqus(make_card(name="x\n*STEP"), tmp_path / "inj.inp").read_text()
+    assert "*STEP" not in _inp_keywords(inj)
+
+
+# ------------------------------------------------------------------ approximations
+@pytest.mark.parametrize("writer, suffix", [(write_febio, "feb"), (write_sofa, "scn"), (write_abaqus, "inp")])
+def test_cubic_refused_or_approximated(tmp_path, writer, suffix):
+    card = make_card(model="springs_volume", cubic_coefficient=2.0)
+    with pytest.raises(ExportError, match="cubic_coefficient.*approximate"):
+        writer(card, tmp_path / f"c.{suffix}")
+    assert not (tmp_path / f"c.{suffix}").exists()
+    text = writer(card, tmp_path / f"c.{suffix}", approximate=True).read_text()
+    assert "APPROXIMATION: cubic_coefficient b = 2 dropped" in text and "b*eps^2" in text and "0.02 at 10 % strain" in text
+
+
+def test_pre_stretch_refused_or_approximated(tmp_path):
+    card = make_card(pre_stretch=1.1)
+    with pytest.raises(ExportError, match="pre_stretch"):
+        write_febio(card, tmp_path / "p.feb")
+    assert "pre_stretch = 1.1 dropped" in write_febio(card, tmp_path / "p.feb", approximate=True).read_text()
+
+
+# ------------------------------------------------------------------ XPBD and VTU
+def test_xpbd(tmp_path, mesh):
+    card = make_card()
+    doc = json.loads(write_xpbd(card, tmp_path / "x.json", dt=1 / 60, iterations=10, mesh=mesh).read_text())
+    mu, lam = card.shear_modulus, card.lame_lambda
+    assert doc["setting"] == {"dt": 1 / 60, "iterations": 10, "substeps": 1, "substep": 1 / 60}
+    assert doc["per_unit_volume"]["deviatoric_compliance"] == pytest.approx(1 / mu)
+    assert doc["per_unit_volume"]["hydrostatic_compliance"] == pytest.approx(1 / (lam + mu))
+    assert doc["gamma"] == pytest.approx(1 + mu / (lam + mu))
+    v0 = np.asarray(doc["per_tet"]["rest_volume"])
+    assert v0.sum() == pytest.approx(0.01 * 0.01 * 0.005)
+    assert np.allclose(doc["per_tet"]["hydrostatic_alpha_tilde"], 1 / ((lam + mu) * v0) * 60**2)
+    with pytest.raises(ExportError, match="dt"):
+        write_xpbd(card, tmp_path / "y.json", dt=0.0, iterations=10)
+    with pytest.raises(ExportError, match="iterations"):
+        write_xpbd(card, tmp_path / "y.json", dt=0.01, iterations=0)
+
+
+def test_vtu_cell_fields(tmp_path, mesh):
+    import meshio
+
+    card = make_card()
+    m = meshio.read(write_vtu(card, mesh, tmp_path / "m.vtu"))
+    cd = {k: np.concatenate(v) for k, v in m.cell_data.items()}
+    assert np.all(cd["youngs_modulus"] == E) and np.all(cd["poisson_ratio"] == NU)
+    assert np.allclose(cd["shear_modulus"], card.shear_modulus) and cd["density"].shape == (mesh.n_tets,)
+
+
+def test_refuses_to_overwrite(tmp_path, mesh):
+    card = make_card()
+    for to, name in (("febio", "o.feb"), ("sofa", "o.scn"), ("abaqus", "o.inp"), ("vtu", "o.vtu")):
+        p = export(card, to, tmp_path / name, mesh=mesh)
+        before = p.read_bytes()
+        with pytest.raises(OutputExistsError):
+            export(card, to, p, mesh=mesh)
+        assert p.read_bytes() == before
+        export(card, to, p, mesh=mesh, force=True)
+    with pytest.raises(OutputExistsError):
+        write_card(card, tmp_path / "o.feb")
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+# ------------------------------------------------------------------ CLI
+def _cli(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "difftissue", *args], capture_output=True, text=True, cwd=cwd, timeout=300)
+
+
+def test_cli_export(tmp_path):
+    write_card(make_card(), tmp_path / "material.json")
+    r = _cli("export", "material.json", "--to", "abaqus", "--out", "m.inp", "--specimen", "block:10,10,5:2,2,1", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    assert "*HYPERELASTIC, NEO HOOKE" in (tmp_path / "m.inp").read_text()
+    r = _cli("export", "material.json", "--to", "xpbd", "--out", "x.json", "--dt", "0.01", "--iterations", "10", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr and (tmp_path / "x.json").is_file()
+    # refusal to overwrite, then bad card: one line, exit 1
+    r = _cli("export", "material.json", "--to", "abaqus", "--out", "m.inp", cwd=tmp_path)
+    assert r.returncode == 1 and "exists" in r.stderr
+    doc = make_card().to_dict()
+    doc["parameters"]["poisson_ratio"]["value"] = 0.7
+    (tmp_path / "bad.json").write_text(json.dumps(doc))
+    r = _cli("export", "bad.json", "--to", "febio", "--out", "b.feb", cwd=tmp_path)
+    assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1 and "parameters.poisson_ratio" in r.stderr
+    assert not (tmp_path / "b.feb").exists()
+    r = _cli("export", "material.json", "--to", "vtu", "--out", "m.vtu", cwd=tmp_path)
+    assert r.returncode == 2 and "--specimen" in r.stderr
