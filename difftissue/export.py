@@ -98,7 +98,22 @@ _RULES = {
 #: Export targets understood by :func:`export` and ``difftissue export --to``.
 TARGETS = ("febio", "sofa", "abaqus", "xpbd", "vtu")
 
-_LINEAR_MODELS = ("fem_linear", "analytic")
+#: Models whose energy is geometrically nonlinear: their cards export to neo-Hookean by default.
+_FINITE_STRAIN_MODELS = ("springs_volume", "fem_neo_hookean", "stable_neo_hookean")
+
+
+def _model_parts(model: str) -> list[str]:
+    """``"hertz; springs_volume"`` (a joint fit) -> ``["hertz", "springs_volume"]``."""
+    return [m.strip() for m in str(model).split(";") if m.strip()]
+
+
+def _default_energy(model: str) -> str:
+    """Energy in words; names outside :data:`MODEL_ENERGIES` (``hertz``, ``sneddon_cone``, ...)
+    are difftissue's closed-form solutions, all small-strain linear elasticity."""
+    out = []
+    for m in _model_parts(model):
+        out.append(f"{m}: {MODEL_ENERGIES[m]}" if m in MODEL_ENERGIES else f"{m}: {MODEL_ENERGIES['analytic']}")
+    return out[0].split(": ", 1)[1] if len(out) == 1 else "; ".join(out)
 
 
 # =============================================================================== card
@@ -129,7 +144,7 @@ class MaterialCard:
 
     def __post_init__(self):
         if not self.energy:
-            self.energy = MODEL_ENERGIES.get(self.model, "")
+            self.energy = _default_energy(self.model) if isinstance(self.model, str) else ""
         self.validate()
 
     # ------------------------------------------------------------------ checks
@@ -369,7 +384,7 @@ def write_card(card: MaterialCard, path, *, force: bool = False) -> Path:
 # ======================================================================= approximations
 def _law(card: MaterialCard, law: str | None) -> str:
     if law is None:
-        return "linear" if card.model in _LINEAR_MODELS else "neo_hookean"
+        return "neo_hookean" if any(m in _FINITE_STRAIN_MODELS for m in _model_parts(card.model)) else "linear"
     if law not in ("linear", "neo_hookean"):
         raise ExportError(f"law = {law!r}: expected 'linear' or 'neo_hookean'")
     return law
@@ -434,8 +449,9 @@ def febio_material(card: MaterialCard, *, law: str | None = None, approximate: b
     * ``law="linear"`` -> ``type="isotropic elastic"`` (same ``E``, ``v``).
     * ``<density>`` is the card's density [kg/m^3].
 
-    The default law is ``linear`` for ``fem_linear``/``analytic`` cards and ``neo_hookean``
-    otherwise. A nonzero ``cubic_coefficient`` or a ``pre_stretch`` other than 1 is refused
+    The default law is ``neo_hookean`` for cards of a finite-strain model (``springs_volume``,
+    ``fem_neo_hookean``, ``stable_neo_hookean``, also within a joint ``"hertz; springs_volume"``)
+    and ``linear`` otherwise (``fem_linear`` and the analytic solutions: ``hertz``, ...). A nonzero ``cubic_coefficient`` or a ``pre_stretch`` other than 1 is refused
     unless ``approximate``, which drops it and records the error in a comment.
     """
     law = _law(card, law)

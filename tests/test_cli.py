@@ -104,7 +104,7 @@ def test_demo_quick_fits_the_bundled_afm_curve(tmp_path, capsys):
     assert e_eff == pytest.approx(156.0, rel=0.05)  # the instrument's own Hertz fit
     assert rec["parameters"]["youngs_modulus"]["unit"] == "Pa" and rec["parameters"]["youngs_modulus"]["standard_error"] > 0
     assert len(rec["data_files"]) == 1 and len(rec["data_files"][0]["sha256"]) == 64
-    for name in ("fit.png", "loss.png", "report.md", "config.toml"):
+    for name in ("material.json", "fit.png", "loss.png", "report.md", "config.toml"):
         assert (out / "afm_hertz" / name).is_file()
     assert main(["demo", "--quick", "--out", str(out)]) == 1  # refuses to write into a non-empty folder
     assert "not empty" in capsys.readouterr().err

@@ -293,3 +293,12 @@ def test_cli_export(tmp_path):
     assert not (tmp_path / "b.feb").exists()
     r = _cli("export", "material.json", "--to", "vtu", "--out", "m.vtu", cwd=tmp_path)
     assert r.returncode == 2 and "--specimen" in r.stderr
+
+
+@pytest.mark.parametrize("model, law", [("hertz", "linear"), ("fem_linear", "linear"), ("springs_volume", "neo_hookean"),
+                                        ("hertz; springs_volume", "neo_hookean"), ("stable_neo_hookean", "neo_hookean")])
+def test_default_law_follows_the_model(model, law):
+    card = make_card(model=model)
+    assert card.energy  # every card states its energy
+    kw = abaqus_material(card)
+    assert ("*HYPERELASTIC, NEO HOOKE" in kw) == (law == "neo_hookean") and ("*ELASTIC" in kw) == (law == "linear")
