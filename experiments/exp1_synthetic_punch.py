@@ -10,7 +10,7 @@ back with :func:`difftissue.data.load_fem_result` and fitted with
 :class:`difftissue.scenarios.FEMField` (prescribed: bottom xyz + punch z; reaction: sum of
 the punch z reactions) by ``fem_linear`` and by ``springs_volume`` (E and nu free).
 
-Run:  python experiments/exp1_synthetic_punch.py [OUT_DIR]   (default experiments/results/)
+Run:  python experiments/exp1_synthetic_punch.py [OUT_DIR] [--refine 2]   (default experiments/results/)
 Writes OUT_DIR/exp1_punch.vtu, exp1_synthetic_punch.json and .png; prints a Markdown table.
 """
 
@@ -42,11 +42,11 @@ DEPTH = 0.06e-3  # m (1 % of the thickness: small strain, the springs' geometric
 INITIAL = Material(youngs_modulus=8e3, poisson_ratio=0.33)
 
 
-def make_reference(out: Path) -> Path:
+def make_reference(out: Path, cells=CELLS, tag: str = "") -> Path:
     import skfem
     from skfem.models.elasticity import linear_elasticity
 
-    mesh = block(SIZE, CELLS, origin=(-SIZE[0] / 2, -SIZE[1] / 2, 0.0))
+    mesh = block(SIZE, cells, origin=(-SIZE[0] / 2, -SIZE[1] / 2, 0.0))
     p = np.asarray(mesh.points, dtype=float)
     tets = np.asarray(mesh.tets)
     n = len(p)
@@ -73,12 +73,12 @@ def make_reference(out: Path) -> Path:
     u = uf.reshape(n, 3)
     reaction = (K @ uf).reshape(n, 3)
     reaction[~fixed] = 0.0  # equilibrium residual of free DOFs (~1e-18 N) dropped
-    path = out / "exp1_punch.vtu"
+    path = out / f"exp1_punch{tag}.vtu"
     write_mesh(path, mesh, point_data={"displacement": u, "reaction": reaction, "bottom": bottom.astype(np.int32), "punch": punch.astype(np.int32)}, overwrite=True)
     return path, int(punch.sum()), float(-reaction[punch, 2].sum())
 
 
-def fit_model(path: Path, model: str):
+def fit_model(path: Path, model: str, linear_solver: str = "dense"):
     ref = load_fem_result(path)
     sc = FEMField(
         ref.mesh,
@@ -86,7 +86,7 @@ def fit_model(path: Path, model: str):
         prescribed=[{"set": "bottom", "components": "xyz"}, {"set": "punch", "components": "z"}],
         reaction={"set": "punch", "field": "reaction", "components": "z"},
         model=model,
-        options=SolverOptions(linear_solver="dense"),
+        options=SolverOptions(linear_solver=linear_solver),
         name=f"punch_field_{model}",
     )
     t0 = time.perf_counter()
@@ -126,27 +126,32 @@ def fit_model(path: Path, model: str):
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("out", nargs="?", default=str(Path(__file__).parent / "results"))
+    ap.add_argument("--refine", type=int, default=1, help="cubes per mm (1: 12 x 12 x 6 cubes; 2: 24 x 24 x 12)")
+    ap.add_argument("--linear-solver", default=None, help="default: dense for --refine 1, sparse otherwise")
     args = ap.parse_args()
+    cells = tuple(c * args.refine for c in CELLS)
+    solver = args.linear_solver or ("dense" if args.refine == 1 else "sparse")
+    tag = "" if args.refine == 1 else f"_refine{args.refine}"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    path, n_punch, force = make_reference(out)
+    path, n_punch, force = make_reference(out, cells, tag)
     t_ref = time.perf_counter() - t0
     rows, scatter = [], {}
     for model in ("fem_linear", "springs_volume"):
-        row, sc = fit_model(path, model)
+        row, sc = fit_model(path, model, solver)
         rows.append(row)
         scatter[model] = sc
     result = {
         "experiment": "exp1_synthetic_punch",
         "truth": {"youngs_modulus": E_TRUE, "poisson_ratio": NU_TRUE},
-        "specimen": {"size_m": SIZE, "cells": CELLS, "punch_radius_m": PUNCH_RADIUS, "punch_nodes": n_punch, "depth_m": DEPTH, "reference_force_N": force},
+        "specimen": {"size_m": SIZE, "cells": cells, "linear_solver": solver, "punch_radius_m": PUNCH_RADIUS, "punch_nodes": n_punch, "depth_m": DEPTH, "reference_force_N": force},
         "targets": {"E_rel": 0.02, "nu_abs": 0.02},
         "reference_seconds": t_ref,
         "fits": rows,
         "total_seconds": time.perf_counter() - t0,
     }
-    (out / "exp1_synthetic_punch.json").write_text(json.dumps(result, indent=2))
+    (out / f"exp1_synthetic_punch{tag}.json").write_text(json.dumps(result, indent=2))
 
     import matplotlib
 
@@ -164,7 +169,7 @@ def main():
         ax.set_ylabel("fitted model displacement [um]")
     fig.suptitle(f"Exp 1: flat punch field, truth E = {E_TRUE / 1e3:g} kPa, nu = {NU_TRUE}")
     fig.tight_layout()
-    fig.savefig(out / "exp1_synthetic_punch.png", dpi=110)
+    fig.savefig(out / f"exp1_synthetic_punch{tag}.png", dpi=110)
 
     print(f"| model | E [kPa] (truth {E_TRUE / 1e3:g}) | E error | nu (truth {NU_TRUE}) | nu error | force error at truth | fit time [s] | target met |")
     print("|---|---|---|---|---|---|---|---|")
