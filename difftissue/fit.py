@@ -1206,7 +1206,7 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines += ["", "## Scenarios", "", "| scenario | points | rms residual / sigma |", "|---|---|---|"]
     for s in result.scenarios:
         lines.append(f"| {s.name} | {s.observed.size} | {np.sqrt(np.mean(s.residual ** 2)):.4g} |")
-    lines += ["", "## Files", "", "- `fit.json`: parameters, uncertainty, versions", "- `fit.png`: data vs model with residuals", "- `loss.png`: loss history"]
+    lines += ["", "## Files", "", "- `fit.json`: parameters, uncertainty, versions", "- `material.json`: the material card for `difftissue export`", "- `fit.png`: data vs model with residuals", "- `loss.png`: loss history"]
     for d in record["data_files"]:
         lines.append(f"- data `{d['path']}` (sha256 `{d['sha256']}`)")
     lines += ["", "Versions: " + ", ".join(f"{k} {v}" for k, v in record["versions"].items() if v) + "."]

@@ -294,8 +294,10 @@ def _jitted_solve(scenario):
         return hit[1]
     import weakref
 
-    fn = jax.jit(lambda material: scenario._solve_protocol(material))
-    _JITTED[key] = (weakref.ref(scenario, lambda _, k=key: _JITTED.pop(k, None)), fn)
+    # Only weak references to the scenario: the cache must not keep it (and its mesh) alive.
+    ref = weakref.ref(scenario, lambda _, k=key, cache=_JITTED: cache.pop(k, None))
+    fn = jax.jit(lambda material: ref()._solve_protocol(material))
+    _JITTED[key] = (ref, fn)
     return fn
 
 
