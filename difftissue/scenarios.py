@@ -157,12 +157,26 @@ class AnalyticIndentation(eqx.Module):
 
 
 # ============================================================================ meshes
-def graded_axis(length: float, cells: int, first: float | None = None) -> np.ndarray:
+def graded_axis(length: float, cells: int, first: float | None = None, *, core: float | None = None) -> np.ndarray:
     """Node coordinates ``0 .. length`` [m] with ``cells`` cells growing geometrically from
-    ``first`` [m] (uniform when ``first`` is None or ``>= length / cells``)."""
+    ``first`` [m] (uniform when ``first`` is None or ``>= length / cells``).
+
+    With ``core`` [m], cells of size ``first`` are kept uniform up to ``core`` (rounded to
+    whole cells) and grow geometrically only beyond it: a contact region that widens with
+    depth stays resolved (linear tets need about ten cells across the contact radius).
+    """
     length, cells = float(length), int(cells)
     if not (length > 0 and cells >= 1):
         raise ModelError(f"an axis needs a positive length and >= 1 cell, got {length}, {cells}")
+    if core is not None and first is not None and 0 < core < length:
+        n_core = max(1, int(round(core / first)))
+        if n_core >= cells:
+            raise ModelError(f"a uniform core of {core:g} m with cells of {first:g} m needs {n_core} cells; give more than that ({cells} given)")
+        c = n_core * first
+        if c >= length:
+            return np.linspace(0.0, length, cells + 1)
+        outer = graded_axis(length - c, cells - n_core, first)
+        return np.concatenate([np.linspace(0.0, c, n_core + 1), c + outer[1:]])
     if first is None or first >= length / cells:
         return np.linspace(0.0, length, cells + 1)
     if first <= 0:
@@ -175,7 +189,7 @@ def graded_axis(length: float, cells: int, first: float | None = None) -> np.nda
     return x
 
 
-def indentation_block(size, cells, *, symmetry: str = "quarter", refine: float | None = None) -> TetMesh:
+def indentation_block(size, cells, *, symmetry: str = "quarter", refine: float | None = None, core: float | None = None) -> TetMesh:
     """A block for indentation along -z at the axis x = y = 0, top surface at ``z = size[2]``.
 
     Args:
@@ -187,20 +201,22 @@ def indentation_block(size, cells, *, symmetry: str = "quarter", refine: float |
         refine: first cell size [m] at the axis and at the surface, growing geometrically
             (None: uniform cells). Graded cells are not cubes: use the FEM or stable
             neo-Hookean models with them (springs_volume refuses elongated cells).
+        core: keep cells of size ``refine`` uniform within this distance [m] of the axis and
+            of the surface (e.g. 1.5 x the largest contact radius), grading only outside.
     """
     Lx, Ly, H = (float(v) for v in np.broadcast_to(np.asarray(size, dtype=float), (3,)))
     nx, ny, nz = (int(v) for v in np.broadcast_to(np.asarray(cells), (3,)))
     if symmetry == "quarter":
-        xs, ys = graded_axis(Lx / 2, nx, refine), graded_axis(Ly / 2, ny, refine)
+        xs, ys = graded_axis(Lx / 2, nx, refine, core=core), graded_axis(Ly / 2, ny, refine, core=core)
     elif symmetry == "none":
         if refine is not None:
-            hx, hy = graded_axis(Lx / 2, max(nx // 2, 1), refine), graded_axis(Ly / 2, max(ny // 2, 1), refine)
+            hx, hy = graded_axis(Lx / 2, max(nx // 2, 1), refine, core=core), graded_axis(Ly / 2, max(ny // 2, 1), refine, core=core)
             xs, ys = np.concatenate([-hx[::-1], hx[1:]]), np.concatenate([-hy[::-1], hy[1:]])
         else:
             xs, ys = np.linspace(-Lx / 2, Lx / 2, nx + 1), np.linspace(-Ly / 2, Ly / 2, ny + 1)
     else:
         raise ConfigError(f"symmetry must be 'quarter' or 'none', got {symmetry!r}")
-    zs = H - graded_axis(H, nz, refine)[::-1]
+    zs = H - graded_axis(H, nz, refine, core=core)[::-1]
     return structured_grid(xs, ys, zs, region_names=("tissue",))
 
 

@@ -170,6 +170,13 @@ def test_graded_axis():
     assert x[0] == 0 and x[-1] == 1.0 and x[1] == pytest.approx(0.01)
     assert np.all(np.diff(np.diff(x)) > 0)
     np.testing.assert_allclose(graded_axis(1.0, 4), [0, 0.25, 0.5, 0.75, 1.0])
+    c = graded_axis(1.0, 20, 0.01, core=0.05)
+    np.testing.assert_allclose(c[:6], np.arange(6) * 0.01)  # uniform core of 5 cells
+    assert c[-1] == 1.0 and len(c) == 21 and np.all(np.diff(c[5:]) >= 0.01 - 1e-15)
+    with pytest.raises(errors.ModelError, match="core"):
+        graded_axis(1.0, 4, 0.01, core=0.05)
+    m = indentation_block((1.0, 1.0, 0.5), (12, 12, 10), refine=0.01, core=0.04)
+    assert m.volumes().min() > 0
 
 
 # ------------------------------------------------------------------ FEM field
