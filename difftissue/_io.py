@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import tempfile
 from pathlib import Path
 
 from .errors import OutputError, OutputExistsError
 
-__all__ = ["atomic_output"]
+__all__ = ["atomic_output", "sha256_file"]
 
 
 @contextlib.contextmanager
@@ -38,3 +39,12 @@ def atomic_output(path, *, overwrite: bool = False):
     finally:
         if tmp.exists():
             tmp.unlink()
+
+
+def sha256_file(path) -> str:
+    """SHA-256 hex digest of a file, read in 1 MiB chunks (provenance of data files)."""
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()

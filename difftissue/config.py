@@ -448,8 +448,6 @@ def load_config(path) -> FitConfig:
 
 def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
     """Validate and build a config given as a mapping (the parsed TOML)."""
-    from .materials import Material
-
     base_dir = Path(base_dir)
     top = _table(raw, "", _TOP_KEYS, ("material", "fit", "experiment"))
     for k in ("title", "description"):

@@ -9,6 +9,7 @@ provenance. Writers derive simulator inputs from it, each with its conversion sp
 * Abaqus ``.inp``: :func:`write_abaqus`
 * XPBD compliances for a stated time step and iteration count (JSON): :func:`write_xpbd`
 * VTU with per-cell material fields: :func:`write_vtu`
+* scikit-fem (in memory, no file): :func:`to_skfem`
 
 All quantities are SI. Every file is written atomically and an existing file is refused
 unless ``force=True``. The module imports only numpy and the standard library at import
@@ -18,7 +19,6 @@ time (meshes and meshio are loaded when a mesh is written).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -30,7 +30,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from ._io import atomic_output
+from ._io import atomic_output, sha256_file
 from .errors import ExportError
 
 __all__ = [
@@ -53,6 +53,7 @@ __all__ = [
     "write_abaqus",
     "write_xpbd",
     "write_vtu",
+    "to_skfem",
     "export",
 ]
 
@@ -297,11 +298,7 @@ def _finite(v, where: str) -> float:
 
 
 def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+    return sha256_file(path)
 
 
 def _version() -> str:
@@ -787,6 +784,39 @@ def write_vtu(card: MaterialCard, mesh, path, *, force: bool = False) -> Path:
     cell = {k: np.full(n, float(v)) for k, v in vals.items()}
     return write_mesh(path, mesh, cell_data=cell, overwrite=force)
 
+
+
+# ======================================================================== scikit-fem
+def to_skfem(card: MaterialCard, mesh=None, *, approximate: bool = False) -> dict:
+    """The card as a scikit-fem linear-elasticity model (in memory; imports ``skfem``).
+
+    Conversion: scikit-fem's ``skfem.models.elasticity.linear_elasticity(Lambda, Mu)`` takes the
+    Lamé parameters, ``lam = E nu / ((1 + nu)(1 - 2 nu))`` and ``mu = E / (2 (1 + nu))``; its
+    energy ``W = lam/2 tr(eps)^2 + mu eps:eps`` is difftissue's ``fem_linear`` and the
+    small-strain response of every model. A nonzero ``cubic_coefficient`` or a ``pre_stretch``
+    other than 1 is refused unless ``approximate`` (then listed in ``"notes"``).
+
+    Returns ``{"lam", "mu", "form", "notes"}`` (``form``: the bilinear form for ``skfem.asm``);
+    with ``mesh`` also ``"mesh"`` (``skfem.MeshTet``, same node and tet order), ``"basis"``
+    (vector P1), ``"stiffness"`` (assembled CSR matrix [N/m]) and ``"dofs"``: an ``(N, 3)``
+    integer array, ``dofs[a, c]`` is scikit-fem's DOF of component ``c`` of node ``a``.
+    """
+    try:
+        import skfem
+        from skfem.models.elasticity import linear_elasticity
+    except ImportError:
+        raise ExportError("the scikit-fem export needs scikit-fem (pip install scikit-fem)") from None
+    notes = _approximations(card, "scikit-fem linear elasticity", approximate=approximate)
+    lam, mu = card.lame_lambda, card.shear_modulus
+    out = {"lam": lam, "mu": mu, "form": linear_elasticity(lam, mu), "notes": notes}
+    if mesh is not None:
+        pts = np.asarray(mesh.points, dtype=float)
+        tets = np.asarray(mesh.tets, dtype=np.int64)
+        m = skfem.MeshTet(pts.T.copy(), tets.T.copy())
+        basis = skfem.Basis(m, skfem.ElementVector(skfem.ElementTetP1()))
+        out.update(mesh=m, basis=basis, stiffness=skfem.asm(out["form"], basis).tocsr(),
+                   dofs=np.asarray(basis.nodal_dofs).T.copy())
+    return out
 
 # =========================================================================== common
 def _write_text(path, text: str, force: bool) -> Path:

@@ -45,7 +45,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ._io import atomic_output
+from ._io import atomic_output, sha256_file
 from .errors import (
     CheckpointError,
     CheckpointMismatchError,
@@ -499,7 +499,6 @@ def identifiability_diagnostics(stats: Mapping, values, fields) -> list[tuple[st
     Returns a list of ``(field, message)``.
     """
     fields = tuple(fields)
-    theta = np.asarray(values, dtype=float)
     out: list[tuple[str, str]] = []
     named: set[tuple[str, str]] = set()
 
@@ -1022,11 +1021,7 @@ def package_versions() -> dict[str, str | None]:
 
 
 def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+    return sha256_file(path)
 
 
 def _num(x):

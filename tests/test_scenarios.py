@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from difftissue import analytic, errors
-from difftissue.contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, top_surface_nodes
+from difftissue.contact import ConeIndenter, ContactModel, FlatPunch, SphereIndenter
 from difftissue.materials import Material
 from difftissue.mesh import block, read_mesh, write_mesh
 from difftissue.models import make_model
