@@ -1,0 +1,97 @@
+"""Budget-aware calibration (difftissue.budget): effective E for a budgeted XPBD setting."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from difftissue.boundary import BoundaryConditions
+from difftissue.budget import calibrate_for_budget
+from difftissue.errors import ConfigError, DifftissueWarning, ModelError
+from difftissue.materials import Material
+from difftissue.mesh import block
+from difftissue.solvers.xpbd import XPBDSettings
+
+MATERIAL = Material(youngs_modulus=10e3, poisson_ratio=0.45)
+# dt = 3 ms (a haptic-rate step): 10 Gauss-Seidel iterations leave the frame's solve
+# unconverged (the budgeted response is ~13 % soft) but still stiffness-dependent.
+SETTINGS = XPBDSettings(dt=3e-3, substeps=1, iterations=10, method="gauss_seidel", warm_start=False)
+
+
+@pytest.fixture(scope="module")
+def problem():
+    mesh = block((0.01,) * 3, (3, 3, 3))
+    bc = (
+        BoundaryConditions.free(mesh)
+        .fix(mesh, {"face": "z-min"})
+        .fix(mesh, {"face": "z-max"}, "xyz", (0.0, 0.0, -2e-4))  # compress the top 0.2 mm (2 %)
+    )
+    return mesh, bc
+
+
+def test_calibration_removes_budget_bias(problem):
+    mesh, bc = problem
+    cal = calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS)
+    ratio = cal.ratio("youngs_modulus")
+    print(f"naive error {cal.naive_error:.4f}, calibrated error {cal.calibrated_error:.2e}, "
+          f"E_cal / E = {ratio:.4f}, steps {cal.steps}")
+    assert cal.reference[0] > 0  # the tissue resists the compression
+    assert cal.naive_error > 0.02  # budgeted XPBD is measurably off
+    assert cal.naive[0] < cal.reference[0]  # ... and softer
+    assert cal.calibrated_error < 0.02
+    assert cal.converged
+    assert ratio > 1.0  # the effective material is stiffer than the true one
+    assert 1 <= cal.steps <= 10
+    assert cal.setting == {"dt": 3e-3, "substeps": 1, "iterations": 10, "method": "gauss_seidel"}
+    assert float(cal.material.poisson_ratio) == pytest.approx(0.45)  # not fitted: unchanged
+    assert float(cal.true_material.youngs_modulus) == 10e3
+
+
+def test_calibration_against_fem_linear_and_user_observable(problem):
+    mesh, bc = problem
+    mid = np.flatnonzero(np.abs(np.asarray(mesh.points)[:, 2] - 0.01 * 2 / 3) < 1e-9)  # upper interior layer
+    assert mid.size
+
+    def mid_lateral_bulge(u):  # mean |u_x| + |u_y| of the upper interior layer
+        return jnp.mean(jnp.abs(u[mid, 0]) + jnp.abs(u[mid, 1]))
+
+    cal = calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS, reference="fem_linear")
+    print(f"fem_linear reference: naive {cal.naive_error:.4f} -> {cal.calibrated_error:.2e}, E ratio {cal.ratio():.3f}")
+    assert cal.reference_kind == "fem_linear"
+    assert cal.naive_error > 0.02 and cal.calibrated_error < 0.02 and cal.ratio() > 1.0
+
+    cal2 = calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS, observable=mid_lateral_bulge,
+                                fit_fields=("poisson_ratio",))
+    print(f"bulge observable: naive {cal2.naive_error:.4f} -> {cal2.calibrated_error:.2e}, "
+          f"nu {float(cal2.material.poisson_ratio):.4f}")
+    assert cal2.calibrated_error <= cal2.naive_error
+    assert float(cal2.material.youngs_modulus) == 10e3
+
+
+def test_validation(problem):
+    mesh, bc = problem
+    with pytest.raises(ConfigError, match="warm_start"):
+        calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, XPBDSettings(warm_start=True))
+    with pytest.raises(ConfigError, match="density"):
+        calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS, fit_fields=("density",))
+    with pytest.raises(ConfigError, match="observable"):
+        calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS, observable="energy")
+    with pytest.raises(ModelError, match="model_kind"):
+        calibrate_for_budget(mesh, "fem_linear", MATERIAL, bc, SETTINGS)
+    with pytest.raises(ModelError, match="reference"):
+        calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS, reference="bogus")
+    with pytest.raises(ConfigError, match="XPBDSettings"):
+        calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, {"dt": 0.01})
+    free = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"})
+    with pytest.raises(ConfigError, match="non-zero prescribed"):
+        calibrate_for_budget(mesh, "springs_volume", MATERIAL, free, SETTINGS)
+
+
+def test_saturated_budget_warns(problem):
+    """dt = 1/60 s on 3.3 mm cells: (dt c / h)^2 >> iterations, the budgeted response hardly
+    depends on E (a hard-constraint PBD limit) and no effective E can fix it."""
+    mesh, bc = problem
+    s = XPBDSettings(dt=1.0 / 60.0, substeps=1, iterations=10, method="gauss_seidel", warm_start=False)
+    with pytest.warns(DifftissueWarning, match="saturated"):
+        cal = calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, s, max_steps=3)
+    assert not cal.converged
+    assert cal.naive_error > 0.5 and cal.calibrated_error > 0.5
