@@ -265,3 +265,24 @@ class ExportError(DifftissueError):
     """A material card is invalid (missing or out-of-range parameter, unknown card_version), or
     cannot be exported to the asked target without an approximation that was not allowed.
     The message names the field (e.g. ``parameters.poisson_ratio``)."""
+
+
+# =========================================================================== cutting
+# (appended block: errors of difftissue.cutting -- scalpel paths and cut topology)
+__all__ += ["CutError", "DisconnectedCutError"]
+
+
+class CutError(DifftissueError):
+    """A cut is refused: a bad scalpel path (outside the specimen, fewer than 2 points, zero
+    length, self-intersecting), a depth <= 0 or beyond the thickness without ``through=True``,
+    or degenerate / inverted elements after snapping. ``indices`` holds the offending element
+    (or cube) indices where that makes sense."""
+
+    def __init__(self, message: str, indices=()):
+        super().__init__(message)
+        self.indices = tuple(int(i) for i in indices)
+
+
+class DisconnectedCutError(CutError):
+    """The cut splits a part off the specimen and ``allow_disconnect`` was not given; the message
+    names the part (node count and bounding box)."""
