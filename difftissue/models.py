@@ -16,7 +16,13 @@ Four models share one interface (``energy(x, material)``, ``terms(material)``):
 material) or arrays of shape ``(n_regions,)`` (one value per region, see
 :func:`stack_materials`). Element terms are pure functions of their nodes' positions, so
 the solvers get energies, forces (``jax.grad``) and element Hessians from one description.
-See ``docs/theory.md`` for the formulas.
+
+Pre-tension: a region whose ``pre_stretch`` is ``lambda0`` has as stress-free state the mesh
+shrunk by ``1/lambda0`` in x and y (the surface plane; z is the thickness direction), so the
+mesh itself is the pre-stretched state. Tets use ``Dm_inv diag(lambda0, lambda0, 1)`` and
+rest volume ``V / lambda0^2``; springs get the rest lengths and geometric factors of the shrunk
+cell, cells the rest volume ``V / lambda0^2``. ``lambda0 = 1`` reproduces the unstretched model
+bit for bit. See ``docs/theory.md`` for the formulas.
 """
 
 from __future__ import annotations
@@ -202,6 +208,8 @@ class ElasticModel(eqx.Module):
                     raise MaterialError(f"{name} contains NaN or infinite values: {np.asarray(arr)}")
             if not np.all(np.asarray(E) > 0):
                 raise MaterialError(f"youngs_modulus must be > 0 Pa, got {np.asarray(E)}")
+            if not np.all(np.asarray(out["pre_stretch"]) > 0):
+                raise MaterialError(f"pre_stretch must be > 0 (1 = no pre-tension), got {np.asarray(out['pre_stretch'])}")
             nu_np = np.asarray(nu)
             if not np.all((nu_np >= self.nu_min) & (nu_np < 0.5)):
                 raise ModelRangeError(f"{bad_nu}: {nu_np}")
@@ -209,9 +217,28 @@ class ElasticModel(eqx.Module):
             finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in out.values()]))
             E = eqx.error_if(E, ~finite, "material parameters contain NaN or infinite values")
             E = eqx.error_if(E, jnp.any(E <= 0), "youngs_modulus must be > 0 Pa")
+            out["pre_stretch"] = eqx.error_if(out["pre_stretch"], jnp.any(out["pre_stretch"] <= 0), "pre_stretch must be > 0 (1 = no pre-tension)")
             nu = eqx.error_if(nu, jnp.any((nu < self.nu_min) | (nu >= 0.5)), bad_nu)
             out["youngs_modulus"], out["poisson_ratio"] = E, nu
         return out
+
+    def stress_free_tets(self, pre_stretch):
+        """Inverse rest edge matrices and rest volumes of the tets' stress-free state.
+
+        A region pre-stretched by ``lambda0`` is stress-free when shrunk by ``1/lambda0`` in x
+        and y: ``Dm_inv_eff = Dm_inv diag(lambda0, lambda0, 1)`` [1/m] (so the elastic
+        deformation gradient is ``F_mesh diag(lambda0, lambda0, 1)``) and
+        ``V0_eff = V0 / lambda0^2`` [m^3]. Exact (bit for bit) at ``lambda0 = 1``.
+
+        Args:
+            pre_stretch: ``(n_regions,)`` pre-stretch per region [-] (``region_values``).
+
+        Returns:
+            ``(Dm_inv_eff (M, 3, 3), V0_eff (M,))``, differentiable in ``pre_stretch``.
+        """
+        lam0 = jnp.asarray(pre_stretch)[self.tet_regions]
+        scale = jnp.stack([lam0, lam0, jnp.ones_like(lam0)], axis=-1)
+        return jnp.asarray(self.tet_Dm_inv) * scale[:, None, :], jnp.asarray(self.tet_volumes) / (lam0 * lam0)
 
     @abc.abstractmethod
     def terms(self, material: Material) -> tuple[ElementTerm, ...]:
@@ -230,7 +257,11 @@ class ElasticModel(eqx.Module):
         return jnp.min(self.tet_jacobians(x))
 
     def lumped_masses(self, material: Material):
-        """Nodal masses [kg]: each tet's mass ``rho V0`` shared equally by its four nodes."""
+        """Nodal masses [kg]: each tet's mass ``rho V0`` shared equally by its four nodes.
+
+        ``V0`` is the mesh volume: ``density`` is referred to the mesh (the pre-stretched
+        state when ``pre_stretch`` differs from 1).
+        """
         rho = self.region_values(material)["density"][self.tet_regions]
         m = jnp.zeros(self.n_nodes).at[self.tets.reshape(-1)].add(jnp.repeat(rho * self.tet_volumes / 4.0, 4))
         return m
@@ -275,8 +306,9 @@ class FEMModel(ElasticModel):
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = self.tet_regions
+        Dm_inv, V0 = self.stress_free_tets(p["pre_stretch"])
         fn = _fem_linear_energy if self.kind == "fem_linear" else _fem_neo_hookean_energy
-        return (ElementTerm("tets", self.tets, fn, (self.tet_Dm_inv, self.tet_volumes, lam[r], mu[r])),)
+        return (ElementTerm("tets", self.tets, fn, (Dm_inv, V0, lam[r], mu[r])),)
 
 
 class StableNeoHookeanModel(ElasticModel):
@@ -291,7 +323,8 @@ class StableNeoHookeanModel(ElasticModel):
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = self.tet_regions
-        return (ElementTerm("tets", self.tets, _stable_neo_hookean_energy, (self.tet_Dm_inv, self.tet_volumes, mu[r], (lam + mu)[r])),)
+        Dm_inv, V0 = self.stress_free_tets(p["pre_stretch"])
+        return (ElementTerm("tets", self.tets, _stable_neo_hookean_energy, (Dm_inv, V0, mu[r], (lam + mu)[r])),)
 
 
 def _cell_spring_factors(cell_size: np.ndarray) -> np.ndarray:
@@ -318,6 +351,42 @@ def _cell_spring_factors(cell_size: np.ndarray) -> np.ndarray:
     return out
 
 
+def _cell_spring_factor_slopes(cell_size: np.ndarray) -> np.ndarray:
+    """Derivatives ``dg/ds`` [m] of the 24 spring factors of each box cell ``(C, 24)`` with
+    respect to ``s = lambda0^-2``, for the cell shrunk in x and y by ``1/lambda0``.
+
+    With ``(hx, hy) -> (hx, hy) / lambda0`` every factor of :func:`_cell_spring_factors` is
+    affine in ``s``: ``g(lambda0) = g(1) + (s - 1) dg/ds`` with, for ``V = hx hy hz``,
+
+        edge along x or y:  -V / (4 hz^2)        edge along z:       3 V / (4 hz^2)
+        diagonal in (x, y):  0                   diagonal in (x|y, z): V / (4 hz^2)
+
+    (insert the shrunk edges into the formulas of :func:`_cell_spring_factors`).
+    """
+    h = np.asarray(cell_size, dtype=float)
+    unit = np.prod(h, axis=1) / (4.0 * h[:, 2] ** 2)
+    out = np.empty((len(h), 24))
+    for s, (a, b) in enumerate(_CUBE_EDGES):
+        out[:, s] = 3.0 * unit if (a ^ b) == 4 else -unit
+    for s, (a, b) in enumerate(_CUBE_DIAGONALS):
+        out[:, 12 + s] = unit if (a ^ b) & 4 else 0.0
+    return out
+
+
+def _admissible_pre_stretch(g: np.ndarray, slope: np.ndarray) -> tuple[float, float]:
+    """Range ``(lo, hi)`` of ``lambda0`` keeping every ``g + (lambda0^-2 - 1) slope >= 0``."""
+    lo, hi = 0.0, math.inf
+    with np.errstate(divide="ignore", invalid="ignore"):
+        pos, neg = slope > 0, slope < 0
+        if np.any(pos):
+            smin = np.max(1.0 - g[pos] / slope[pos])  # s = lambda0^-2 must stay >= smin
+            hi = math.inf if smin <= 0 else float(smin**-0.5)
+        if np.any(neg):
+            smax = np.min(1.0 + g[neg] / (-slope[neg]))  # s <= smax
+            lo = float(smax**-0.5)
+    return lo, hi
+
+
 class SpringVolumeModel(ElasticModel):
     """Cubic springs on the cube lattice plus a per-cell volume term (our real-time model).
 
@@ -329,18 +398,34 @@ class SpringVolumeModel(ElasticModel):
     strain is reproduced exactly, free boundaries included (a per-tet volume term would put
     the bulk traction on a different tributary area than the springs at free edges).
 
+    Pre-stretch ``lambda0`` of a region: its cells' stress-free state is the cell shrunk by
+    ``1/lambda0`` in x and y. The springs get that state's rest lengths
+    ``L0 sqrt(1 + c (lambda0^-2 - 1))`` (``c`` the in-plane fraction of ``L0^2``) and geometric
+    factors (:func:`_cell_spring_factor_slopes`), the cells the rest volume ``V / lambda0^2``.
+    A spring shared by cells of different regions is one element per region (their rest
+    lengths differ when the regions' pre-stretches do).
+
     Attributes (besides :class:`ElasticModel`'s):
-        springs: ``(S, 2)`` unique springs; rest_lengths ``(S,)`` [m].
-        spring_factors: ``(S, R)`` sum over the cells of region r holding spring s of g [m].
+        springs: ``(S, 2)`` spring elements (one per lattice spring and region holding it);
+            rest_lengths ``(S,)`` [m] in the mesh; spring_regions ``(S,)``.
+        spring_factors: ``(S,)`` sum over the cells of the element's region holding the spring
+            of ``g`` [m]; spring_factor_slopes ``(S,)`` [m] the same sum of ``dg/ds``.
+        spring_in_plane: ``(S,)`` ``(dx^2 + dy^2) / L0^2`` of each spring in the mesh [-].
         cells: ``(C, 8)`` cell nodes; cell_regions ``(C,)``; cell_volumes ``(C,)`` [m^3].
+        pre_stretch_range: ``(n_regions, 2)`` range of ``lambda0`` per region for which no
+            spring factor of its cells turns negative.
     """
 
     springs: np.ndarray
     rest_lengths: np.ndarray
+    spring_regions: np.ndarray
     spring_factors: np.ndarray
+    spring_factor_slopes: np.ndarray
+    spring_in_plane: np.ndarray
     cells: np.ndarray
     cell_regions: np.ndarray
     cell_volumes: np.ndarray
+    pre_stretch_range: np.ndarray
 
     def __init__(self, mesh: TetMesh):
         for k, v in _base_fields(mesh, "springs_volume", 0.25).items():
@@ -360,33 +445,79 @@ class SpringVolumeModel(ElasticModel):
                 "e.g. aspect ratios up to sqrt(2)). Use more cells through thin layers (cell_size=...) or the "
                 "stable_neo_hookean / fem models"
             )
+        slope = _cell_spring_factor_slopes(lat.cell_size)
         R = len(mesh.region_names)
+        rows = (lat.cube_springs.reshape(-1), np.repeat(lat.cube_region_ids, 24))
         factors = np.zeros((lat.n_springs, R))
-        np.add.at(factors, (lat.cube_springs.reshape(-1), np.repeat(lat.cube_region_ids, 24)), g.reshape(-1))
+        np.add.at(factors, rows, g.reshape(-1))
+        slopes = np.zeros((lat.n_springs, R))
+        np.add.at(slopes, rows, slope.reshape(-1))
+        held = np.zeros((lat.n_springs, R), dtype=bool)
+        held[rows] = True
+        spring_ids, regions = np.nonzero(held)  # sorted by spring: one element per region holding it
+        ranges = np.empty((R, 2))
+        for r in range(R):
+            in_r = lat.cube_region_ids == r
+            ranges[r] = _admissible_pre_stretch(g[in_r].reshape(-1), slope[in_r].reshape(-1)) if np.any(in_r) else (0.0, math.inf)
         p = np.asarray(mesh.points)
-        self.springs = lat.springs
-        self.rest_lengths = np.linalg.norm(p[lat.springs[:, 1]] - p[lat.springs[:, 0]], axis=1)
-        self.spring_factors = factors
+        self.springs = lat.springs[spring_ids]
+        d = p[self.springs[:, 1]] - p[self.springs[:, 0]]
+        self.rest_lengths = np.linalg.norm(d, axis=1)
+        self.spring_regions = regions.astype(np.int32)
+        self.spring_factors = factors[spring_ids, regions]
+        self.spring_factor_slopes = slopes[spring_ids, regions]
+        self.spring_in_plane = (d[:, 0] ** 2 + d[:, 1] ** 2) / self.rest_lengths**2
         self.cells = lat.cubes
         self.cell_regions = lat.cube_region_ids
         self.cell_volumes = np.asarray(jax.vmap(hexahedron_volume)(jnp.asarray(p[lat.cubes])))
+        self.pre_stretch_range = ranges
 
-    def spring_constants(self, material: Material):
-        """Per-spring ``(k [N/m], a [N/m^3])`` assembled over the cells holding each spring."""
+    def _check_pre_stretch(self, lam0):
+        lo, hi = self.pre_stretch_range[:, 0], self.pre_stretch_range[:, 1]
+        msg = (
+            "pre_stretch outside the range the springs_volume lattice represents for these cells (a spring factor of the "
+            "shrunk cell would turn negative); use flatter cells or the stable_neo_hookean / fem models"
+        )
+        if _is_concrete(lam0):
+            v = np.asarray(lam0)
+            bad = (v < lo) | (v > hi)
+            if np.any(bad):
+                r = int(np.argmax(bad))
+                raise ModelRangeError(f"{msg}: region {self.region_names[r]!r} has pre_stretch {v[r]:g}, allowed [{lo[r]:.4g}, {hi[r]:.4g}]")
+            return lam0
+        return eqx.error_if(lam0, jnp.any((lam0 < lo) | (lam0 > hi)), msg)
+
+    def spring_parameters(self, material: Material):
+        """Per spring element ``(L0 [m], k [N/m], a [N/m^3])`` of the stress-free state."""
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
-        k = self.spring_factors @ mu
-        a = (self.spring_factors @ (p["cubic_coefficient"] * mu)) / self.rest_lengths**2
+        lam0 = self._check_pre_stretch(p["pre_stretch"])
+        r = self.spring_regions
+        ds = 1.0 / (lam0 * lam0) - 1.0  # s - 1, exactly 0 at lambda0 = 1
+        g = self.spring_factors + self.spring_factor_slopes * ds[r]
+        rest = self.rest_lengths * jnp.sqrt(1.0 + self.spring_in_plane * ds[r])
+        k = g * mu[r]
+        a = g * (p["cubic_coefficient"] * mu)[r] / rest**2
+        return rest, k, a
+
+    def spring_constants(self, material: Material):
+        """Per spring element ``(k [N/m], a [N/m^3])`` (see :meth:`spring_parameters`)."""
+        _, k, a = self.spring_parameters(material)
         return k, a
+
+    def cell_rest_volumes(self, material: Material):
+        """Stress-free cell volumes ``V / lambda0^2`` [m^3], shape ``(C,)``."""
+        lam0 = self.region_values(material)["pre_stretch"][self.cell_regions]
+        return jnp.asarray(self.cell_volumes) / (lam0 * lam0)
 
     def terms(self, material):
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
-        k, a = self.spring_constants(material)
+        rest, k, a = self.spring_parameters(material)
         bulk = (lam - mu)[self.cell_regions]
         return (
-            ElementTerm("springs", self.springs, _spring_energy, (self.rest_lengths, k, a)),
-            ElementTerm("cell_volume", self.cells, _cell_volume_energy, (self.cell_volumes, bulk)),
+            ElementTerm("springs", self.springs, _spring_energy, (rest, k, a)),
+            ElementTerm("cell_volume", self.cells, _cell_volume_energy, (self.cell_rest_volumes(material), bulk)),
         )
 
     def min_volume_ratio(self, x):

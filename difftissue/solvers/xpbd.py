@@ -489,6 +489,11 @@ def xpbd_constraints(model: ElasticModel, material: Material, *, colors=None) ->
     - :class:`~difftissue.models.StableNeoHookeanModel`: a :class:`StableNeoHookeanConstraints`
       (equal up to a constant).
 
+    ``material.pre_stretch`` is honoured: the constraints get the stress-free state's rest
+    lengths, spring constants, rest volumes and ``Dm_inv`` exactly as the model's energy does
+    (:meth:`~difftissue.models.SpringVolumeModel.spring_parameters`,
+    :meth:`~difftissue.models.ElasticModel.stress_free_tets`).
+
     ``material`` may be traced (``jax.grad`` flows through the parameters). The graph
     colouring is computed from the model's index arrays when they are concrete; under a
     trace of the model pass ``colors`` (one table per set, :func:`color_constraints`) or
@@ -496,19 +501,20 @@ def xpbd_constraints(model: ElasticModel, material: Material, *, colors=None) ->
     """
     c = (None, None) if colors is None else tuple(colors)
     if isinstance(model, SpringVolumeModel):
-        k, a = model.spring_constants(material)
+        rest, k, a = model.spring_parameters(material)
         p = model.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         bulk = (lam - mu)[model.cell_regions]
         return (
-            DistanceConstraints(model.springs, model.rest_lengths, k, a, colors=c[0]),
-            VolumeConstraints(model.cells, model.cell_volumes, bulk, colors=c[1]),
+            DistanceConstraints(model.springs, rest, k, a, colors=c[0]),
+            VolumeConstraints(model.cells, model.cell_rest_volumes(material), bulk, colors=c[1]),
         )
     if isinstance(model, StableNeoHookeanModel):
         p = model.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = model.tet_regions
-        return (StableNeoHookeanConstraints(model.tets, model.tet_Dm_inv, model.tet_volumes, mu[r], (lam + mu)[r], colors=c[0]),)
+        Dm_inv, V0 = model.stress_free_tets(p["pre_stretch"])
+        return (StableNeoHookeanConstraints(model.tets, Dm_inv, V0, mu[r], (lam + mu)[r], colors=c[0]),)
     raise _unsupported(model)
 
 
