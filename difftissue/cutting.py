@@ -222,6 +222,9 @@ class CutQuality:
         n_cut_faces: tet faces opened by the cut (between a ``+`` and a ``-`` tet).
         n_off_surface: duplicated nodes not on the cutting surface (where snapping a node would
             have ruined a tet, the opened faces follow the mesh instead; 0 on lattices).
+        n_bridging_tets: tets wholly inside the cut's extent (all corners between the ends and
+            above the bottom) with corners strictly on both sides of the cutting surface (the surface passes through them; they stay on one side, by centroid, and
+            bridge the cut locally; 0 when snapping aligned the mesh with the cut).
         n_split_cubes: lattice cubes with duplicated nodes and corners strictly on both sides
             (their springs bridge the cut; None without lattice).
     """
@@ -239,6 +242,7 @@ class CutQuality:
     n_removed: int = 0
     n_cut_faces: int = 0
     n_off_surface: int = 0
+    n_bridging_tets: int = 0
     n_split_cubes: int | None = None
 
     def to_dict(self) -> dict:
@@ -253,7 +257,7 @@ class CutQuality:
         )
         if self.min_cell_jacobian_ratio is not None:
             s += f"; min cube Jacobian ratio {self.min_cell_jacobian_ratio:.3g}"
-        s += f"; {self.n_cut_faces} face(s) opened, {self.n_off_surface} duplicated node(s) off the cutting surface"
+        s += f"; {self.n_cut_faces} face(s) opened, {self.n_off_surface} duplicated node(s) off the cutting surface, {self.n_bridging_tets} tet(s) bridging"
         if self.n_split_cubes is not None:
             s += f", {self.n_split_cubes} cube(s) split"
         if self.n_removed:
@@ -750,7 +754,7 @@ def cut_specimen(
     tets = mesh.tets
     # Sides of all tets by centroid; the cut faces are the faces between a + and a - tet whose
     # centroid lies on the open part of the cut (between the ends, above the bottom).
-    _, n_c, _ = g.coords(new_pts[tets].mean(axis=1))
+    s_c, n_c, h_c = g.coords(new_pts[tets].mean(axis=1))
     side = np.where(n_c >= 0, 1, -1).astype(np.int8)
     faces, owner_a, owner_b = _interior_faces(tets)
     interface = side[owner_a] != side[owner_b]
@@ -782,6 +786,14 @@ def cut_specimen(
     node_origin = np.concatenate([np.arange(N), D]).astype(np.int32)
     _, n_new, _ = g.coords(new_pts)
     off_surface = int(np.sum(np.abs(n_new[D]) > 1e-6 * prep.lat[D]))
+    # Tets with corners strictly on both sides inside the cut (the cut passes through them).
+    tn = n_new[tets]
+    ttol = 1e-6 * prep.lat[tets]
+    s_t, h_t = s[tets], h[tets]
+    in_cut = np.all((s_t > (-np.inf if prep.open_start else 0.0)) & (s_t < (np.inf if prep.open_end else L)), axis=1)
+    if not prep.through:
+        in_cut &= np.all(h_t < prep.depth * (1 - 1e-9), axis=1)
+    bridging = int(np.sum(np.any(tn > ttol, axis=1) & np.any(tn < -ttol, axis=1) & in_cut))
     lattice = None
     lat_cubes = None
     split_cubes = None
@@ -801,7 +813,7 @@ def cut_specimen(
     quality = _quality(
         prep.points, new_pts, tets, threshold=quality_threshold, min_quality=min_quality, moved=moved, lat=prep.lat,
         lattice_before=lat_cubes, lattice_after=lat_cubes, n_dup=D.size,
-        extra=dict(n_cut_faces=int(cut_face.sum()), n_off_surface=off_surface, n_split_cubes=split_cubes),
+        extra=dict(n_cut_faces=int(cut_face.sum()), n_off_surface=off_surface, n_bridging_tets=bridging, n_split_cubes=split_cubes),
     )
     pd = {k: np.concatenate([v, v[D]]) for k, v in mesh.point_data.items()}
     new_mesh = TetMesh(all_pts, new_tets, mesh.region_ids, mesh.region_names, point_data=pd, cell_data=mesh.cell_data, lattice=lattice, validate=False)
@@ -1050,8 +1062,8 @@ class CutClosureModel(ElasticModel):
             raise CutError(f"the base model has {base.n_nodes} nodes but the cut mesh has {cut.mesh.n_nodes}: build it with make_model(cut.mesh, ...)")
         if not penalty_factor > 0:
             raise CutError(f"penalty_factor must be > 0, got {penalty_factor!r}")
-        for name in ("kind", "rest_points", "tets", "tet_regions", "tet_Dm_inv", "tet_volumes", "region_names", "nu_min"):
-            setattr(self, name, getattr(base, name))
+        for f in dataclasses.fields(ElasticModel):
+            setattr(self, f.name, getattr(base, f.name))
         self.base = base
         self.pairs = cut.pairs
         self.rest_offset = cut.pair_rest_offset
