@@ -32,12 +32,12 @@ from difftissue.materials import Material, MaterialParameterization, ScaledLogit
 from difftissue.scenarios import Indentation, SolverOptions, indentation_block  # noqa: E402
 
 
-def run(model: str, cells, points: int, max_steps: int) -> dict:
+def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fit_too: bool = True) -> dict:
     R, H = 1e-3, 1.6e-3
     mesh = indentation_block((4e-3, 4e-3, H), cells, symmetry="quarter")
     truth = Material(12e3, 0.42)
     depths = np.linspace(0.01, 0.2, points) * 1e-3
-    make = lambda forces=None: Indentation(mesh, depths, forces, model=model, indenter="sphere", radius=R, symmetry="quarter", name="sphere", options=SolverOptions(failure="nan"))  # noqa: E731
+    make = lambda forces=None: Indentation(mesh, depths, forces, model=model, indenter="sphere", radius=R, symmetry="quarter", name="sphere", options=SolverOptions(failure="nan"), solver=solver)  # noqa: E731
     probe = make()
     t0 = time.perf_counter()
     data = np.asarray(probe.predict(truth))
@@ -45,6 +45,8 @@ def run(model: str, cells, points: int, max_steps: int) -> dict:
     t0 = time.perf_counter()
     np.asarray(probe.predict(Material(10e3, 0.4)))
     t_forward = time.perf_counter() - t0
+    if not fit_too:
+        return dict(model=model, solver=solver, tets=mesh.n_tets, nodes=mesh.n_nodes, first_forward_s=t_first, forward_s=t_forward)
     sc = make(data)
     param = MaterialParameterization(("youngs_modulus", "poisson_ratio"), transforms={"poisson_ratio": ScaledLogit(0.25 if model == "springs_volume" else 0.0, 0.499)})
     t0 = time.perf_counter()
@@ -54,6 +56,7 @@ def run(model: str, cells, points: int, max_steps: int) -> dict:
     t_fit = time.perf_counter() - t0
     return dict(
         model=model,
+        solver="condensed" if sc.condensation is not None else "full",
         tets=mesh.n_tets,
         nodes=mesh.n_nodes,
         first_forward_s=t_first,
@@ -71,20 +74,24 @@ def run(model: str, cells, points: int, max_steps: int) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--models", default="springs_volume,fem_linear")
+    ap.add_argument("--models", default="springs_volume,fem_linear", help="models fitted (solver 'auto': fem_linear is condensed)")
     ap.add_argument("--cells", default="10,10,8", help="nx,ny,nz of the quarter block (10,10,8 -> 4,800 tets, 0.2 mm cubes)")
     ap.add_argument("--points", type=int, default=20)
     ap.add_argument("--max-steps", type=int, default=30)
+    ap.add_argument("--baseline", default="fem_linear", help="models whose full (uncondensed) forward solve is timed as the baseline ('' for none)")
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))
     print(f"# fit benchmark: jax {jax.__version__}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
     print()
-    print("| model | tets | first forward (s, incl. compile) | forward (s) | fit (s, incl. compile) | steps | fit / forward | E (truth 12000 Pa) | nu (truth 0.42) | converged |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| model | solver | tets | first forward (s, incl. compile) | forward (s) | fit (s, incl. compile) | steps | fit / forward | E (truth 12000 Pa) | nu (truth 0.42) | converged |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for model in [m for m in args.baseline.split(",") if m]:
+        r = run(model, cells, args.points, args.max_steps, solver="full", fit_too=False)
+        print(f"| {r['model']} | full (baseline) | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | - | - | - | - | - | - |")
     for model in args.models.split(","):
         r = run(model, cells, args.points, args.max_steps)
         print(
-            f"| {r['model']} | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | {r['fit_s']:.1f} | {r['steps']} | "
+            f"| {r['model']} | {r['solver']} | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | {r['fit_s']:.1f} | {r['steps']} | "
             f"{r['fit_s'] / r['forward_s']:.1f} | {r['E']:.1f} ± {r['se_E']:.2g} | {r['nu']:.4f} ± {r['se_nu']:.2g} | {r['converged']} |"
         )
     print(f"\nload after: {os.getloadavg()[0]:.2f}")

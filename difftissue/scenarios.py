@@ -36,12 +36,13 @@ import numpy as np
 
 from . import analytic
 from .boundary import BoundaryConditions
-from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, top_surface_nodes
+from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
 from .errors import BoundaryConditionError, ConfigError, DataError, ModelError
 from .materials import Material
 from .mesh import TetMesh, structured_grid
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
+from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns
 from .solvers.static import solve_static
 
 __all__ = [
@@ -338,6 +339,79 @@ def _solve(model, material, bc, u0, opts: SolverOptions):
     return sol
 
 
+class _Condensation(eqx.Module):
+    """Penalty-contact indentation of a linear body solved on its candidate contact nodes.
+
+    The candidates are the top-surface nodes the indenter could reach at 1.5 x the largest
+    depth on the undeformed surface (the surface sinks around an indenter, so the true
+    contact zone is smaller); after every depth the full field is recovered and any other
+    top node that touches the indenter fails the solve (``SolverOptions.failure``).
+    """
+
+    base: ElasticModel
+    free: np.ndarray
+    nodes: np.ndarray
+    dofs: np.ndarray
+    contact: CondensedContactModel
+    penalty_factors: np.ndarray
+    contact_fixed: np.ndarray
+    others: np.ndarray
+
+    def __init__(self, contact_model: ContactModel, bc: BoundaryConditions, max_depth: float):
+        X = np.asarray(contact_model.rest_points)
+        top = np.asarray(contact_model.contact_nodes)
+        reach = np.asarray(contact_model.indenter.penetration(jnp.asarray(X[top]), 1.5 * max_depth)) > 0
+        if not np.any(reach):
+            raise BoundaryConditionError("condensed indentation: no surface node within reach of the indenter")
+        self.base = contact_model.base
+        self.free = np.asarray(bc.free_mask)
+        if np.any(np.asarray(bc.displacement)[~self.free] != 0.0) or np.any(np.asarray(bc.force) != 0.0):
+            raise BoundaryConditionError("condensed indentation needs zero prescribed displacements and no other loads")
+        self.nodes = top[reach]
+        self.contact_fixed = ~self.free[self.nodes]
+        flat = (3 * self.nodes[:, None] + np.arange(3)).reshape(-1)
+        self.dofs = flat[self.free[self.nodes].reshape(-1)]
+        self.penalty_factors = np.asarray(contact_model.penalty_factors)[reach]
+        self.contact = CondensedContactModel(X[self.nodes], contact_model.indenter, _PenaltyEnergy(contact_model.indenter))
+        self.others = top[~reach]
+
+    def solve_protocol(self, material: Material, depths, options: SolverOptions):
+        """Contact forces on the modelled part [N] and full displacement fields [m] at ``depths``."""
+        Z, G = linear_response_columns(self.base, material, self.free, self.dofs, linear_solver=options.linear_solver)
+        S_free = jnp.linalg.inv(G)
+        S_free = 0.5 * (S_free + S_free.T)
+        k = self.nodes.size
+        mask = ~self.contact_fixed.reshape(-1)
+        idx = np.flatnonzero(mask)
+        S = jnp.zeros((3 * k, 3 * k), dtype=G.dtype).at[idx[:, None], idx[None, :]].set(S_free)
+        E = jnp.max(self.base.region_values(material)["youngs_modulus"])
+        params = CondensedParameters(S, E * jnp.asarray(self.penalty_factors))
+        bc = BoundaryConditions(self.contact_fixed, jnp.zeros((k, 3)), jnp.zeros((k, 3)))
+        X = jnp.asarray(self.base.rest_points)
+        XC = jnp.asarray(self.contact.rest_points)
+        indenter = self.contact.indenter
+        small = dataclasses.replace(options, linear_solver="dense")
+
+        def step(carry, depth):
+            u, previous = carry
+            model = self.contact.with_depth(depth)
+            sol = _solve(model, params, bc, _extrapolate(u, previous, depth), small)
+            uc = sol.displacement
+            force = model.reaction_force(XC + uc, params)
+            full = (Z.T @ (S @ uc.reshape(-1))[idx]).reshape(X.shape)
+            outside = jnp.max(indenter.penetration(X[self.others] + full[self.others], depth)) if self.others.size else jnp.asarray(-1.0)
+            bad = outside > 0
+            if options.failure == "raise":
+                force = eqx.error_if(force, bad, "condensed indentation: a top-surface node outside the candidate set touches the indenter; use solver='full'")
+            else:
+                force = jnp.where(bad, jnp.nan, force)
+            return (uc, depth), (force, full)
+
+        u0 = jnp.zeros((k, 3), dtype=G.dtype)
+        _, (forces, us) = jax.lax.scan(step, (u0, jnp.asarray(0.0, dtype=G.dtype)), depths)
+        return forces, us
+
+
 class Indentation(eqx.Module):
     """Simulated indentation of a specimen: force at each depth of a protocol.
 
@@ -361,6 +435,7 @@ class Indentation(eqx.Module):
     model: ElasticModel
     bc: BoundaryConditions
     punch_mask: np.ndarray | None
+    condensation: "_Condensation | None"
     force_multiplier: float = eqx.field(static=True)
     options: SolverOptions = eqx.field(static=True)
     x_label: str = eqx.field(static=True, default="depth [m]")
@@ -383,6 +458,7 @@ class Indentation(eqx.Module):
         penalty: float = 100.0,
         sigma=None,
         options: SolverOptions = SolverOptions(),
+        solver: str = "auto",
         name: str = "indentation",
     ):
         """
@@ -398,6 +474,11 @@ class Indentation(eqx.Module):
             axis_xy: indenter axis [m]; default (0, 0) with quarter symmetry, else the centre of
                 the top surface.
             penalty: contact penalty (see :class:`~difftissue.contact.ContactModel`).
+            solver: ``"full"`` (a Newton solve of the whole specimen per depth),
+                ``"condensed"`` (the linear body condensed onto the candidate contact nodes,
+                :mod:`difftissue.solvers.condensed`: one factorisation per material, the
+                same equilibrium; sphere or cone with ``model="fem_linear"`` only) or
+                ``"auto"`` (condensed where it applies).
         """
         self.name = str(name)
         d = _as_1d("depths", depths)
@@ -461,6 +542,15 @@ class Indentation(eqx.Module):
         else:
             raise ConfigError(f"indenter must be 'sphere', 'cone' or 'flat_punch', got {indenter!r}")
         self.bc = bc
+        if solver not in ("auto", "full", "condensed"):
+            raise ConfigError(f"solver must be 'auto', 'full' or 'condensed', got {solver!r}")
+        can_condense = model == "fem_linear" and indenter in ("sphere", "cone")
+        if solver == "condensed" and not can_condense:
+            raise ConfigError(
+                "solver='condensed' needs a linear body (model='fem_linear') and penalty contact (indenter 'sphere' or 'cone'); "
+                f"got model={model!r}, indenter={indenter!r}: use solver='full'"
+            )
+        self.condensation = _Condensation(self.model, bc, float(d.max())) if (can_condense and solver != "full") else None
 
     def _force_at(self, material, depth, u0):
         if self.punch_mask is None:
@@ -481,6 +571,9 @@ class Indentation(eqx.Module):
         return _jitted_solve(self)(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material))
 
     def _solve_protocol(self, material: Material):
+        if self.condensation is not None:
+            forces, us = self.condensation.solve_protocol(material, jnp.asarray(self.abscissa), self.options)
+            return self.force_multiplier * forces, us
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
 
         def step(carry, depth):

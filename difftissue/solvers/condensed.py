@@ -1,0 +1,198 @@
+"""Static condensation of a linear elastic body onto its candidate contact nodes.
+
+A rigid indenter pressing on a *linear* elastic body touches only a few surface nodes. The
+body's response at those nodes is its compliance ``G = C K^{-1} C^T`` (``K`` the stiffness
+with the boundary conditions applied, ``C`` picks the candidate degrees of freedom), so the
+contact problem can be solved on the candidates alone:
+
+    minimise  1/2 u_C^T S u_C + sum_i kappa_i / 2 max(p_i(x_C), 0)^2,   S = G^{-1},
+
+and the full displacement field is recovered as ``u = K^{-1} C^T S u_C``. This is exact for a
+quadratic elastic energy (``fem_linear``): the same equilibrium as the full solve, to solver
+tolerance. One sparse factorisation of ``K`` and ``m`` solves (``m`` = 3 x candidates) per
+material replace a factorisation per Newton step per depth, which is what makes fitting a
+simulated force-depth curve on a few-thousand-tet specimen take seconds.
+
+Derivatives with respect to the material come from ``dZ = -K^{-1} dK Z`` with
+``Z = K^{-1} C^T`` (one more solve with the same factorisation per tangent, a custom JVP that
+JAX transposes for reverse mode), the contact equilibrium on the candidates is differentiated
+implicitly by :func:`~difftissue.solvers.static.solve_static`.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+
+from ..errors import ModelError
+from ..models import ElasticModel, ElementTerm
+from .sparse import sparse_pattern
+from .static import _Options, _projected_operator
+
+__all__ = ["linear_response_columns", "CondensedParameters", "CondensedContactModel"]
+
+
+def _options_for(model: ElasticModel, material, linear_solver: str) -> _Options:
+    n = model.n_nodes
+    if linear_solver == "auto":
+        linear_solver = "dense" if 3 * n <= 3000 else "sparse"
+    if linear_solver not in ("dense", "sparse"):
+        raise ModelError(f"condensation needs a direct linear solver ('dense' or 'sparse'), got {linear_solver!r}")
+    pattern = sparse_pattern([t.nodes for t in model.terms(material)], n) if linear_solver == "sparse" else None
+    return _Options(0.0, 0.0, 0.0, 0, linear_solver, 0.0, 0, pattern)
+
+
+def _solve_columns(material, model, free, dofs, options):
+    op, solver, opts = _projected_operator(model, jnp.zeros((model.n_nodes, 3)), material, jnp.asarray(free), options)
+    n3 = 3 * model.n_nodes
+    rhs = jnp.zeros((dofs.size, n3)).at[jnp.arange(dofs.size), jnp.asarray(dofs)].set(1.0)
+    return jax.vmap(lambda b: lx.linear_solve(op, b, solver, options=opts, throw=False).value)(rhs)
+
+
+@eqx.filter_custom_jvp
+def _columns(material, *, model, free, dofs, options):
+    Z = _solve_columns(material, model, free, dofs, options)
+    G = Z[:, jnp.asarray(dofs)]
+    return Z, 0.5 * (G + G.T)
+
+
+@_columns.def_jvp
+def _columns_jvp(primals, tangents, *, model, free, dofs, options):
+    (material,) = primals
+    (t_material,) = tangents
+    Z, G = _columns(material, model=model, free=free, dofs=dofs, options=options)
+    material = jax.tree_util.tree_map(lambda p: jnp.asarray(p, dtype=Z.dtype), material)
+    t_material = jax.tree_util.tree_map(
+        lambda t, p: jnp.zeros_like(p) if t is None else t, t_material, material, is_leaf=lambda z: z is None
+    )
+    P = jnp.asarray(free, dtype=Z.dtype).reshape(-1)
+    x0 = jnp.asarray(model.rest_points, dtype=Z.dtype)
+    N = model.n_nodes
+
+    def grad_at(u, m):
+        return jax.grad(model.energy)(x0 + u, m)
+
+    def dK_z(z):
+        # d/dmaterial of (H(x0; material) z): the Hessian at rest applied to z, differentiated.
+        hz = lambda m: jax.jvp(lambda uu: grad_at(uu, m), (jnp.zeros((N, 3), Z.dtype),), (z.reshape(N, 3),))[1]  # noqa: E731
+        return P * jax.jvp(hz, (material,), (t_material,))[1].reshape(-1)
+
+    R = jax.vmap(dK_z)(Z)  # rows: (dK Z^T)^T
+    # dG = -C K^-1 dK K^-1 C^T = -Z dK Z^T: no solve. dZ needs one (with the same
+    # factorisation); when only G is used downstream the solve is dead code and removed.
+    dG = -Z @ R.T
+    op, solver, opts = _projected_operator(model, jnp.zeros((N, 3), Z.dtype), material, jnp.asarray(free), options)
+    dZ = jax.vmap(lambda r: lx.linear_solve(op, -r, solver, options=opts, throw=False).value)(R)
+    return (Z, G), (dZ, 0.5 * (dG + dG.T))
+
+
+def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear_solver: str = "auto"):
+    """Rows ``Z = C K^{-1}`` (``(m, 3N)``; ``K`` symmetric, so ``Z^T = K^{-1} C^T``) of the inverse
+    stiffness at rest for the degrees of freedom ``dofs``, and the compliance ``G = Z C^T``.
+
+    ``K`` is the Hessian of ``model``'s energy at the rest state with the prescribed components
+    (``free == False``) eliminated; for ``fem_linear`` it is the stiffness matrix, for the
+    other models their small-strain linearisation. Column ``j`` of ``Z^T`` is the displacement
+    field [m] produced by a unit force [N] on degree of freedom ``dofs[j]``.
+
+    Args:
+        model: an :class:`~difftissue.models.ElasticModel` with concrete connectivity.
+        material: its material (differentiable: forward and reverse mode).
+        free: ``(N, 3)`` bool, True on free components (``BoundaryConditions.free_mask``).
+        dofs: ``(m,)`` flat degree-of-freedom indices ``3 node + component``; they must be free.
+        linear_solver: ``"dense"``, ``"sparse"`` or ``"auto"`` (dense up to 3000 unknowns).
+
+    Returns:
+        ``(Z, G)``: ``Z`` ``(m, 3N)`` and ``G`` ``(m, m)`` (symmetric) [m/N]. The derivative of
+        ``G`` needs no extra solve (``dG = -Z dK Z^T``); that of ``Z`` one per tangent.
+    """
+    dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
+    free = np.asarray(free, dtype=bool)
+    if dofs.size == 0:
+        raise ModelError("no degrees of freedom to condense onto")
+    if not np.all(free.reshape(-1)[dofs]):
+        raise ModelError("condensation degrees of freedom must be free (not prescribed)")
+    material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+    model.region_values(material)
+    options = _options_for(model, material, linear_solver)
+    return _columns(material, model=model, free=free, dofs=dofs, options=options)
+
+
+class CondensedParameters(eqx.Module):
+    """The differentiable data of a :class:`CondensedContactModel`: the condensed stiffness
+    ``S`` ``(3k, 3k)`` [N/m] and the penalty stiffnesses ``kappa`` ``(k,)`` [N/m]."""
+
+    stiffness: jax.Array
+    kappa: jax.Array
+
+
+def _quadratic_energy(x_e, rest, stiffness):
+    d = (x_e - rest).reshape(-1)
+    return 0.5 * d @ (stiffness @ d)
+
+
+class CondensedContactModel(ElasticModel):
+    """Candidate contact nodes of a linear body (a superelement with stiffness ``S``) plus the
+    frictionless penalty contact of :class:`~difftissue.contact.ContactModel`.
+
+    Pass it to :func:`~difftissue.solvers.static.solve_static` with
+    :class:`CondensedParameters` in place of the material and boundary conditions that leave
+    every component free (``S`` already carries the body's supports).
+
+    Attributes (besides :class:`ElasticModel`'s, which describe no tets):
+        indenter: the rigid indenter (static).
+        depth: indenter depth [m] (a leaf: :meth:`with_depth` does not recompile).
+    """
+
+    indenter: object = eqx.field(static=True)
+    penalty_energy: object = eqx.field(static=True)
+    depth: jax.Array
+    #: The superelement's stiffness is positive definite: no rigid-mode check of the (empty)
+    #: prescribed set (see :func:`~difftissue.solvers.static.solve_static`).
+    stiffness_is_definite: ClassVar[bool] = True
+
+    def __init__(self, rest_points, indenter, penalty_energy, *, depth=0.0):
+        self.kind = "condensed_contact"
+        self.rest_points = np.asarray(rest_points, dtype=float)
+        self.tets = np.zeros((0, 4), dtype=np.int32)
+        self.tet_regions = np.zeros((0,), dtype=np.int32)
+        self.tet_Dm_inv = np.zeros((0, 3, 3))
+        self.tet_volumes = np.zeros((0,))
+        self.region_names = ("condensed",)
+        self.nu_min = -1.0
+        self.indenter = indenter
+        self.penalty_energy = penalty_energy
+        self.depth = jnp.asarray(depth, dtype=float)
+
+    def with_depth(self, depth) -> "CondensedContactModel":
+        return eqx.tree_at(lambda m: m.depth, self, jnp.asarray(depth, dtype=float))
+
+    def region_values(self, material):
+        if not isinstance(material, CondensedParameters):
+            raise ModelError("a CondensedContactModel takes CondensedParameters, not a Material")
+        return {}
+
+    def terms(self, params: CondensedParameters):
+        k = self.n_nodes
+        X = jnp.asarray(self.rest_points)
+        depth = jnp.broadcast_to(self.depth, (k,))
+        return (
+            ElementTerm("condensed", np.arange(k, dtype=np.int32)[None, :], _quadratic_energy, (X[None], params.stiffness[None])),
+            ElementTerm("contact", np.arange(k, dtype=np.int32)[:, None], self.penalty_energy, (params.kappa, depth)),
+        )
+
+    def min_volume_ratio(self, x):
+        return jnp.asarray(1.0, dtype=x.dtype)
+
+    def contact_energy(self, x, params: CondensedParameters, depth=None):
+        p = self.indenter.penetration(x, self.depth if depth is None else depth)
+        return 0.5 * jnp.sum(params.kappa * jnp.maximum(p, 0.0) ** 2)
+
+    def reaction_force(self, x, params: CondensedParameters):
+        """Force [N] on the indenter along +z (positive compressive), as ContactModel's."""
+        return jax.grad(lambda d: self.contact_energy(x, params, d))(self.depth)

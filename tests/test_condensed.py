@@ -1,0 +1,127 @@
+"""Static condensation of a linear body onto its contact candidates (difftissue.solvers.condensed):
+the same equilibrium as the full solve, exact derivatives, clear refusals."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax.test_util import check_grads
+
+from difftissue import errors
+from difftissue.boundary import BoundaryConditions
+from difftissue.contact import top_surface_nodes
+from difftissue.materials import Material
+from difftissue.models import make_model
+from difftissue.scenarios import Indentation, SolverOptions, _Condensation, indentation_block
+from difftissue.solvers.condensed import linear_response_columns
+from difftissue.solvers.static import _dense_hessian
+
+DEPTHS = np.linspace(0.02, 0.2, 5) * 1e-3
+
+
+@pytest.fixture(scope="module")
+def quarter():
+    return indentation_block((4e-3, 4e-3, 1.6e-3), (6, 6, 5), symmetry="quarter")
+
+
+def _sphere(mesh, solver, **kw):
+    return Indentation(mesh, DEPTHS, model="fem_linear", indenter="sphere", radius=1e-3, symmetry="quarter", solver=solver, **kw)
+
+
+def test_compliance_is_the_inverse_stiffness_restricted(quarter):
+    model = make_model(quarter, "fem_linear")
+    bc = BoundaryConditions.free(quarter).fix(quarter, {"face": "z-min"})
+    free = np.asarray(bc.free_mask)
+    top = top_surface_nodes(quarter)[[5, 11, 17]]
+    dofs = (3 * top[:, None] + np.arange(3)).reshape(-1)
+    assert np.all(free.reshape(-1)[dofs])
+    m = Material(10e3, 0.4)
+    Z, G = linear_response_columns(model, m, free, dofs)
+    P = free.reshape(-1).astype(float)
+    H = np.asarray(_dense_hessian(model, jnp.asarray(model.rest_points), m))
+    K = H * P[:, None] * P[None, :] + np.diag(1.0 - P)
+    Kinv = np.linalg.inv(K)
+    np.testing.assert_allclose(np.asarray(Z), Kinv[dofs], rtol=1e-9, atol=1e-12 * np.abs(Kinv).max())
+    np.testing.assert_allclose(np.asarray(G), Kinv[np.ix_(dofs, dofs)], rtol=1e-9)
+    # the sparse factorisation gives the same columns
+    Zs, Gs = linear_response_columns(model, m, free, dofs, linear_solver="sparse")
+    np.testing.assert_allclose(np.asarray(Gs), np.asarray(G), rtol=1e-10)
+    # G scales as 1/E; its derivatives (no solve for G, one for Z) pass check_grads both ways
+    f = lambda E, nu: linear_response_columns(model, Material(E, nu), free, dofs)  # noqa: E731
+    np.testing.assert_allclose(np.asarray(f(20e3, 0.4)[1]), np.asarray(G) / 2, rtol=1e-10)
+    check_grads(lambda E, nu: f(E * 1e4, nu)[1] * 1e4, (1.0, 0.4), order=1, modes=("fwd", "rev"), eps=1e-4)
+    check_grads(lambda nu: f(1e4, nu)[0][:, ::7] * 1e4, (0.4,), order=1, modes=("fwd",), eps=1e-4)
+
+
+def test_condensed_indentation_is_the_full_solve(quarter):
+    m = Material(12e3, 0.42)
+    full, cond = _sphere(quarter, "full"), _sphere(quarter, "auto")
+    assert full.condensation is None and cond.condensation is not None
+    ff, uf = (np.asarray(a) for a in full.solve(m))
+    fc, uc = (np.asarray(a) for a in cond.solve(m))
+    assert np.all(ff > 0)
+    np.testing.assert_allclose(fc, ff, rtol=1e-6)
+    np.testing.assert_allclose(uc, uf, atol=1e-6 * np.abs(uf).max())
+    # the sparse path for the body gives the same forces
+    sparse = _sphere(quarter, "condensed", options=SolverOptions(linear_solver="sparse"))
+    np.testing.assert_allclose(np.asarray(sparse.predict(m)), fc, rtol=1e-9)
+
+
+def test_condensed_cone_without_symmetry_is_the_full_solve():
+    mesh = indentation_block((3e-3, 3e-3, 1.5e-3), (6, 6, 4), symmetry="none")
+    # axis between nodes: a node exactly at the apex makes the penalty Hessian singular
+    kw = dict(model="fem_linear", indenter="cone", half_angle=np.deg2rad(70.0), axis_xy=(1.55e-3, 1.45e-3))
+    d = np.array([0.05, 0.1]) * 1e-3
+    m = Material(8e3, 0.3)
+    ff = np.asarray(Indentation(mesh, d, solver="full", **kw).predict(m))
+    fc = np.asarray(Indentation(mesh, d, solver="condensed", **kw).predict(m))
+    assert np.all(ff > 0)
+    np.testing.assert_allclose(fc, ff, rtol=1e-6)
+
+
+def test_condensed_force_gradients_match_finite_differences(quarter):
+    cond = _sphere(quarter, "condensed")
+    f = lambda p: cond.predict(Material(p[0], p[1]))  # noqa: E731
+    p = jnp.array([12e3, 0.42])
+    jf = np.asarray(jax.jacfwd(f)(p))
+    jr = np.asarray(jax.jacrev(f)(p))
+    np.testing.assert_allclose(jr, jf, rtol=1e-10, atol=1e-14 * np.abs(jf).max())
+    # the force is exactly proportional to E (the penalty scales with E too)
+    np.testing.assert_allclose(jf[:, 0] * p[0], np.asarray(f(p)), rtol=1e-10)
+    h = 1e-5
+    fd_nu = (np.asarray(f(p + jnp.array([0.0, h]))) - np.asarray(f(p - jnp.array([0.0, h])))) / (2 * h)
+    np.testing.assert_allclose(jf[:, 1], fd_nu, rtol=1e-5, atol=1e-6 * np.abs(fd_nu).max())
+    assert np.all(np.abs(fd_nu) > 0)
+    # and the displacement field's derivative (this one needs the extra solves)
+    u = lambda nu: cond.solve(Material(12e3, nu))[1][-1, :, 2]  # noqa: E731
+    du = np.asarray(jax.jacfwd(u)(0.42))
+    fd_u = (np.asarray(u(0.42 + h)) - np.asarray(u(0.42 - h))) / (2 * h)
+    np.testing.assert_allclose(du, fd_u, atol=1e-5 * np.abs(fd_u).max())
+
+
+def test_condensed_refuses_what_it_cannot_do(quarter):
+    with pytest.raises(errors.ConfigError, match="fem_linear"):
+        Indentation(quarter, DEPTHS, model="springs_volume", indenter="sphere", radius=1e-3, symmetry="quarter", solver="condensed")
+    with pytest.raises(errors.ConfigError, match="sphere' or 'cone"):
+        Indentation(quarter, DEPTHS, model="fem_linear", indenter="flat_punch", radius=5e-4, symmetry="quarter", solver="condensed")
+    with pytest.raises(errors.ConfigError, match="solver must be"):
+        _sphere(quarter, "fast")
+    # auto keeps the full solve where condensation does not apply
+    assert Indentation(quarter, DEPTHS, model="springs_volume", indenter="sphere", radius=1e-3, symmetry="quarter").condensation is None
+    model = make_model(quarter, "fem_linear")
+    bc = BoundaryConditions.free(quarter).fix(quarter, {"face": "z-min"})
+    with pytest.raises(errors.ModelError, match="must be free"):
+        linear_response_columns(model, Material(1e4, 0.4), np.asarray(bc.free_mask), np.array([2]))
+
+
+def test_a_too_small_candidate_set_is_detected(quarter):
+    """Candidates chosen for a 0.02 mm protocol, then pushed to 0.2 mm: nodes outside the set
+    would penetrate the sphere; the solve must say so (raise) or give NaN (failure="nan")."""
+    sc = _sphere(quarter, "condensed")
+    shallow = _Condensation(sc.model, sc.bc, 0.02e-3)
+    assert shallow.nodes.size < sc.condensation.nodes.size
+    forces, _ = shallow.solve_protocol(Material(12e3, 0.42), jnp.asarray(DEPTHS), SolverOptions(failure="nan"))
+    forces = np.asarray(forces)
+    assert np.isfinite(forces[0]) and np.isnan(forces[-1])
+    with pytest.raises(Exception, match="outside the candidate set"):
+        jax.block_until_ready(shallow.solve_protocol(Material(12e3, 0.42), jnp.asarray(DEPTHS), SolverOptions(failure="raise")))
