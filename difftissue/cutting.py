@@ -518,21 +518,44 @@ def _acceptable(q_new, q_old, guard):
 
 class _Mover:
     """Moves nodes one at a time, refusing a move that would push an incident tet below the
-    quality ``guard`` (or invert it)."""
+    quality ``guard`` (or invert it), or move a boundary node off its boundary faces (the
+    specimen's shape and volume never change)."""
 
-    def __init__(self, pts, tets, guard):
+    def __init__(self, pts, tets, guard, bfaces):
         self.pts, self.tets, self.guard = pts, tets, guard
         order = np.argsort(tets.reshape(-1), kind="stable")
         self.ptr = np.searchsorted(tets.reshape(-1)[order], np.arange(len(pts) + 1))
         self.tet_of = order // 4
+        p = pts[bfaces]
+        nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+        nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+        self.bnormals = nrm
+        border = np.argsort(bfaces.reshape(-1), kind="stable")
+        self.bptr = np.searchsorted(bfaces.reshape(-1)[border], np.arange(len(pts) + 1))
+        self.bface_of = border // 3
 
     def incident(self, v):
         return self.tet_of[self.ptr[v] : self.ptr[v + 1]]
+
+    def normals(self, v):
+        """Distinct unit normals of the boundary faces at node ``v``."""
+        nv = self.bnormals[self.bface_of[self.bptr[v] : self.bptr[v + 1]]]
+        out: list[np.ndarray] = []
+        for n in nv:
+            if not any(abs(float(n @ m)) > 1 - 1e-9 for m in out):
+                out.append(n)
+        return out
+
+    def tangential(self, v, move) -> bool:
+        size = float(np.linalg.norm(move))
+        return all(abs(float(n @ move)) <= 1e-9 * size for n in self.normals(v))
 
     def try_move(self, v, new) -> bool:
         old = self.pts[v].copy()
         if np.array_equal(old, new):
             return True
+        if not self.tangential(v, new - old):
+            return False
         ts = self.tets[self.incident(v)]
         q_old = mean_ratio_quality(self.pts, ts)
         self.pts[v] = new
@@ -551,7 +574,7 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
     lat, vert = prep.lat, prep.vert
     L = g.length
     tol = 1e-9 * lat
-    mover = _Mover(pts0.copy(), prep.mesh.tets, guard)
+    mover = _Mover(pts0.copy(), prep.mesh.tets, guard, prep.mesh.boundary_faces)
     s_lo = np.zeros(len(pts0)) if prep.open_start else -0.5 * lat
     s_hi = np.full(len(pts0), L) if prep.open_end else L + 0.5 * lat
     depth_ok = h < d + 0.5 * vert if not prep.through else np.ones(len(pts0), dtype=bool)
@@ -562,8 +585,28 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
     # endpoints cannot move is left (a bridge across the open part of the cut is refused later
     # by _check_bridges).
 
-    def snap_to_surface(v) -> bool:
+    def snap_to_surface(v, reach) -> bool:
         target = np.array([*g.surface_xy(s[v : v + 1], h[v : v + 1])[0], pts0[v, 2]])
+        if not mover.tangential(v, target - pts0[v]):
+            # A node on a side face slides along it (horizontally) onto the cutting surface.
+            side = [m for m in mover.normals(v) if abs(m[2]) < 1 - 1e-9]
+            if len(side) != 1:
+                return False
+            dvec = np.cross([0.0, 0.0, 1.0], side[0])
+            dvec /= np.linalg.norm(dvec)
+            k = g.segment_of(s[v : v + 1])[0]
+            rate = float(dvec[:2] @ g.normal[k])
+            if abs(rate) < 0.3 or abs(n[v] / rate) > reach:
+                return False
+            target = pts0[v] - (n[v] / rate) * dvec
+            s_t, n_t, _ = g.coords(target[None])
+            if abs(n_t[0]) > 1e-9 * lat[v]:
+                return False
+            if mover.try_move(v, target):
+                s[v] = s_t[0]
+                snapped[v] = True
+                return True
+            return False
         if mover.try_move(v, target):
             snapped[v] = True
             return True
@@ -593,10 +636,10 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
             if snapped[a] or snapped[b]:
                 continue
             reach = (0.5 + 1e-9) * max(elen[k], min(lat[a], lat[b]))
-            if depth_ok[a] and abs(n[a]) <= reach and snap_to_surface(a):
+            if depth_ok[a] and abs(n[a]) <= reach and snap_to_surface(a, reach):
                 continue
             if depth_ok[b] and abs(n[b]) <= reach:
-                snap_to_surface(b)
+                snap_to_surface(b, reach)
     s_new, h_new = s.copy(), h.copy()
 
     def place(v, sv, hv) -> bool:

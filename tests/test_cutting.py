@@ -117,6 +117,24 @@ def test_oblique_cut_snaps_nodes_onto_the_plane():
     assert np.any(np.abs(z - 0.8 * MM) < 1e-15)
 
 
+def test_edge_cut_slides_boundary_nodes_along_the_side_face():
+    # An oblique cut from the side face x = 0: the face nodes it snaps slide along the face
+    # (the specimen's shape and volume are unchanged) and the end on the outline opens.
+    mesh = block((6 * MM, 4 * MM, 2 * MM), (6, 4, 2))
+    cut = cut_specimen(mesh, ScalpelPath([(0.0, 2.3 * MM), (4.2 * MM, 3.1 * MM)], depth=1 * MM))
+    _invariants(mesh, cut)
+    p0 = np.asarray(mesh.points)
+    p1 = np.asarray(cut.mesh.points)[: mesh.n_nodes]
+    face = np.abs(p0[:, 0]) < 1e-12
+    moved = face & np.any(p0 != p1, axis=1)
+    assert moved.sum() == 2  # the two face nodes at y = 2 mm, depth 0 and 1 mm
+    np.testing.assert_array_equal(p1[face, 0], 0.0)
+    np.testing.assert_allclose(p1[moved, 1], 2.3 * MM, rtol=1e-12)
+    assert np.isclose(cut.pair_s.min(), 0.0, atol=1e-15)  # the end on the outline is open
+    for a, b in zip(cut.mesh.bounds(), mesh.bounds()):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_tilted_blade_cuts_a_tilted_plane():
     mesh = block((8 * MM, 6 * MM, 3 * MM), (8, 6, 3))
     tilt = np.deg2rad(20.0)
