@@ -28,6 +28,17 @@ from difftissue.solvers.static import solve_static
 MM = 1e-3
 
 
+def _split_cubes(mesh, cut):
+    """Cubes with a duplicated corner and corners strictly on both sides of the cut (independent
+    of the implementation: from the pair normals and the snapped positions)."""
+    p = np.asarray(cut.mesh.points)[: mesh.n_nodes]
+    x0, nrm = p[cut.pairs[0, 0]], cut.pair_normal[0]
+    dist = (p - x0) @ nrm
+    cubes = mesh.lattice.cubes
+    dup = np.isin(cubes, cut.pairs[:, 0]).any(axis=1)
+    return np.flatnonzero(dup & (dist[cubes] > 1e-12).any(axis=1) & (dist[cubes] < -1e-12).any(axis=1))
+
+
 def _invariants(mesh, cut):
     """Topology invariants of a snapped cut."""
     new = cut.mesh
@@ -101,9 +112,18 @@ def test_oblique_cut_snaps_nodes_onto_the_plane():
     assert q.min_quality_after > 0.3  # measured 0.446 (before 0.756)
     assert q.min_cell_jacobian_ratio > 0.3
     assert q.n_off_surface == 0 and q.n_bridging_tets == 0
-    # Where the cut passes through the diagonal of a cube column, the cube cannot be split
-    # (its springs and volume term bridge the cut): reported, measured 2 here.
-    assert q.n_split_cubes == 2
+    # Where the cut passes through the diagonal of a cube column, the cube cannot be split:
+    # measured 2 here; by default they are dropped from the lattice (tets untouched) ...
+    assert q.n_split_cubes == 2 and q.split_cubes == "drop"
+    assert cut.mesh.lattice.n_cubes == mesh.lattice.n_cubes - 2
+    assert "dropped from the lattice" in str(q)
+    np.testing.assert_array_equal(cut.mesh.lattice.cell_size, np.delete(mesh.lattice.cell_size, _split_cubes(mesh, cut), axis=0))
+    make_model(cut.mesh, "springs_volume")
+    # ... or kept on the side of their centroid, bridging the cut.
+    kept = cut_specimen(mesh, ScalpelPath([a, b], depth=1.2 * MM), split_cubes="keep")
+    assert kept.mesh.lattice.n_cubes == mesh.lattice.n_cubes and "kept, bridging" in str(kept.quality)
+    with pytest.raises(CutError, match="split_cubes"):
+        cut_specimen(mesh, ScalpelPath([a, b], depth=1.2 * MM), split_cubes="merge")
     assert "face(s) opened" in str(q)
     # Duplicated nodes lie on the cutting plane (distance to the path line ~ round-off).
     t = (b - a) / np.linalg.norm(b - a)
