@@ -1124,7 +1124,15 @@ class CutClosureModel(ElasticModel):
     edge_length: float = eqx.field(static=True)
     penalty_factor: float = eqx.field(static=True)
 
-    def __init__(self, base: ElasticModel, cut: Cut, s=None, *, penalty_factor: float = 1e4):
+    def __init__(self, base: ElasticModel, cut: Cut, s, *, penalty_factor: float = 1e4):
+        """Args:
+            base: a model built on ``cut.mesh`` (``make_model(cut.mesh, kind)``).
+            cut: the :class:`Cut`.
+            s: scalpel position: arc length along the path [m] (may be traced); pairs with
+                ``pair_s > s`` are tied. ``-inf`` ties all (nothing cut yet), ``cut.length``
+                releases all.
+            penalty_factor: closure stiffness relative to ``max(E) * median edge``.
+        """
         if not isinstance(base, ElasticModel):
             raise CutError(f"base must be an ElasticModel built on cut.mesh, got {type(base).__name__}")
         if base.n_nodes != cut.mesh.n_nodes:
@@ -1136,7 +1144,9 @@ class CutClosureModel(ElasticModel):
         self.base = base
         self.pairs = cut.pairs
         self.rest_offset = cut.pair_rest_offset
-        s_val = jnp.asarray(-jnp.inf if s is None else s, dtype=float)
+        if s is None:
+            raise CutError("give the scalpel position s [m] (-inf: nothing cut yet; cut.length: the whole cut)")
+        s_val = jnp.asarray(s, dtype=float)
         self.closed = (closed_mask(cut, s_val)).astype(float)
         e = cut.mesh.edges
         p = np.asarray(cut.mesh.points)

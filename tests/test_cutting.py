@@ -415,3 +415,22 @@ def test_opening_width_kernel_gradients():
     assert np.all(np.isfinite(np.asarray(g)))
     with pytest.raises(CutError, match="shape"):
         opening_width(cut, jnp.zeros((3, 3)))
+
+
+def test_closure_model_checks_its_inputs():
+    mesh, cut = _plate()
+    base = make_model(cut.mesh, "fem_linear")
+    with pytest.raises(CutError, match="scalpel position"):
+        CutClosureModel(base, cut, None)
+    with pytest.raises(CutError, match="make_model\\(cut.mesh"):
+        CutClosureModel(make_model(mesh, "fem_linear"), cut, 0.0)
+    with pytest.raises(CutError, match="penalty_factor"):
+        CutClosureModel(base, cut, 0.0, penalty_factor=0.0)
+    # All tied before the scalpel enters, all released at the end of the cut.
+    assert float(jnp.sum(CutClosureModel(base, cut, -jnp.inf).closed)) == cut.n_pairs
+    assert float(jnp.sum(CutClosureModel(base, cut, cut.length).closed)) == 0.0
+    # The closure term ties exactly the pairs, with zero energy at the rest configuration.
+    m = CutClosureModel(base, cut, -jnp.inf)
+    term = m.terms(Material(1e4, 0.3))[-1]
+    assert term.name == "cut_closure" and np.array_equal(term.nodes, cut.pairs)
+    assert float(term.total(jnp.asarray(cut.mesh.points))) == 0.0
