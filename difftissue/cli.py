@@ -172,8 +172,9 @@ def _cmd_export(args) -> int:
         raise _UsageError("--to xpbd needs --dt SECONDS and --iterations N")
     disp = None if args.displacement is None else args.displacement * f
     path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
-                  dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp)
-    what = "complete specimen model" if mesh is not None and args.to in ("febio", "sofa", "abaqus") else "material"
+                  dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp,
+                  constraints=args.constraints)
+    what = "complete specimen model" if mesh is not None and args.to in ("febio", "sofa", "abaqus", "pbd") else "material"
     print(f"wrote {path}: {card.model} card as {args.to} ({what})")
     return 0
 
@@ -443,9 +444,9 @@ def build_parser() -> argparse.ArgumentParser:
     i.add_argument("--json", action="store_true", help="print JSON instead of tables")
     i.set_defaults(func=_cmd_info)
 
-    x = sub.add_parser("export", help="export a material card (material.json or fit.json) to FEBio, SOFA, Abaqus, XPBD or VTU (see docs/export.md)")
+    x = sub.add_parser("export", help="export a material card (material.json or fit.json) to FEBio, SOFA, Abaqus, pypbd, XPBD or VTU (see docs/export.md)")
     x.add_argument("card", help="material card (material.json written by fit) or a fit.json with a model")
-    x.add_argument("--to", required=True, choices=("febio", "sofa", "abaqus", "xpbd", "vtu"), help="target format")
+    x.add_argument("--to", required=True, choices=("febio", "sofa", "abaqus", "pbd", "xpbd", "vtu"), help="target format")
     x.add_argument("--out", required=True, help="output file (.feb, .scn, .inp, .json, .vtu)")
     x.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     x.add_argument("--approximate", action="store_true",
@@ -456,9 +457,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write a complete specimen model (fixed base, prescribed top displacement) on this block; required for vtu")
     x.add_argument("--displacement", type=float, default=None, help="top displacement along z in --unit (default: -10%% of the height)")
     x.add_argument("--unit", choices=_UNITS, default="mm", help="length unit of --specimen and --displacement (default mm); files are in metres")
-    x.add_argument("--dt", type=float, default=None, help="XPBD time step [s] (xpbd only)")
-    x.add_argument("--iterations", type=int, default=None, help="XPBD iterations per substep, recorded with the compliances (xpbd only)")
+    x.add_argument("--dt", type=float, default=None, help="time step [s] (xpbd: required; pbd: default 1/60)")
+    x.add_argument("--iterations", type=int, default=None, help="iterations per substep (xpbd: required, recorded with the compliances; pbd: default 10)")
     x.add_argument("--substeps", type=int, default=1, help="XPBD substeps per time step (default 1)")
+    x.add_argument("--constraints", choices=("xpbd", "fem"), default="xpbd",
+                   help="pbd only: XPBD distance + volume constraints (default) or pypbd's PBD FEMTetConstraint (needs --approximate)")
     x.set_defaults(func=_cmd_export)
     return p
 

@@ -8,6 +8,7 @@ provenance. Writers derive simulator inputs from it, each with its conversion sp
 * SOFA ``.scn``: :func:`write_sofa`
 * Abaqus ``.inp``: :func:`write_abaqus`
 * XPBD compliances for a stated time step and iteration count (JSON): :func:`write_xpbd`
+* a pypbd scene (JSON, XPBD distance + volume or PBD FEM constraints): :func:`difftissue.pbd.write_pbd`
 * VTU with per-cell material fields: :func:`write_vtu`
 * scikit-fem (in memory, no file): :func:`to_skfem`
 
@@ -97,7 +98,7 @@ _RULES = {
 }
 
 #: Export targets understood by :func:`export` and ``difftissue export --to``.
-TARGETS = ("febio", "sofa", "abaqus", "xpbd", "vtu")
+TARGETS = ("febio", "sofa", "abaqus", "pbd", "xpbd", "vtu")
 
 #: Models whose energy is geometrically nonlinear: their cards export to neo-Hookean by default.
 _FINITE_STRAIN_MODELS = ("springs_volume", "fem_neo_hookean", "stable_neo_hookean")
@@ -827,14 +828,23 @@ def _write_text(path, text: str, force: bool) -> Path:
 
 def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
            law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int = 1,
-           displacement: float | None = None) -> Path:
-    """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``."""
+           displacement: float | None = None, constraints: str = "xpbd") -> Path:
+    """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``.
+
+    ``to="pbd"``: a pypbd scene (:func:`difftissue.pbd.write_pbd`; ``constraints`` ``"xpbd"`` or
+    ``"fem"``, ``dt`` default 1/60 s, ``iterations`` default 10)."""
     if to == "febio":
         return write_febio(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
     if to == "sofa":
         return write_sofa(card, path, mesh=mesh, law=law, approximate=approximate, force=force)
     if to == "abaqus":
         return write_abaqus(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
+    if to == "pbd":
+        from .pbd import write_pbd
+
+        return write_pbd(card, path, mesh=mesh, constraints=constraints, dt=1.0 / 60.0 if dt is None else dt,
+                         iterations=10 if iterations is None else iterations, substeps=substeps,
+                         approximate=approximate, displacement=displacement, force=force)
     if to == "xpbd":
         if dt is None or iterations is None:
             raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")

@@ -2,7 +2,6 @@
 
 import numpy as np
 import pytest
-import scipy.sparse.linalg
 
 from difftissue.boundary import BoundaryConditions
 from difftissue.export import MaterialCard, read_card, to_skfem, write_card

@@ -1,0 +1,491 @@
+"""pypbd scenes from material cards: write, load into pypbd, run to a static state (docs/export.md).
+
+pypbd (PyPI ``pypbd``, Python bindings of InteractiveComputerGraphics/PositionBasedDynamics,
+checked with 2.2.2) is driven through its public Python API only. A scene is a JSON file
+(``"format": "difftissue-pbd/1"``, :func:`pbd_scene` / :func:`write_pbd`) holding the
+particles (rest positions, masses; mass 0 = static, pypbd's convention), the tetrahedra and the
+constraints with the stiffness values pypbd's ``add*Constraint*`` calls take, plus the
+boundary motion of the specimen. :func:`pbd_simulation_from_scene` builds the pypbd
+simulation from such a file and :func:`run_pbd_scene` drives it to a static state.
+
+Conventions of pypbd 2.2.2 that the conversion relies on (source:
+``PositionBasedDynamics/XPBD.cpp``, ``Simulation/Constraints.cpp``,
+``PositionBasedDynamics/PositionBasedDynamics.cpp``; each one also measured, see
+``tests/test_export_pbd.py``):
+
+* ``addDistanceConstraint_XPBD(i, j, k)``: ``C = |x_i - x_j| - L0`` with compliance
+  ``alpha = 1 / (k dt^2)`` and gradient ``dC/dx``: energy ``k/2 C^2``, ``k`` in N/m (the same
+  ``k`` as a difftissue spring). ``k = 0`` means *infinitely stiff* (``alpha = 0``).
+* ``addVolumeConstraint_XPBD(a, b, c, d, k)``: ``C = V - |V0|`` with
+  ``V = (x_b - x_a) x (x_c - x_a) . (x_d - x_a) / 6``, ``alpha = 1 / (k dt^2)``, but the
+  position update uses the gradients **without** the 1/6 (``grad_d = (x_b - x_a) x (x_c - x_a)``),
+  so the converged state minimises ``6 k/2 C^2 = 3 k (V - V0)^2``. A term
+  ``K (V - V0)^2 / (2 V0)`` therefore needs ``k = K / (6 V0)``.
+* ``addFEMTetConstraint(a, b, c, d, E, nu)`` calls the *PBD* (not the XPBD) FEM projection
+  ``PositionBasedDynamics::solve_FEMTetraConstraint``: ``C`` = the St. Venant-Kirchhoff energy
+  of the tet, projected towards 0 with no compliance. ``E`` cancels out of the correction
+  ``-C grad C / |grad C|^2_w``; it only enters through the cut-off ``sum_i w_i |grad_i C|^2 <
+  1e-6`` below which no correction is applied. The converged (many-iteration) response is
+  therefore rigid up to that cut-off and does **not** represent ``E``; the softness of a
+  PBD-FEM scene comes from its iteration count. Such scenes are written only with
+  ``approximate=True``.
+* Gravity is applied to every particle of non-zero mass (``Simulation`` default
+  ``(0, -9.81, 0)`` m/s^2; the Python bindings offer no setter). :func:`run_pbd_scene`
+  cancels it exactly in quasi-static runs by setting each dynamic particle's velocity to
+  ``-g h`` before a step (the semi-implicit Euler predictor then leaves it in place), or
+  keeps it as the specimen's own weight.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .errors import ExportError
+
+__all__ = [
+    "SCENE_FORMAT",
+    "PYPBD_GRAVITY",
+    "pbd_scene",
+    "write_pbd",
+    "read_pbd_scene",
+    "pbd_simulation_from_scene",
+    "run_pbd_scene",
+    "PBDRun",
+    "scene_forces",
+    "pbd_reference_model",
+]
+
+#: Value of the ``"format"`` key of a scene file.
+SCENE_FORMAT = "difftissue-pbd/1"
+
+#: pypbd's default gravitational acceleration [m/s^2] (``Simulation::GRAVITATION``).
+PYPBD_GRAVITY = (0.0, -9.81, 0.0)
+
+_CONSTRAINTS = ("xpbd", "fem")
+
+
+# ============================================================================ writing
+def _tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
+    """Signed volumes ``(x1 - x0) . ((x2 - x0) x (x3 - x0)) / 6`` [m^3]."""
+    p = points[tets]
+    return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
+
+
+def _lumped_masses(points, tets, density) -> np.ndarray:
+    v = np.abs(_tet_volumes(points, tets))
+    m = np.zeros(len(points))
+    np.add.at(m, tets.reshape(-1), np.repeat(density * v / 4.0, 4))
+    return m
+
+
+def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 60.0, substeps: int = 1,
+              iterations: int = 10, approximate: bool = False, displacement: float | None = None) -> dict:
+    """A pypbd scene for ``card`` (a :class:`~difftissue.export.MaterialCard`) as a JSON-ready dict.
+
+    ``constraints="xpbd"`` (default): difftissue's spring lattice as XPBD distance constraints
+    plus XPBD volume constraints, i.e. the energy
+
+        sum_springs k/2 (|x_i - x_j| - L0)^2 + sum_tets (lambda - mu) (V - V0)^2 / (2 V0)
+
+    with the spring constants ``k`` of :class:`~difftissue.models.SpringVolumeModel` (``mu h/4``
+    per cube edge, ``mu h/2`` per face diagonal, summed over the cells holding the spring)
+    and pypbd volume stiffness ``k_V = (lambda - mu) / (6 V0)`` per tet (see the module notes
+    for the factor 6). difftissue's ``springs_volume`` puts the volume term on each cube (exact
+    trilinear volume) instead of on its six tets; both agree for any deformation that is
+    homogeneous within each cube. Needs ``nu >= 1/4`` (``lambda >= mu``: a negative pypbd
+    stiffness would be a negative compliance) and, with a mesh, a structured block
+    (:func:`difftissue.mesh.block`). The cubic coefficient cannot be represented by XPBD
+    distance constraints: refused unless ``approximate`` (then dropped and noted).
+
+    ``constraints="fem"``: pypbd ``FEMTetConstraint`` with the card's ``E`` and ``nu`` per tet.
+    In pypbd 2.2.2 this is a PBD constraint whose converged response does not depend on ``E``
+    (module notes), so it is written only with ``approximate=True`` and says so in ``notes``.
+
+    Without ``mesh`` the scene holds the material alone: the Lamé parameters and the
+    coefficients to build the constraints for any cube lattice. With ``mesh`` it is a complete
+    specimen: particles (rest positions [m], lumped masses ``rho V/4`` per tet node [kg]),
+    tets (0-based, positively oriented), constraints, base (min z) and top (max z) particles
+    static (mass 0), the top moved by ``displacement`` [m] along z (default -10 % of the
+    height), and the time setting ``dt`` [s], ``substeps``, ``iterations`` it is meant for.
+    """
+    from .export import _approximations, _default_displacement, _finite, _header_lines, _specimen_sets
+
+    if constraints not in _CONSTRAINTS:
+        raise ExportError(f"constraints = {constraints!r}: expected one of {list(_CONSTRAINTS)}")
+    dt = _finite(dt, "dt")
+    if dt <= 0:
+        raise ExportError(f"dt = {dt:g} s must be > 0")
+    for name, v in (("iterations", iterations), ("substeps", substeps)):
+        if isinstance(v, bool) or int(v) != v or v < 1:
+            raise ExportError(f"{name} = {v!r} must be a positive integer")
+    E, nu, rho = card.youngs_modulus, card.poisson_ratio, card.density
+    mu, lam = card.shear_modulus, card.lame_lambda
+    notes: list[str] = []
+    if constraints == "xpbd":
+        notes += _approximations(card, "pypbd XPBD distance + volume constraints", approximate=approximate)
+        if lam < mu * (1.0 - 1e-12):
+            raise ExportError(
+                f"poisson_ratio = {nu:g} < 0.25: the spring lattice needs a volume stiffness lambda - mu = {lam - mu:.6g} Pa < 0, "
+                "which pypbd's XPBD volume constraint cannot take (a negative stiffness is a negative compliance); "
+                "use constraints='fem' or another target")
+        energy = ("sum_springs k/2 (|xi - xj| - L0)^2 + sum_tets (lambda - mu) (V - V0)^2 / (2 V0) "
+                  "(pypbd XPBD distance constraints, stiffness k [N/m]; XPBD volume constraints, stiffness (lambda - mu) / (6 V0))")
+        if card.model.strip() != "springs_volume":
+            notes.append(f"the card's model is {card.model!r}; the scene uses the spring lattice + volume energy, "
+                         "which has the same small-strain response (E, nu) and differs at finite strain")
+    else:
+        if not approximate:
+            raise ExportError(
+                "constraints='fem': pypbd 2.2.2's FEMTetConstraint is a PBD constraint (PositionBasedDynamics::"
+                "solve_FEMTetraConstraint, no compliance): its converged static response is rigid and does not depend on "
+                "youngs_modulus (E only sets a 1e-6 cut-off), so it cannot represent the card; pass approximate=True "
+                "(--approximate) to write it anyway for iteration-count-tuned use")
+        notes += _approximations(card, "pypbd FEMTetConstraint (St. Venant-Kirchhoff, PBD)", approximate=True)
+        if not 0.0 <= nu <= 0.49:
+            raise ExportError(f"poisson_ratio = {nu:g}: pypbd's FEMTetConstraint skips tets with nu outside [0, 0.49]")
+        notes.append("APPROXIMATION: pypbd FEMTetConstraint is position-based (no compliance): the stiffness of the "
+                     "scene depends on dt and the iteration count, and its converged static response is rigid; "
+                     "E does not set a static stiffness (docs/export.md, pypbd)")
+        energy = "St. Venant-Kirchhoff tets projected as PBD constraints C = U_tet -> 0 (pypbd FEMTetConstraint)"
+    scene: dict[str, Any] = {
+        "format": SCENE_FORMAT,
+        "engine": "pypbd (PositionBasedDynamics Python bindings), checked with 2.2.2",
+        "constraints": constraints,
+        "energy": energy,
+        "material": card.name,
+        "model": card.model,
+        "parameters": {"youngs_modulus": E, "poisson_ratio": nu, "density": rho, "mu": mu, "lambda": lam},
+        "setting": {"dt": dt, "substeps": int(substeps), "iterations": int(iterations)},
+        "gravity": list(PYPBD_GRAVITY),
+        "header": _header_lines(card, "pypbd"),
+        "notes": notes,
+        "card_provenance": card.provenance,
+    }
+    if mesh is None:
+        if constraints == "xpbd":
+            scene["lattice_rules"] = {
+                "distance_stiffness_per_cell": {"cube_edge": mu / 4.0, "face_diagonal": mu / 2.0,
+                                                "unit": "N/m per m of cube edge h (k = value * h, summed over the cells holding the spring)"},
+                "volume_stiffness": {"value": (lam - mu) / 6.0, "unit": "Pa; divide by the tet rest volume V0 [m^3] for pypbd's stiffness"},
+            }
+        else:
+            scene["fem"] = {"youngs_modulus": E, "poisson_ratio": nu}
+        return scene
+
+    pts = np.asarray(mesh.points, dtype=float)
+    tets = np.asarray(mesh.tets, dtype=np.int64)
+    vol = _tet_volumes(pts, tets)
+    if np.any(vol <= 0):
+        raise ExportError(f"{int(np.sum(vol <= 0))} tet(s) are not positively oriented; pypbd's volume constraint needs V > 0")
+    base, top, height = _specimen_sets(mesh)
+    d = _default_displacement(height, displacement)
+    masses = _lumped_masses(pts, tets, rho)
+    masses[base] = 0.0
+    masses[top] = 0.0
+    scene["particles"] = {"positions": pts.tolist(), "masses": masses.tolist(),
+                          "unit": "m, kg; mass 0 = static particle (pypbd)"}
+    scene["tets"] = tets.tolist()
+    scene["boundary"] = {"fixed": base.tolist(), "moved": top.tolist(), "displacement": [0.0, 0.0, d],
+                         "note": "static particles; 'moved' ones are displaced by 'displacement' [m] (all components prescribed)"}
+    if constraints == "xpbd":
+        if getattr(mesh, "lattice", None) is None:
+            raise ExportError("constraints='xpbd' needs a structured block with a cube lattice (difftissue.mesh.block); "
+                              "use constraints='fem' (approximate) for other meshes")
+        from .models import SpringVolumeModel
+
+        model = SpringVolumeModel(mesh)
+        k, _ = model.spring_constants(card.material())
+        k = np.asarray(k, dtype=float)
+        scene["distance_constraints"] = {"pairs": np.asarray(model.springs).tolist(), "stiffness": k.tolist(),
+                                         "call": "addDistanceConstraint_XPBD(i, j, stiffness)", "unit": "N/m"}
+        kv = (lam - mu) / (6.0 * vol)
+        if lam - mu > mu * 1e-12:
+            scene["volume_constraints"] = {"tets": tets.tolist(), "stiffness": kv.tolist(),
+                                           "call": "addVolumeConstraint_XPBD(a, b, c, d, stiffness)",
+                                           "unit": "N/m^5 (= (lambda - mu) / (6 V0))"}
+        else:
+            scene["notes"].append("nu = 1/4: lambda = mu, no volume constraints (pypbd stiffness 0 would mean rigid)")
+    else:
+        scene["fem_constraints"] = {"tets": tets.tolist(), "youngs_modulus": E, "poisson_ratio": nu,
+                                    "call": "addFEMTetConstraint(a, b, c, d, youngs_modulus, poisson_ratio)"}
+    return scene
+
+
+def write_pbd(card, path, *, mesh=None, constraints: str = "xpbd", dt: float = 1.0 / 60.0, substeps: int = 1,
+              iterations: int = 10, approximate: bool = False, displacement: float | None = None, force: bool = False) -> Path:
+    """Write :func:`pbd_scene` as JSON (``"format": "difftissue-pbd/1"``); load it with
+    :func:`read_pbd_scene` and :func:`pbd_simulation_from_scene`."""
+    from .export import _write_text
+
+    scene = pbd_scene(card, mesh, constraints=constraints, dt=dt, substeps=substeps, iterations=iterations,
+                      approximate=approximate, displacement=displacement)
+    return _write_text(path, json.dumps(scene, indent=1, allow_nan=False) + "\n", force)
+
+
+def read_pbd_scene(path) -> dict:
+    """Read a scene written by :func:`write_pbd` and check its format and arrays."""
+    path = Path(path)
+    try:
+        scene = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, json.JSONDecodeError) as e:
+        raise ExportError(f"{path}: cannot read a pypbd scene: {e}") from None
+    if not isinstance(scene, dict) or scene.get("format") != SCENE_FORMAT:
+        raise ExportError(f"{path}: not a {SCENE_FORMAT} scene (format = {scene.get('format') if isinstance(scene, dict) else None!r})")
+    return scene
+
+
+# ============================================================================ loading
+def _need_pypbd():
+    try:
+        import pypbd
+    except ImportError:
+        raise ExportError("running a pypbd scene needs pypbd (pip install pypbd)") from None
+    return pypbd
+
+
+def _scene_arrays(scene: dict):
+    if "particles" not in scene:
+        raise ExportError("the scene holds the material alone (no particles); write it with a mesh (--specimen) to run it")
+    pts = np.asarray(scene["particles"]["positions"], dtype=float)
+    masses = np.asarray(scene["particles"]["masses"], dtype=float)
+    tets = np.asarray(scene["tets"], dtype=np.int64)
+    if pts.ndim != 2 or pts.shape[1] != 3 or masses.shape != (len(pts),) or tets.ndim != 2 or tets.shape[1] != 4:
+        raise ExportError("scene arrays have wrong shapes (positions (N, 3), masses (N,), tets (M, 4))")
+    return pts, masses, tets
+
+
+def pbd_simulation_from_scene(scene: dict, *, dt: float | None = None, iterations: int | None = None,
+                              substeps: int | None = None):
+    """Build pypbd's current ``Simulation`` from ``scene`` (a dict from :func:`read_pbd_scene`).
+
+    pypbd keeps one global simulation: this call replaces its model (``Simulation.initDefault``).
+    ``dt``, ``iterations``, ``substeps`` override the scene's setting. Returns
+    ``(simulation, model)``; particle ``i`` of the scene is pypbd particle ``i``.
+    """
+    pbd = _need_pypbd()
+    pts, masses, tets = _scene_arrays(scene)
+    setting = scene.get("setting", {})
+    dt = float(setting.get("dt", 1.0 / 60.0) if dt is None else dt)
+    iterations = int(setting.get("iterations", 10) if iterations is None else iterations)
+    substeps = int(setting.get("substeps", 1) if substeps is None else substeps)
+    sim = pbd.Simulation.getCurrent()
+    sim.initDefault()
+    model = sim.getModel()
+    ts = sim.getTimeStep()
+    ts.setValueUInt(pbd.TimeStepController.NUM_SUB_STEPS, substeps)
+    ts.setValueUInt(pbd.TimeStepController.MAX_ITERATIONS, iterations)
+    pbd.TimeManager.getCurrent().setTimeStepSize(dt)
+    pbd.TimeManager.getCurrent().setTime(0.0)
+    model.addTetModel([p for p in pts], tets.reshape(-1).tolist())
+    pd = model.getParticles()
+    if pd.size() != len(pts):
+        raise ExportError(f"pypbd created {pd.size()} particles for {len(pts)} scene particles")
+    for i, m in enumerate(masses):
+        pd.setMass(i, float(m))
+    ok = True
+    if "distance_constraints" in scene:
+        dc = scene["distance_constraints"]
+        for (i, j), k in zip(dc["pairs"], dc["stiffness"]):
+            ok &= model.addDistanceConstraint_XPBD(int(i), int(j), float(k))
+    if "volume_constraints" in scene:
+        vc = scene["volume_constraints"]
+        for t, k in zip(vc["tets"], vc["stiffness"]):
+            ok &= model.addVolumeConstraint_XPBD(*(int(n) for n in t), float(k))
+    if "fem_constraints" in scene:
+        fc = scene["fem_constraints"]
+        for t in fc["tets"]:
+            ok &= model.addFEMTetConstraint(*(int(n) for n in t), float(fc["youngs_modulus"]), float(fc["poisson_ratio"]))
+    if not ok:
+        raise ExportError("pypbd refused a constraint of the scene (degenerate element?)")
+    return sim, model
+
+
+# ============================================================================ energy
+def scene_forces(scene: dict, x: np.ndarray) -> np.ndarray:
+    """Gradient [N] of the energy the scene's XPBD constraints minimise at positions ``x`` (N, 3).
+
+    Distance: ``k/2 C^2``; volume: ``3 k C^2`` (pypbd's factor 6, module notes). The reaction
+    on a static particle is this gradient there; on a dynamic particle at equilibrium it is
+    zero (without gravity) or its weight ``m g`` (with gravity).
+    """
+    if "fem_constraints" in scene:
+        raise ExportError("scene_forces: a PBD FEM scene has no compliance energy (module notes)")
+    x = np.asarray(x, dtype=float)
+    g = np.zeros_like(x)
+    if "distance_constraints" in scene:
+        dc = scene["distance_constraints"]
+        ij = np.asarray(dc["pairs"], dtype=np.int64)
+        k = np.asarray(dc["stiffness"], dtype=float)
+        p0 = np.asarray(scene["particles"]["positions"], dtype=float)
+        L0 = np.linalg.norm(p0[ij[:, 1]] - p0[ij[:, 0]], axis=1)
+        d = x[ij[:, 1]] - x[ij[:, 0]]
+        L = np.linalg.norm(d, axis=1)
+        f = (k * (L - L0) / L)[:, None] * d  # dU/dx_j
+        np.add.at(g, ij[:, 1], f)
+        np.add.at(g, ij[:, 0], -f)
+    if "volume_constraints" in scene:
+        vc = scene["volume_constraints"]
+        t = np.asarray(vc["tets"], dtype=np.int64)
+        k = np.asarray(vc["stiffness"], dtype=float)
+        p0 = np.asarray(scene["particles"]["positions"], dtype=float)
+        C = _tet_volumes(x, t) - np.abs(_tet_volumes(p0, t))
+        a, b, c, e = (x[t[:, i]] for i in range(4))
+        grads = [np.cross(e - b, c - b), np.cross(c - a, e - a), np.cross(e - a, b - a), np.cross(b - a, c - a)]
+        for i, gr in enumerate(grads):  # dV/dx_i = gr / 6; energy 3 k C^2 -> 6 k C dV/dx_i
+            np.add.at(g, t[:, i], (6.0 * k * C)[:, None] * gr / 6.0)
+    return g
+
+
+# ============================================================================ running
+@dataclasses.dataclass
+class PBDRun:
+    """Result of :func:`run_pbd_scene`.
+
+    Attributes:
+        positions: ``(N, 3)`` final particle positions [m].
+        displacement: ``positions - rest`` [m].
+        reaction: ``(N, 3)`` gradient of the scene energy [N] on static particles (zero elsewhere).
+        residual: max over dynamic particles of ``|dU/dx - m g|`` (gravity on) or ``|dU/dx|`` [N].
+        steps: pypbd time steps taken.
+        converged: ``residual <= rtol * max |reaction|`` (or ``atol``).
+        dt, iterations: the setting the run used.
+    """
+
+    positions: np.ndarray
+    displacement: np.ndarray
+    reaction: np.ndarray
+    residual: float
+    steps: int
+    converged: bool
+    dt: float
+    iterations: int
+
+
+def run_pbd_scene(scene: dict, *, dt: float | None = None, iterations: int = 20, gravity: bool = False,
+                  damping: float = 0.9, ramp_steps: int = 20, max_steps: int = 200_000,
+                  check_every: int = 200, rtol: float = 1e-6, atol: float = 0.0) -> PBDRun:
+    """Run ``scene`` in pypbd to a static state and check it against the scene energy.
+
+    Quasi-static drive, using only pypbd's own time stepping (``TimeStepController.step``,
+    one substep, ``iterations`` XPBD iterations per step): the moved particles are displaced
+    linearly over ``ramp_steps`` steps, then held; before every step each dynamic particle gets
+    the velocity ``-g h`` (``gravity=False``: the semi-implicit Euler predictor then returns it
+    to where it is, which removes both gravity and inertia from the step) or ``0``
+    (``gravity=True``: the specimen carries its own weight). Every ``check_every`` steps the
+    residual of the scene energy (:func:`scene_forces`) on the dynamic particles is evaluated;
+    the run stops when it is below ``max(atol, rtol * max |reaction|)``.
+
+    Each step then solves ``M (x - x_prev) = -h^2 grad U`` by XPBD, i.e. it is a damped
+    (implicit) descent step on ``U``; its fixed points are equilibria of ``U`` up to XPBD's
+    approximation of using the constraint gradients of each iterate (small when
+    ``h^2 k / m`` is small, which ``dt`` must ensure). ``dt`` defaults to
+    ``0.5 sqrt(min mass / max stiffness)`` estimated from the scene.
+    """
+    _need_pypbd()
+    pts, masses, tets = _scene_arrays(scene)
+    if not 0.0 <= damping < 1.0:
+        raise ExportError(f"damping = {damping!r}: expected the retained velocity fraction in [0, 1)")
+    if "fem_constraints" in scene:
+        raise ExportError("run_pbd_scene: a PBD FEM scene has no energy to check convergence against (module notes); "
+                          "build it with pbd_simulation_from_scene and step it yourself")
+    dyn = np.flatnonzero(masses > 0)
+    if dt is None:
+        dt = 0.5 * math.sqrt(float(np.min(masses[dyn] / _particle_stiffness(scene)[dyn])))
+    sim, model = pbd_simulation_from_scene(scene, dt=dt, iterations=iterations, substeps=1)
+    ts = sim.getTimeStep()
+    pd = model.getParticles()
+    g = np.asarray(scene.get("gravity", PYPBD_GRAVITY), dtype=float)
+    bnd = scene.get("boundary", {})
+    moved = np.asarray(bnd.get("moved", []), dtype=np.int64)
+    dvec = np.asarray(bnd.get("displacement", [0.0, 0.0, 0.0]), dtype=float)
+    v_pre = np.zeros(3) if gravity else -g * dt
+    steps = 0
+    residual = math.inf
+    reaction = np.zeros_like(pts)
+    converged = False
+    while steps < max_steps:
+        s = min(1.0, (steps + 1) / max(ramp_steps, 1))
+        for i in moved:
+            pd.setPosition(int(i), pts[i] + s * dvec)
+        for i in dyn:
+            pd.setVelocity(int(i), damping * np.asarray(pd.getVelocity(int(i))) + v_pre if damping else v_pre)
+        ts.step(model)
+        steps += 1
+        if steps >= ramp_steps and (steps % check_every == 0 or steps == max_steps):
+            x = np.array([pd.getPosition(i) for i in range(len(pts))])
+            grad = scene_forces(scene, x)
+            res = grad[dyn] - (masses[dyn, None] * g[None, :] if gravity else 0.0)
+            residual = float(np.max(np.linalg.norm(res, axis=1))) if dyn.size else 0.0
+            reaction = np.zeros_like(grad)
+            static = np.flatnonzero(masses == 0)
+            reaction[static] = grad[static]
+            scale = float(np.max(np.linalg.norm(reaction, axis=1))) if static.size else 0.0
+            if gravity:
+                scale = max(scale, float(np.max(masses)) * float(np.linalg.norm(g)))
+            if residual <= max(atol, rtol * scale):
+                converged = True
+                break
+    x = np.array([pd.getPosition(i) for i in range(len(pts))])
+    return PBDRun(positions=x, displacement=x - pts, reaction=reaction, residual=residual, steps=steps,
+                  converged=converged, dt=float(dt), iterations=int(iterations))
+
+
+# ============================================================================ reference
+def _particle_stiffness(scene: dict) -> np.ndarray:
+    """Diagonal of the scene energy's Hessian at rest, per particle [N/m] (for the default dt)."""
+    pts = np.asarray(scene["particles"]["positions"], dtype=float)
+    K = np.zeros(len(pts))
+    if "distance_constraints" in scene:
+        dc = scene["distance_constraints"]
+        ij = np.asarray(dc["pairs"], dtype=np.int64)
+        k = np.asarray(dc["stiffness"], dtype=float)
+        np.add.at(K, ij[:, 0], k)
+        np.add.at(K, ij[:, 1], k)
+    if "volume_constraints" in scene:
+        vc = scene["volume_constraints"]
+        t = np.asarray(vc["tets"], dtype=np.int64)
+        k = np.asarray(vc["stiffness"], dtype=float)
+        a, b, c, e = (pts[t[:, i]] for i in range(4))
+        grads = [np.cross(e - b, c - b), np.cross(c - a, e - a), np.cross(e - a, b - a), np.cross(b - a, c - a)]
+        for i, gr in enumerate(grads):  # energy 3 k C^2: Hessian diagonal 6 k |dV/dx_i|^2
+            np.add.at(K, t[:, i], 6.0 * k * np.sum(gr * gr, axis=1) / 36.0)
+    return np.maximum(K, 1e-300)
+
+
+_REFERENCE_CLASS = None
+
+
+def pbd_reference_model(mesh):
+    """difftissue's model of the energy an XPBD pypbd scene minimises (for comparisons).
+
+    :class:`~difftissue.models.SpringVolumeModel`'s springs (same ``k`` and cubic ``a``) with
+    the volume term on each tetrahedron, ``(lambda - mu) (V - V0)^2 / (2 V0)``, instead of on
+    each cube. Solve it with :func:`difftissue.solvers.static.solve_static`.
+    """
+    global _REFERENCE_CLASS
+    if _REFERENCE_CLASS is None:
+        from .energies.volume import volume_energy
+        from .materials import lame_parameters
+        from .models import ElementTerm, SpringVolumeModel
+
+        def _tet_volume_energy(x, rest_volume, bulk):
+            return volume_energy(x, rest_volume, bulk)
+
+        class PBDSpringsTetVolumeModel(SpringVolumeModel):
+            """Springs of :class:`SpringVolumeModel` plus a per-tet volume term (pypbd XPBD scene energy)."""
+
+            def terms(self, material):
+                p = self.region_values(material)
+                lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
+                springs = SpringVolumeModel.terms(self, material)[0]
+                bulk = (lam - mu)[self.tet_regions]
+                return (springs, ElementTerm("tet_volume", self.tets, _tet_volume_energy, (self.tet_volumes, bulk)))
+
+        _REFERENCE_CLASS = PBDSpringsTetVolumeModel
+    return _REFERENCE_CLASS(mesh)
