@@ -227,7 +227,9 @@ class CutQuality:
             bridge the cut locally; 0 when snapping aligned the mesh with the cut).
         n_split_cubes: lattice cubes with duplicated nodes and corners strictly on both sides
             (None without lattice); ``split_cubes`` says whether they were dropped from the
-            lattice (``"drop"``) or kept, bridging the cut (``"keep"``).
+            lattice (``"drop"``) or kept, bridging the cut (``"keep"``); ``n_split_cubes_kept``
+            counts the split cubes kept anyway (all with ``"keep"``; with ``"drop"`` those that
+            alone hold a node, which would otherwise have no spring).
     """
 
     min_quality_before: float
@@ -246,6 +248,7 @@ class CutQuality:
     n_bridging_tets: int = 0
     n_split_cubes: int | None = None
     split_cubes: str | None = None
+    n_split_cubes_kept: int | None = None
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -261,7 +264,10 @@ class CutQuality:
             s += f"; min cube Jacobian ratio {self.min_cell_jacobian_ratio:.3g}"
         s += f"; {self.n_cut_faces} face(s) opened, {self.n_off_surface} duplicated node(s) off the cutting surface, {self.n_bridging_tets} tet(s) bridging"
         if self.n_split_cubes is not None:
-            s += f", {self.n_split_cubes} cube(s) split ({'dropped from the lattice' if self.split_cubes == 'drop' else 'kept, bridging the cut'})"
+            s += f", {self.n_split_cubes} cube(s) split ({'dropped from the lattice' if self.split_cubes == 'drop' else 'kept, bridging the cut'}"
+            if self.split_cubes == "drop" and self.n_split_cubes_kept:
+                s += f"; {self.n_split_cubes_kept} kept: they alone hold a node"
+            s += ")"
         if self.n_removed:
             s += f"; {self.n_removed} tet(s) removed"
         return s
@@ -665,7 +671,8 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
             if place(int(c), s_end, h[c]):
                 taken.append(int(c))
     # Bottom snapping (seed 003 §3.2, §3.4): per column the snapped node nearest the cut bottom
-    # within half a cell goes onto it, unless it lies on a layer interface (case 1 of §3.4).
+    # within half a cell goes onto it, unless it lies on a layer interface (case 1 of §3.4: an
+    # interface the blade has not reached, or has just passed, is not moved).
     if not prep.through:
         regions = prep.mesh.region_ids
         tets = prep.mesh.tets
@@ -683,6 +690,23 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
                 continue
             if place(int(c), s_new[c], d):
                 taken.append(int(c))
+        # §3.4 case 2: where the node nearest the bottom lies on a layer interface, a node of the
+        # layer the blade tip is in (an incident tet spans the bottom depth) goes onto the bottom
+        # instead, up to one cell away, so the cut reaches into that layer.
+        spans = (h[tets].min(axis=1) < d) & (h[tets].max(axis=1) > d)
+        reg_at_d = np.full(len(pts0), -1)
+        reg_at_d[tets[spans].reshape(-1)] = np.repeat(regions[spans], 4)
+        lateral = snapped | (np.abs(n) <= (0.5 + 1e-9) * lat)
+        cand = np.flatnonzero(
+            one_layer & (reg_at_d == rmin) & (np.abs(h - d) < vert) & (h > 1e-9 * vert) & lateral & (s >= s_lo) & (s <= s_hi)
+        )
+        cand = cand[np.argsort(np.abs(h[cand] - d), kind="stable")]
+        for c in cand:
+            if any(abs(s_new[c] - s_new[o]) < 0.5 * min(lat[c], lat[o]) for o in taken):
+                continue
+            if place(int(c), s_new[c], d):
+                taken.append(int(c))
+                snapped[c] = True
     pts = mover.pts
     moved_any = np.any(pts != pts0, axis=1)
     return pts, snapped, s_new, h_new, moved_any
@@ -853,6 +877,7 @@ def cut_specimen(
     lattice = None
     lat_cubes = None
     split_cubes = None
+    split_kept = None
     if mesh.lattice is not None:
         cubes = mesh.lattice.cubes
         _, nc, _ = g.coords(new_pts[cubes].mean(axis=1))
@@ -869,10 +894,12 @@ def cut_specimen(
         keep = np.ones(len(cubes), dtype=bool)
         if split_cubes and split_cube_policy == "drop":
             keep = ~split
+            # A split cube that alone holds a node (no other cube has it) stays: a node without
+            # springs would leave the spring model singular.
             held = np.zeros(len(all_pts), dtype=bool)
             held[new_cubes[keep].reshape(-1)] = True
-            if not np.all(held[new_tets.reshape(-1)]):
-                raise CutError("dropping the split lattice cubes would leave nodes without springs; use split_cubes='keep'")
+            keep |= split & np.any(~held[new_cubes], axis=1)
+        split_kept = int(np.sum(split & keep))
         lattice = _build_lattice(new_cubes[keep], all_pts, mesh.lattice.cube_region_ids[keep])
         # Snapped cubes are no longer boxes: keep each cube's box edge lengths from before the
         # snapping (the spring factors of springs_volume derive from them; rest lengths and
@@ -882,7 +909,7 @@ def cut_specimen(
         prep.points, new_pts, tets, threshold=quality_threshold, min_quality=min_quality, moved=moved, lat=prep.lat,
         lattice_before=lat_cubes, lattice_after=lat_cubes, n_dup=D.size,
         extra=dict(n_cut_faces=int(cut_face.sum()), n_off_surface=off_surface, n_bridging_tets=bridging, n_split_cubes=split_cubes,
-                   split_cubes=split_cube_policy if mesh.lattice is not None else None),
+                   split_cubes=split_cube_policy if mesh.lattice is not None else None, n_split_cubes_kept=split_kept),
     )
     pd = {k: np.concatenate([v, v[D]]) for k, v in mesh.point_data.items()}
     new_mesh = TetMesh(all_pts, new_tets, mesh.region_ids, mesh.region_names, point_data=pd, cell_data=mesh.cell_data, lattice=lattice, validate=False)

@@ -192,6 +192,21 @@ def test_layered_skin_bottom_snapping_inside_a_layer():
         np.testing.assert_array_equal(z[: mesh.n_nodes][row], p0[row, 2])
     assert cut.mesh.lattice.n_cubes == mesh.lattice.n_cubes
     make_model(cut.mesh, "fem_neo_hookean")
+    # Seed 003 §3.4 case 2: a cut 0.2 mm deep has passed the epidermis/dermis interface (0.1 mm,
+    # the nearest row, not moved); a dermis node (row 0.85 mm, 0.65 mm away) goes onto the
+    # bottom so that the cut reaches into the dermis: the interface row opens.
+    deep = cut_specimen(sp, ScalpelPath([(2.1 * MM, 4.2 * MM), (5.9 * MM, 3.7 * MM)], depth=0.2 * MM))
+    _invariants(mesh, deep)
+    np.testing.assert_allclose(np.unique(np.round(deep.pair_depth / MM, 9)), [0.0, 0.1])
+    zd = np.asarray(deep.mesh.points)[: mesh.n_nodes, 2]
+    at_bottom = np.flatnonzero(np.abs(zd - (top - 0.2 * MM)) < 1e-12)
+    assert len(at_bottom) >= 3
+    np.testing.assert_allclose(p0[at_bottom, 2], top - 0.85 * MM, rtol=1e-12)
+    # A cut 0.08 mm deep has not reached the interface: it stays, the cut opens the surface row.
+    shallow = cut_specimen(sp, ScalpelPath([(2.1 * MM, 4.2 * MM), (5.9 * MM, 3.7 * MM)], depth=0.08 * MM))
+    np.testing.assert_allclose(shallow.pair_depth, 0.0, atol=1e-15)
+    zs = np.asarray(shallow.mesh.points)[:, 2]
+    assert not np.any(np.abs(zs - (top - 0.08 * MM)) < 1e-12)
 
 
 def _delaunay_box(seed=0):
