@@ -690,9 +690,9 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
                 continue
             if place(int(c), s_new[c], d):
                 taken.append(int(c))
-        # §3.4 case 2: where the node nearest the bottom lies on a layer interface, a node of the
-        # layer the blade tip is in (an incident tet spans the bottom depth) goes onto the bottom
-        # instead, up to one cell away, so the cut reaches into that layer.
+        # §3.4 case 2: where no node went onto the bottom (the nearest lies on a layer interface,
+        # or is the surface row), a node of the layer the blade tip is in (an incident tet spans
+        # the bottom depth), up to one cell away, goes onto it, so the cut reaches into that layer.
         spans = (h[tets].min(axis=1) < d) & (h[tets].max(axis=1) > d)
         reg_at_d = np.full(len(pts0), -1)
         reg_at_d[tets[spans].reshape(-1)] = np.repeat(regions[spans], 4)
