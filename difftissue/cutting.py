@@ -790,12 +790,15 @@ def cut_specimen(
     ``method="snap"`` (seed 003): the nodes nearest the cutting surface are snapped onto it —
     for every mesh edge the surface crosses (structural cube edges first on lattice specimens,
     then any remaining tet edge), its endpoint nearer the surface relative to its local edge
-    length, ties to the ``+`` side — then, per column, the snapped node nearest the cut bottom
-    within half a cell goes onto the bottom (not a node on a layer interface) and at each end
-    inside the specimen the node nearest the end goes onto it. Snapped nodes strictly above the
-    bottom and strictly between the ends (an end on the specimen's outline counts as open) are
-    duplicated; tets and lattice cubes on the ``-`` side (right of the path direction, by their
-    centroid) use the duplicates. ``method="remove"`` (seed 000): see :func:`remove_elements`.
+    length, ties to the ``+`` side, a move refused if it would ruin an incident tet or take a
+    boundary node off its boundary faces — then, per column, the snapped node nearest the cut
+    bottom goes onto the bottom (seed 003 §3.2, §3.4; layer interfaces are not moved) and at each
+    end inside the specimen the node nearest the end goes onto it. Every tet is put on the side
+    of its centroid; the faces between a ``+`` and a ``-`` tet on the open part of the cut
+    (between the ends, above the bottom; an end on the specimen's outline counts as open) are
+    the cut faces, and their nodes are duplicated except the crack front (nodes also on an uncut
+    ``+``/``-`` face). Tets and lattice cubes on the ``-`` side (right of the path direction)
+    use the duplicates. ``method="remove"`` (seed 000): see :func:`remove_elements`.
 
     Args:
         specimen: a :class:`~difftissue.mesh.TetMesh` or :class:`~difftissue.mesh.Specimen`
