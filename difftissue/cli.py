@@ -451,8 +451,8 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     x.add_argument("--approximate", action="store_true",
                    help="drop what the target cannot represent (cubic stiffening, pre-stretch) and record the approximation in the file")
-    x.add_argument("--law", choices=("linear", "neo_hookean"), default=None,
-                   help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/fem_neo_hookean/stable_neo_hookean cards, linear otherwise)")
+    x.add_argument("--law", choices=("linear", "neo_hookean", "springs"), default=None,
+                   help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
     x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ",
                    help="write a complete specimen model (fixed base, prescribed top displacement) on this block; required for vtu")
     x.add_argument("--displacement", type=float, default=None, help="top displacement along z in --unit (default: -10%% of the height)")

@@ -47,6 +47,9 @@ __all__ = [
     "abaqus_name",
     "febio_material",
     "sofa_force_field",
+    "sofa_polynomial_coefficients",
+    "springs_from_sofa_polynomial",
+    "sofa_springs_split",
     "abaqus_material",
     "xpbd_parameters",
     "write_febio",
@@ -388,11 +391,11 @@ def _law(card: MaterialCard, law: str | None) -> str:
     return law
 
 
-def _approximations(card: MaterialCard, target: str, *, approximate: bool) -> list[str]:
+def _approximations(card: MaterialCard, target: str, *, approximate: bool, cubic_ok: bool = False) -> list[str]:
     """Notes on what ``target`` cannot represent; raise unless ``approximate``."""
     notes = []
     b = card.cubic_coefficient
-    if b != 0.0:
+    if b != 0.0 and not cubic_ok:
         msg = (f"cubic_coefficient b = {b:g} (strain stiffening sigma = E (eps + b eps^3)) cannot be represented by {target}")
         if not approximate:
             raise ExportError(msg + "; pass approximate=True (--approximate) to drop it, which changes the stress by a relative b*eps^2 at strain eps")
@@ -575,27 +578,112 @@ def sofa_force_field(card: MaterialCard, *, law: str | None = None, approximate:
         "ParameterSet": f"{_fmt(card.shear_modulus)} {_fmt(card.lame_lambda)}"})
 
 
-def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approximate: bool = False) -> ET.Element:
+def sofa_polynomial_coefficients(stiffness, cubic, rest_length) -> np.ndarray:
+    """difftissue spring constants -> ``PolynomialSpringsForceField`` strain coefficients.
+
+    SOFA's spring force is ``sigma(L) = a1 L + a2 L^2 + ... + an L^n`` of the strain
+    ``L = (l - l0) / l0`` (cross section 1), so difftissue's tension ``k e + a e^3`` with
+    ``e = L l0`` gives ``a1 = k l0`` [N], ``a2 = 0``, ``a3 = a l0^3`` [N].
+
+    Args:
+        stiffness: ``k`` [N/m] per spring; cubic: ``a`` [N/m^3]; rest_length: ``l0`` [m].
+
+    Returns:
+        ``(S, 3)`` coefficients ``[a1, a2, a3]`` [N] per spring (degree 3).
+    """
+    k, a, L0 = (np.asarray(v, dtype=float) for v in (stiffness, cubic, rest_length))
+    k, a, L0 = np.broadcast_arrays(k, a, L0)
+    return np.stack([k * L0, np.zeros_like(k), a * L0**3], axis=-1)
+
+
+def springs_from_sofa_polynomial(coefficients, rest_length):
+    """Inverse of :func:`sofa_polynomial_coefficients`: ``k = a1 / l0``, ``a = a3 / l0^3``
+    (a nonzero ``a2`` has no difftissue counterpart and is refused)."""
+    c = np.asarray(coefficients, dtype=float)
+    L0 = np.asarray(rest_length, dtype=float)
+    if c.shape[-1] != 3:
+        raise ExportError(f"expected degree-3 coefficients [a1, a2, a3], got shape {c.shape}")
+    if np.any(c[..., 1] != 0.0):
+        raise ExportError("a2 != 0: a quadratic strain term (tension/compression asymmetric) has no difftissue counterpart")
+    return c[..., 0] / L0, c[..., 2] / L0**3
+
+
+def sofa_springs_split(card: MaterialCard, spring_fraction: float = 0.5) -> dict:
+    """How a ``springs_volume`` card is split between SOFA's springs and a corotational FEM.
+
+    SOFA has no per-cell volume-penalty force field, so the bulk term of ``springs_volume`` is
+    carried by a ``TetrahedronFEMForceField`` (``method="large"``). A cube lattice with spring
+    constants ``c mu g`` has Lamé parameters ``(c mu, c mu)``; the FEM adds
+    ``lambda_f = lambda - c mu``, ``mu_f = (1 - c) mu`` so the sum is exactly (lambda, mu) at
+    small strain for any ``0 <= c < 1`` (``c = spring_fraction``). The cubic coefficients of the
+    springs are kept whole, so the cubic stiffening is difftissue's. Returns ``c``, ``lambda_f``,
+    ``mu_f`` and the FEM's ``youngs_modulus`` / ``poisson_ratio``
+    (``E_f = mu_f (3 lambda_f + 2 mu_f) / (lambda_f + mu_f)``, ``nu_f = lambda_f / (2 (lambda_f + mu_f))``).
+    Inverse: ``lambda = c mu + lambda_f``, ``mu = c mu + mu_f`` (tested).
+    """
+    c = _finite(spring_fraction, "spring_fraction")
+    if not 0.0 <= c < 1.0:
+        raise ExportError(f"spring_fraction = {c:g} must lie in [0, 1) (the FEM needs a positive shear modulus)")
+    mu, lam = card.shear_modulus, card.lame_lambda
+    lam_f, mu_f = lam - c * mu, (1.0 - c) * mu
+    if lam_f < 0:
+        raise ExportError(f"spring_fraction = {c:g} leaves the FEM a negative lambda ({lam_f:.6g} Pa) at nu = {card.poisson_ratio:g}; "
+                          f"use spring_fraction <= {lam / mu:.4g}")
+    return {"spring_fraction": c, "lambda_f": lam_f, "mu_f": mu_f,
+            "youngs_modulus": mu_f * (3 * lam_f + 2 * mu_f) / (lam_f + mu_f), "poisson_ratio": lam_f / (2 * (lam_f + mu_f))}
+
+
+def _sofa_law(card: MaterialCard, law: str | None) -> str:
+    return "springs" if law == "springs" else _law(card, law)
+
+
+def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approximate: bool = False,
+               displacement: float | None = None, spring_fraction: float = 0.5, steps: int = 10) -> ET.Element:
     """A SOFA scene: the force field in a ``Node`` (material alone), or with ``mesh`` a static
     specimen: ``MeshTopology`` (points, tetrahedra), ``MechanicalObject``, ``MeshMatrixMass``
-    (``massDensity``), the force field and a ``FixedProjectiveConstraint`` on the base (min z)."""
-    law = _law(card, law)
-    notes = _approximations(card, "SOFA " + law, approximate=approximate)
-    ff = sofa_force_field(card, law=law, approximate=True)
-    root = ET.Element("Node", {"name": "root", "gravity": "0 0 0", "dt": "0.01"})
+    (``massDensity``), ``StaticSolver`` + ``SparseLDLSolver``, the force field(s), a
+    ``FixedProjectiveConstraint`` on the base (min z) and a ``LinearMovementProjectiveConstraint``
+    moving the top (max z) by ``displacement`` [m] along z over ``steps`` steps of ``dt = 1/steps``
+    (``keyTimes="0 1"``; it prescribes all three components of the top nodes).
+
+    ``law="springs"`` (needs ``mesh``, a structured block): difftissue's spring lattice as one
+    ``PolynomialSpringsForceField`` (``object1 = object2 = @dofs``, degree-3 strain polynomials
+    from :func:`sofa_polynomial_coefficients` with the springs scaled by ``spring_fraction``,
+    ``compressible="1"``) plus the corotational ``TetrahedronFEMForceField`` of
+    :func:`sofa_springs_split` for the rest of the stiffness.
+    """
+    law = _sofa_law(card, law)
+    root = ET.Element("Node", {"name": "root", "gravity": "0 0 0", "dt": _fmt(1.0 / steps)})
+    if law == "springs":
+        if mesh is None:
+            raise ExportError("law='springs' writes one SOFA spring per lattice edge: it needs a specimen mesh (--specimen)")
+        if getattr(mesh, "lattice", None) is None:
+            raise ExportError("law='springs' needs a structured block with a cube lattice (difftissue.mesh.block)")
+        notes = _approximations(card, "SOFA springs", approximate=approximate, cubic_ok=True)
+        split = sofa_springs_split(card, spring_fraction)
+        notes = notes + [
+            f"springs_volume split: springs carry {split['spring_fraction']:g} of mu (PolynomialSpringsForceField, full cubic "
+            f"coefficients), a corotational TetrahedronFEMForceField carries lambda_f = {split['lambda_f']:.10g} Pa, "
+            f"mu_f = {split['mu_f']:.10g} Pa; exact at small strain, finite-strain stress within about 1 % of springs_volume "
+            "at 10 % strain (docs/export.md)"]
+    else:
+        notes = _approximations(card, "SOFA " + law, approximate=approximate)
     for line in _header_lines(card, "SOFA", law) + notes:
         root.append(_xml_comment(line))
-    plugin = "Sofa.Component.SolidMechanics.FEM.Elastic" if law == "linear" else "Sofa.Component.SolidMechanics.FEM.HyperElastic"
-    ET.SubElement(root, "RequiredPlugin", {"name": plugin})
+    plugins = {"linear": ["Sofa.Component.SolidMechanics.FEM.Elastic"], "neo_hookean": ["Sofa.Component.SolidMechanics.FEM.HyperElastic"],
+               "springs": ["Sofa.Component.SolidMechanics.Spring", "Sofa.Component.SolidMechanics.FEM.Elastic"]}[law]
+    for plugin in plugins:
+        ET.SubElement(root, "RequiredPlugin", {"name": plugin})
     node = ET.SubElement(root, "Node", {"name": "tissue"})
     if mesh is None:
         node.append(_xml_comment("add a tetrahedral topology and a MechanicalObject here"))
-        node.append(ff)
+        node.append(sofa_force_field(card, law=law, approximate=True))
         return root
     for p in ("Sofa.Component.ODESolver.Backward", "Sofa.Component.LinearSolver.Direct", "Sofa.Component.Mass",
               "Sofa.Component.StateContainer", "Sofa.Component.Topology.Container.Constant", "Sofa.Component.Constraint.Projective"):
         ET.SubElement(root, "RequiredPlugin", {"name": p})
-    base, _, _ = _specimen_sets(mesh)
+    base, top, height = _specimen_sets(mesh)
+    d = _default_displacement(height, displacement)
     ET.SubElement(node, "StaticSolver")
     ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
     pts = np.asarray(mesh.points, dtype=float)
@@ -603,14 +691,38 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
                                          "tetrahedra": " ".join(str(int(n)) for n in np.asarray(mesh.tets).reshape(-1))})
     ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "src": "@topology"})
     ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
-    node.append(ff)
+    if law == "springs":
+        from .models import SpringVolumeModel
+
+        model = SpringVolumeModel(mesh)
+        k, a = (np.asarray(v, dtype=float) for v in model.spring_constants(card.material()))
+        split = sofa_springs_split(card, spring_fraction)
+        coeffs = sofa_polynomial_coefficients(split["spring_fraction"] * k, a, model.rest_lengths)
+        springs = np.asarray(model.springs)
+        ET.SubElement(node, "PolynomialSpringsForceField", {
+            "name": card.name + "_springs", "object1": "@dofs", "object2": "@dofs",
+            "firstObjectPoints": " ".join(str(int(i)) for i in springs[:, 0]),
+            "secondObjectPoints": " ".join(str(int(i)) for i in springs[:, 1]),
+            "polynomialDegree": " ".join("3" for _ in range(len(springs))),
+            "polynomialStiffness": " ".join(_fmt(c) for c in coeffs.reshape(-1)),
+            "computeZeroLength": "1", "compressible": "1"})
+        ET.SubElement(node, "TetrahedronFEMForceField", {"name": card.name + "_bulk", "youngModulus": _fmt(split["youngs_modulus"]),
+                                                         "poissonRatio": _fmt(split["poisson_ratio"]), "method": "large"})
+    else:
+        node.append(sofa_force_field(card, law=law, approximate=True))
     ET.SubElement(node, "FixedProjectiveConstraint", {"name": "fixed_base", "indices": " ".join(str(int(i)) for i in base)})
+    ET.SubElement(node, "LinearMovementProjectiveConstraint", {
+        "name": "top_displacement", "template": "Vec3d", "indices": " ".join(str(int(i)) for i in top),
+        "keyTimes": "0 1", "movements": f"0 0 0  0 0 {_fmt(d)}", "relativeMovements": "1"})
     return root
 
 
-def write_sofa(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False, force: bool = False) -> Path:
-    """Write a SOFA ``.scn`` scene (see :func:`sofa_scene`; conversion in :func:`sofa_force_field`)."""
-    return _write_text(path, _xml_text(sofa_scene(card, mesh, law=law, approximate=approximate)), force)
+def write_sofa(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
+               displacement: float | None = None, spring_fraction: float = 0.5, force: bool = False) -> Path:
+    """Write a SOFA ``.scn`` scene (see :func:`sofa_scene`; conversions in :func:`sofa_force_field`,
+    :func:`sofa_polynomial_coefficients`, :func:`sofa_springs_split`)."""
+    return _write_text(path, _xml_text(sofa_scene(card, mesh, law=law, approximate=approximate, displacement=displacement,
+                                                  spring_fraction=spring_fraction)), force)
 
 
 # =========================================================================== Abaqus
@@ -836,7 +948,7 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
     if to == "febio":
         return write_febio(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
     if to == "sofa":
-        return write_sofa(card, path, mesh=mesh, law=law, approximate=approximate, force=force)
+        return write_sofa(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
     if to == "abaqus":
         return write_abaqus(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
     if to == "pbd":
