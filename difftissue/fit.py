@@ -216,15 +216,36 @@ class FitProblem:
         """The material with the fitted fields set to physical ``values`` (shape ``(p,)``, SI)."""
         return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in self.fields), self.base, tuple(values[i] for i in range(self.n_parameters)))
 
-    def scaled_residuals_of(self, material: Material) -> jax.Array:
-        """``(predict - observed) / sigma`` of all scenarios, concatenated, shape ``(n,)`` [-]."""
-        parts = []
-        for sc, obs, sig in zip(self.scenarios, self._observed, self._sigma):
+    def predictions_of(self, material: Material) -> list[jax.Array]:
+        """Each scenario's predictions (its unit), checked against the observed shapes."""
+        preds = []
+        for sc, obs in zip(self.scenarios, self._observed):
             pred = jnp.asarray(sc.predict(material))
             if pred.shape != obs.shape:
                 raise FitError(f"scenario {sc.name!r}: predict returned shape {pred.shape}, observed has {obs.shape}")
-            parts.append((pred - obs) / sig)
-        return jnp.concatenate(parts)
+            preds.append(pred)
+        return preds
+
+    def _scaled(self, preds) -> jax.Array:
+        return jnp.concatenate([(p - obs) / sig for p, obs, sig in zip(preds, self._observed, self._sigma)])
+
+    def scaled_residuals_of(self, material: Material) -> jax.Array:
+        """``(predict - observed) / sigma`` of all scenarios, concatenated, shape ``(n,)`` [-]."""
+        return self._scaled(self.predictions_of(material))
+
+    def evaluate_values(self, values, jac: str = "fwd"):
+        """Loss, Jacobian of the robustified scaled residuals with respect to the PHYSICAL
+        values ``(n, p)``, and each scenario's predictions, at ``values`` (one pass: what a
+        fit needs at its start and end, compiled once)."""
+
+        def res(v):
+            preds = self.predictions_of(self.material_from_values(v))
+            r = self.robust(self._scaled(preds))
+            return r, (r, preds)
+
+        jac_fn = jax.jacfwd if jac == "fwd" else jax.jacrev
+        J, (r, preds) = jac_fn(res, has_aux=True)(values)
+        return 0.5 * jnp.sum(r * r), J, preds
 
     def robust(self, r) -> jax.Array:
         """Robustified residuals ``r sqrt(rho(z)/z)``, ``z = (r/f_scale)^2``: their half sum of
@@ -888,9 +909,14 @@ def fit(
             U, dyn, done, status, history, step = _load_checkpoint(ckpt, fingerprint=fingerprint, components=components, dyn_template=dyn)
             status = status.astype(jnp.int32)
             resumed_from = step
-    batch_loss = jax.jit(jax.vmap(problem.loss))
+    # Loss, Jacobian and predictions of every start in ONE compiled program, used at the start
+    # (the initial losses) and at the end (covariance, predictions): fewer compilations than
+    # separate loss / Jacobian / predict programs (each one compiles the whole forward model).
+    fields = problem.fields
+    values_of = jax.jit(jax.vmap(lambda u: jnp.stack([problem.values(u)[f] for f in fields])))
+    batch_evaluate = jax.jit(jax.vmap(lambda v: problem.evaluate_values(v, jac)))
     if not history:
-        history.append(np.asarray(batch_loss(U)))
+        history.append(np.asarray(batch_evaluate(values_of(U))[0]))
 
     def save():
         if ckpt is not None:
@@ -928,7 +954,9 @@ def fit(
     save()
 
     # ------------------------------------------------------------ the best start
-    final = np.asarray(batch_loss(U))
+    all_values = values_of(U)
+    final, all_J, all_preds = batch_evaluate(all_values)
+    final = np.asarray(final)
     history[-1] = final
     finite = np.where(np.isfinite(final), final, np.inf)
     best = int(np.argmin(finite))
@@ -947,9 +975,8 @@ def fit(
         reason = f"max_steps ({max_steps}) reached"
     u_best = U[best]
     material = problem.material(u_best)
-    values_vec = jnp.stack([problem.values(u_best)[f] for f in problem.fields])
-    jac_fn = jax.jacfwd if jac == "fwd" else jax.jacrev
-    J = np.asarray(jax.jit(jac_fn(problem.residuals_of_values))(values_vec))
+    values_vec = np.asarray(all_values[best])
+    J = np.asarray(all_J[best])
     stats = parameter_statistics(J, np.asarray(values_vec), problem.fields, loss=float(final[best]), absolute_sigma=absolute_sigma)
     diag = identifiability_diagnostics(stats, np.asarray(values_vec), problem.fields)
     if not start_converged[best]:
@@ -960,16 +987,15 @@ def fit(
     # ------------------------------------------------------------ per-scenario outputs
     scen_fits = []
     predictions, residuals = {}, {}
-    for sc, obs, sig in zip(problem.scenarios, problem._observed, problem._sigma):
-        pred = np.asarray(sc.predict(material), dtype=float)
+    for sc, obs, sig, pred_all in zip(problem.scenarios, problem._observed, problem._sigma, all_preds):
+        pred = np.asarray(pred_all[best], dtype=float)
         res = (pred - obs) / sig
         absc = getattr(sc, "abscissa", None)
         absc = np.arange(obs.size, dtype=float) if absc is None else np.asarray(absc, dtype=float)
         predictions[sc.name] = pred
         residuals[sc.name] = res
         scen_fits.append(ScenarioFit(sc.name, absc, obs, sig, pred, res, str(getattr(sc, "x_label", "index")), str(getattr(sc, "y_label", "observed"))))
-    start_vals = np.asarray(jnp.stack([jnp.stack([problem.values(u)[f] for f in problem.fields]) for u in U]))
-    fields = problem.fields
+    start_vals = np.asarray(all_values)
     return FitResult(
         material=material,
         fields=fields,
