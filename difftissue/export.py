@@ -46,6 +46,8 @@ __all__ = [
     "write_card",
     "abaqus_name",
     "febio_material",
+    "febio_prestrain_gradient",
+    "pre_stretch_from_febio_gradient",
     "sofa_force_field",
     "sofa_polynomial_coefficients",
     "springs_from_sofa_polynomial",
@@ -391,7 +393,8 @@ def _law(card: MaterialCard, law: str | None) -> str:
     return law
 
 
-def _approximations(card: MaterialCard, target: str, *, approximate: bool, cubic_ok: bool = False) -> list[str]:
+def _approximations(card: MaterialCard, target: str, *, approximate: bool, cubic_ok: bool = False,
+                    pre_stretch_ok: bool = False) -> list[str]:
     """Notes on what ``target`` cannot represent; raise unless ``approximate``."""
     notes = []
     b = card.cubic_coefficient
@@ -402,7 +405,7 @@ def _approximations(card: MaterialCard, target: str, *, approximate: bool, cubic
         notes.append(f"APPROXIMATION: cubic_coefficient b = {b:g} dropped (target {target} has no strain stiffening); "
                      f"the stress is lower by a relative b*eps^2: {abs(b) * 0.01:.3g} at 10 % strain, {abs(b) * 0.04:.3g} at 20 % strain")
     lam0 = card.pre_stretch
-    if lam0 != 1.0:
+    if lam0 != 1.0 and not pre_stretch_ok:
         msg = f"pre_stretch = {lam0:g} (pre-tension) is not written for {target}"
         if not approximate:
             raise ExportError(msg + "; pass approximate=True (--approximate) to export the material without pre-tension")
@@ -452,20 +455,67 @@ def febio_material(card: MaterialCard, *, law: str | None = None, approximate: b
 
     The default law is ``neo_hookean`` for cards of a finite-strain model (``springs_volume``,
     ``fem_neo_hookean``, ``stable_neo_hookean``, also within a joint ``"hertz; springs_volume"``)
-    and ``linear`` otherwise (``fem_linear`` and the analytic solutions: ``hertz``, ...). A nonzero ``cubic_coefficient`` or a ``pre_stretch`` other than 1 is refused
-    unless ``approximate``, which drops it and records the error in a comment.
+    and ``linear`` otherwise (``fem_linear`` and the analytic solutions: ``hertz``, ...). A nonzero
+    ``cubic_coefficient`` is refused unless ``approximate``, which drops it and records the error
+    in a comment. A ``pre_stretch`` other than 1 wraps the material in FEBio's
+    ``<material type="prestrain elastic">`` with ``<elastic type=...>`` (the law above) and
+    ``<prestrain type="prestrain gradient"><ramp>1.0</ramp><F0>l,0,0,0,l,0,0,0,1</F0>``
+    (:func:`febio_prestrain_gradient`).
     """
     law = _law(card, law)
-    notes = _approximations(card, "FEBio " + law, approximate=approximate)
+    notes = _approximations(card, "FEBio " + law, approximate=approximate, pre_stretch_ok=True)
+    lam0 = card.pre_stretch
     mats = ET.Element("Material")
     for line in _header_lines(card, "FEBio", law) + notes:
         mats.append(_xml_comment(line))
-    m = ET.SubElement(mats, "material", {"id": str(mat_id), "name": card.name,
-                                         "type": "neo-Hookean" if law == "neo_hookean" else "isotropic elastic"})
+    etype = "neo-Hookean" if law == "neo_hookean" else "isotropic elastic"
+    if lam0 == 1.0:
+        m = ET.SubElement(mats, "material", {"id": str(mat_id), "name": card.name, "type": etype})
+        ET.SubElement(m, "density").text = _fmt(card.density)
+        ET.SubElement(m, "E").text = _fmt(card.youngs_modulus)
+        ET.SubElement(m, "v").text = _fmt(card.poisson_ratio)
+        return mats
+    sigma0 = card.youngs_modulus * (lam0 - 1.0) / (1.0 - card.poisson_ratio)
+    mats.append(_xml_comment(
+        f"pre-tension: pre_stretch lambda0 = {lam0:.10g} in x and y (the stress-free state is the mesh shrunk by 1/lambda0 "
+        f"in x and y): prestrain gradient F0 = diag(lambda0, lambda0, 1); small-strain equibiaxial pre-stress "
+        f"E (lambda0 - 1) / (1 - nu) = {sigma0:.6g} Pa"))
+    m = ET.SubElement(mats, "material", {"id": str(mat_id), "name": card.name, "type": "prestrain elastic"})
     ET.SubElement(m, "density").text = _fmt(card.density)
-    ET.SubElement(m, "E").text = _fmt(card.youngs_modulus)
-    ET.SubElement(m, "v").text = _fmt(card.poisson_ratio)
+    el = ET.SubElement(m, "elastic", {"type": etype})
+    ET.SubElement(el, "density").text = _fmt(card.density)
+    ET.SubElement(el, "E").text = _fmt(card.youngs_modulus)
+    ET.SubElement(el, "v").text = _fmt(card.poisson_ratio)
+    pre = ET.SubElement(m, "prestrain", {"type": "prestrain gradient"})
+    ET.SubElement(pre, "ramp").text = "1.0"
+    ET.SubElement(pre, "F0").text = febio_prestrain_gradient(lam0)
     return mats
+
+
+def febio_prestrain_gradient(pre_stretch: float) -> str:
+    """FEBio ``<F0>`` text of difftissue's pre-stretch: ``diag(lambda0, lambda0, 1)`` row by row.
+
+    FEBio's ``prestrain elastic`` evaluates its ``elastic`` material at ``F Fp`` with ``Fp`` the
+    prestrain gradient (map from the stress-free to the reference configuration, Maas et al.
+    2016); difftissue's pre-stretch makes the stress-free state the mesh shrunk by
+    ``1/lambda0`` in x and y, so ``Fp = diag(lambda0, lambda0, 1)``. Inverse:
+    :func:`pre_stretch_from_febio_gradient`.
+    """
+    lam0 = _finite(pre_stretch, "pre_stretch")
+    if lam0 <= 0:
+        raise ExportError(f"pre_stretch = {lam0:g} must be > 0")
+    return ",".join(_fmt(v) for v in (lam0, 0.0, 0.0, 0.0, lam0, 0.0, 0.0, 0.0, 1.0))
+
+
+def pre_stretch_from_febio_gradient(text: str) -> float:
+    """``lambda0`` from an FEBio ``<F0>`` of the form ``diag(lambda0, lambda0, 1)`` (others refused)."""
+    try:
+        F = np.array([float(v) for v in str(text).split(",")]).reshape(3, 3)
+    except ValueError:
+        raise ExportError(f"F0 = {text!r}: expected 9 comma-separated numbers") from None
+    if not (np.allclose(F, np.diag(np.diag(F)), rtol=0, atol=0) and F[0, 0] == F[1, 1] and F[2, 2] == 1.0):
+        raise ExportError(f"F0 = {text!r} is not an in-plane equibiaxial pre-stretch diag(l, l, 1)")
+    return float(F[0, 0])
 
 
 def _specimen_sets(mesh, axis: int = 2, tol: float = 1e-9):

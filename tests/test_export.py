@@ -333,8 +333,43 @@ def test_cubic_refused_or_approximated(tmp_path, writer, suffix):
 def test_pre_stretch_refused_or_approximated(tmp_path):
     card = make_card(pre_stretch=1.1)
     with pytest.raises(ExportError, match="pre_stretch"):
-        write_febio(card, tmp_path / "p.feb")
-    assert "pre_stretch = 1.1 dropped" in write_febio(card, tmp_path / "p.feb", approximate=True).read_text()
+        write_abaqus(card, tmp_path / "p.inp")
+    assert "pre_stretch = 1.1 dropped" in write_abaqus(card, tmp_path / "p.inp", approximate=True).read_text()
+    with pytest.raises(ExportError, match="pre_stretch"):
+        write_sofa(card, tmp_path / "p.scn")
+
+
+def test_febio_prestrain(tmp_path, mesh):
+    from difftissue.export import febio_prestrain_gradient, pre_stretch_from_febio_gradient
+    from difftissue.materials import equibiaxial_pre_stress
+
+    card = make_card(pre_stretch=1.08)
+    root = ET.parse(write_febio(card, tmp_path / "pre.feb", mesh=mesh)).getroot()
+    mats = root.findall("./Material/material")
+    assert len(mats) == 1 and mats[0].get("type") == "prestrain elastic" and mats[0].get("name") == "skin"
+    el = mats[0].find("elastic")
+    assert el.get("type") == "neo-Hookean" and float(el.find("E").text) == E and float(el.find("v").text) == NU
+    assert float(mats[0].find("density").text) == 1100.0
+    pre = mats[0].find("prestrain")
+    assert pre.get("type") == "prestrain gradient" and float(pre.find("ramp").text) == 1.0
+    F0 = np.array(pre.find("F0").text.split(","), dtype=float).reshape(3, 3)
+    np.testing.assert_array_equal(F0, np.diag([1.08, 1.08, 1.0]))
+    # both ways
+    assert pre_stretch_from_febio_gradient(pre.find("F0").text) == 1.08
+    assert pre_stretch_from_febio_gradient(febio_prestrain_gradient(0.97)) == 0.97
+    with pytest.raises(ExportError, match="equibiaxial"):
+        pre_stretch_from_febio_gradient("1.1,0,0,0,1.2,0,0,0,1")
+    with pytest.raises(ExportError, match="9 comma"):
+        pre_stretch_from_febio_gradient("1,2")
+    # the comment quotes the card's pre-stress sigma0 = E (lambda0 - 1) / (1 - nu)
+    sigma0 = float(equibiaxial_pre_stress(card.material()))
+    assert f"{sigma0:.6g} Pa" in (tmp_path / "pre.feb").read_text()
+    # linear law: the isotropic elastic material is wrapped the same way; material alone too
+    lin = ET.parse(write_febio(card, tmp_path / "pre_lin.feb", law="linear")).getroot()
+    assert lin.find("./Material/material/elastic").get("type") == "isotropic elastic"
+    # cubic stiffening is still refused
+    with pytest.raises(ExportError, match="cubic_coefficient"):
+        write_febio(make_card(pre_stretch=1.08, cubic_coefficient=1.0), tmp_path / "c.feb")
 
 
 # ------------------------------------------------------------------ XPBD and VTU
