@@ -174,7 +174,7 @@ def _cmd_export(args) -> int:
     path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
                   dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp,
                   constraints=args.constraints)
-    what = "complete specimen model" if mesh is not None and args.to in ("febio", "sofa", "abaqus", "pbd") else "material"
+    what = "complete specimen model" if mesh is not None else "material"
     print(f"wrote {path}: {card.model} card as {args.to} ({what})")
     return 0
 

@@ -866,7 +866,7 @@ def write_abaqus(card: MaterialCard, path, *, mesh=None, law: str | None = None,
 
 # ============================================================================= XPBD
 def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps: int = 1, mesh=None,
-                    approximate: bool = False) -> dict:
+                    approximate: bool = False, displacement: float | None = None) -> dict:
     """Stable neo-Hookean XPBD constraint data (Macklin & Müller 2021) for a stated time step.
 
     Per tetrahedron of rest volume ``V0``: deviatoric constraint ``C_D = sqrt(tr F^T F)`` with
@@ -874,7 +874,9 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
     ``alpha_H = 1 / (lambda' V0)``, ``lambda' = lambda + mu`` and ``gamma = 1 + mu / lambda'``
     (the shift makes the small-strain response equal (E, nu)). The solver uses
     ``alpha_tilde = alpha / h^2`` with the substep ``h = dt / substeps``. Without ``mesh`` the
-    values are given per unit volume (``alpha V0``, in 1/Pa); with ``mesh`` per tetrahedron.
+    values are given per unit volume (``alpha V0``, in 1/Pa); with ``mesh`` per tetrahedron,
+    plus a ``"specimen"`` (positions, tets, lumped masses, base fixed, top moved by
+    ``displacement`` [m] along z, default -10 % of the height).
 
     ``iterations`` is recorded as metadata: XPBD with a finite iteration count is softer than
     its compliances imply, so these parameters reproduce (E, nu) only in the converged limit;
@@ -920,21 +922,39 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
             "hydrostatic_alpha_tilde": (1.0 / (lam_s * v0) / h**2).tolist(),
             "unit": "compliance 1/(Pa m^3); alpha_tilde = compliance / h^2",
         }
+        out["specimen"] = _specimen_dict(card, mesh, displacement)
     return out
 
 
+def _specimen_dict(card: MaterialCard, mesh, displacement: float | None) -> dict:
+    """Mesh, lumped masses and boundary conditions of the block specimen (JSON-ready)."""
+    pts = np.asarray(mesh.points, dtype=float)
+    t = np.asarray(mesh.tets)
+    base, top, height = _specimen_sets(mesh)
+    d = _default_displacement(height, displacement)
+    v0 = np.abs(np.einsum("ij,ij->i", np.cross(pts[t[:, 1]] - pts[t[:, 0]], pts[t[:, 2]] - pts[t[:, 0]]), pts[t[:, 3]] - pts[t[:, 0]])) / 6.0
+    m = np.zeros(len(pts))
+    np.add.at(m, t.reshape(-1), np.repeat(card.density * v0 / 4.0, 4))
+    return {"positions": pts.tolist(), "tets": t.tolist(), "masses": m.tolist(),
+            "fixed": base.tolist(), "moved": top.tolist(), "displacement": [0.0, 0.0, d],
+            "note": "SI; base (min z) fixed, top (max z) moved by 'displacement' (all components), masses rho V/4 per tet node"}
+
+
 def write_xpbd(card: MaterialCard, path, *, dt: float, iterations: int, substeps: int = 1, mesh=None,
-               approximate: bool = False, force: bool = False) -> Path:
+               approximate: bool = False, displacement: float | None = None, force: bool = False) -> Path:
     """Write :func:`xpbd_parameters` as JSON."""
-    doc = xpbd_parameters(card, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate)
+    doc = xpbd_parameters(card, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate,
+                          displacement=displacement)
     return _write_text(path, json.dumps(doc, indent=2, allow_nan=False) + "\n", force)
 
 
 # ============================================================================== VTU
-def write_vtu(card: MaterialCard, mesh, path, *, force: bool = False) -> Path:
+def write_vtu(card: MaterialCard, mesh, path, *, displacement: float | None = None, force: bool = False) -> Path:
     """Write ``mesh`` as VTU with per-cell material fields: ``youngs_modulus``, ``poisson_ratio``,
     ``cubic_coefficient``, ``density``, ``pre_stretch``, ``shear_modulus`` (mu), ``lame_lambda``,
-    ``bulk_modulus`` (all SI), constant over the cells. No conversion is involved."""
+    ``bulk_modulus`` (all SI), constant over the cells, and the specimen's boundary conditions as
+    point data: ``boundary`` (0 free, 1 base fixed, 2 top moved) and ``prescribed_displacement``
+    [m] (top: ``(0, 0, displacement)``, default -10 % of the height). No conversion is involved."""
     from .mesh import write_mesh
 
     if mesh is None:
@@ -945,7 +965,15 @@ def write_vtu(card: MaterialCard, mesh, path, *, force: bool = False) -> Path:
     vals = {k: card.value(k) for k in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
     vals.update(shear_modulus=card.shear_modulus, lame_lambda=card.lame_lambda, bulk_modulus=card.bulk_modulus)
     cell = {k: np.full(n, float(v)) for k, v in vals.items()}
-    return write_mesh(path, mesh, cell_data=cell, overwrite=force)
+    base, top, height = _specimen_sets(mesh)
+    d = _default_displacement(height, displacement)
+    boundary = np.zeros(len(np.asarray(mesh.points)))
+    boundary[base] = 1.0
+    boundary[top] = 2.0
+    presc = np.zeros((len(boundary), 3))
+    presc[top, 2] = d
+    point = {"boundary": boundary, "prescribed_displacement": presc}
+    return write_mesh(path, mesh, point_data=point, cell_data=cell, overwrite=force)
 
 
 
@@ -1010,7 +1038,8 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
     if to == "xpbd":
         if dt is None or iterations is None:
             raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")
-        return write_xpbd(card, path, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate, force=force)
+        return write_xpbd(card, path, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate,
+                          displacement=displacement, force=force)
     if to == "vtu":
-        return write_vtu(card, mesh, path, force=force)
+        return write_vtu(card, mesh, path, displacement=displacement, force=force)
     raise ExportError(f"unknown export target {to!r}; choose one of {list(TARGETS)}")

@@ -384,6 +384,11 @@ def test_xpbd(tmp_path, mesh):
     v0 = np.asarray(doc["per_tet"]["rest_volume"])
     assert v0.sum() == pytest.approx(0.01 * 0.01 * 0.005)
     assert np.allclose(doc["per_tet"]["hydrostatic_alpha_tilde"], 1 / ((lam + mu) * v0) * 60**2)
+    spec = doc["specimen"]
+    assert len(spec["positions"]) == mesh.n_nodes and len(spec["tets"]) == mesh.n_tets
+    assert sum(spec["masses"]) == pytest.approx(1100.0 * 0.01 * 0.01 * 0.005)
+    assert len(spec["fixed"]) == 9 and len(spec["moved"]) == 9 and spec["displacement"][2] == pytest.approx(-0.0005)
+    assert "specimen" not in json.loads(write_xpbd(card, tmp_path / "alone.json", dt=1 / 60, iterations=10).read_text())
     with pytest.raises(ExportError, match="dt"):
         write_xpbd(card, tmp_path / "y.json", dt=0.0, iterations=10)
     with pytest.raises(ExportError, match="iterations"):
@@ -398,6 +403,9 @@ def test_vtu_cell_fields(tmp_path, mesh):
     cd = {k: np.concatenate(v) for k, v in m.cell_data.items()}
     assert np.all(cd["youngs_modulus"] == E) and np.all(cd["poisson_ratio"] == NU)
     assert np.allclose(cd["shear_modulus"], card.shear_modulus) and cd["density"].shape == (mesh.n_tets,)
+    z = np.asarray(mesh.points)[:, 2]
+    np.testing.assert_array_equal(m.point_data["boundary"], np.where(np.isclose(z, 0), 1.0, np.where(np.isclose(z, 0.005), 2.0, 0.0)))
+    np.testing.assert_allclose(m.point_data["prescribed_displacement"][:, 2], np.where(np.isclose(z, 0.005), -0.0005, 0.0))
 
 
 def test_refuses_to_overwrite(tmp_path, mesh):
