@@ -58,6 +58,7 @@ __all__ = [
     "run_pbd_scene",
     "PBDRun",
     "scene_forces",
+    "scene_energy",
     "pbd_reference_model",
 ]
 
@@ -340,6 +341,27 @@ def scene_forces(scene: dict, x: np.ndarray) -> np.ndarray:
         for i, gr in enumerate(grads):  # dV/dx_i = gr / 6; energy 3 k C^2 -> 6 k C dV/dx_i
             np.add.at(g, t[:, i], (6.0 * k * C)[:, None] * gr / 6.0)
     return g
+
+
+def scene_energy(scene: dict, x: np.ndarray) -> float:
+    """Energy [J] the scene's XPBD constraints minimise at positions ``x``: ``sum k/2 C^2`` over
+    distance constraints plus ``sum 3 k C^2`` over volume constraints (gradient: :func:`scene_forces`)."""
+    if "fem_constraints" in scene:
+        raise ExportError("scene_energy: a PBD FEM scene has no compliance energy (module notes)")
+    x = np.asarray(x, dtype=float)
+    p0 = np.asarray(scene["particles"]["positions"], dtype=float)
+    U = 0.0
+    if "distance_constraints" in scene:
+        dc = scene["distance_constraints"]
+        ij = np.asarray(dc["pairs"], dtype=np.int64)
+        C = np.linalg.norm(x[ij[:, 1]] - x[ij[:, 0]], axis=1) - np.linalg.norm(p0[ij[:, 1]] - p0[ij[:, 0]], axis=1)
+        U += float(np.sum(0.5 * np.asarray(dc["stiffness"], dtype=float) * C * C))
+    if "volume_constraints" in scene:
+        vc = scene["volume_constraints"]
+        t = np.asarray(vc["tets"], dtype=np.int64)
+        C = _tet_volumes(x, t) - np.abs(_tet_volumes(p0, t))
+        U += float(np.sum(3.0 * np.asarray(vc["stiffness"], dtype=float) * C * C))
+    return U
 
 
 # ============================================================================ running

@@ -21,7 +21,8 @@ from difftissue.errors import ExportError
 from difftissue.export import MaterialCard, export, read_card, write_card
 from difftissue.mesh import block
 from difftissue.models import make_model
-from difftissue.pbd import PYPBD_GRAVITY, pbd_reference_model, pbd_scene, read_pbd_scene, scene_forces, write_pbd
+from difftissue.pbd import (PYPBD_GRAVITY, pbd_reference_model, pbd_scene, read_pbd_scene, scene_energy, scene_forces,
+                            write_pbd)
 from difftissue.solvers.static import solve_static
 
 E, NU = 12.0e3, 0.45
@@ -166,6 +167,28 @@ def test_pypbd_fem_constraint_does_not_represent_E():
     # E = 1 kPa, 100 times less at 100 kPa. pypbd: 2.4e-7 m and 3.7e-9 m (ratio 64, not 100).
     for E_fem, sag in sags.items():
         assert 0.0 < sag < 1e-2 * 4.37e-4 * (1.0e3 / E_fem)
+
+
+def test_scene_energy_gradient_and_reference_model(tmp_path):
+    """scene_forces is the gradient of scene_energy (central differences), and scene_energy is
+    difftissue's pbd_reference_model energy, at a random deformed state."""
+    card = _card(tmp_path)
+    mesh = block((0.01, 0.01, 0.01), (2, 2, 2))
+    scene = pbd_scene(card, mesh)
+    rng = np.random.default_rng(0)
+    x = np.asarray(mesh.points) + 3e-4 * rng.standard_normal(np.asarray(mesh.points).shape)
+    g = scene_forces(scene, x)
+    h = 1e-7
+    fd = np.zeros_like(x)
+    for i in range(x.shape[0]):
+        for c in range(3):
+            xp, xm = x.copy(), x.copy()
+            xp[i, c] += h
+            xm[i, c] -= h
+            fd[i, c] = (scene_energy(scene, xp) - scene_energy(scene, xm)) / (2 * h)
+    np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8 * np.abs(g).max())
+    model = pbd_reference_model(mesh)
+    assert float(model.energy(jnp.asarray(x), card.material())) == pytest.approx(scene_energy(scene, x), rel=1e-12)
 
 
 # ------------------------------------------------------------------ writer
