@@ -113,12 +113,13 @@ def test_held_plate_reaction_and_thickness_exact(mesh, models, kind):
 
 @pytest.mark.parametrize("kind", ["fem_neo_hookean", "stable_neo_hookean", "springs_volume"])
 def test_held_plate_linear_limit(mesh, models, kind):
-    """Reaction per unit stress-free length -> sigma0 t as lambda0 -> 1: within 5 % at
-    lambda0 = 1.01 and 0.6 % at 1.001 (measured: neo-Hookean -2.9 % / -0.3 %, springs -3.4 % / -0.35 %;
-    the error is O(lambda0 - 1) times lambda / E ~ 3 at nu = 0.45)."""
+    """Reaction per unit stress-free length -> sigma0 t as lambda0 -> 1: within 3 % at
+    lambda0 = 1.01 and 0.3 % at 1.001 (measured: neo-Hookean -1.9 % / -0.19 %, stable
+    neo-Hookean -1.9 % / -0.19 %, springs -2.5 % / -0.25 %: an error O(lambda0 - 1));
+    thickness change within the same tolerance (measured -1.0 %, -0.9 %, -0.4 % at 1.01)."""
     p = mesh.points
     xmax, top = np.isclose(p[:, 0], L), np.isclose(p[:, 2], 2 * T)
-    for lam0, tol in ((1.01, 0.05), (1.001, 0.006)):
+    for lam0, tol in ((1.01, 0.03), (1.001, 0.003)):
         sol = solve_static(models[kind], _materials(lam0, lam0), _lateral_held(mesh))
         sigma0 = E * (lam0 - 1.0) / (1.0 - NU)
         force_per_length = float(jnp.sum(sol.reaction[xmax, 0])) / (L / lam0)
