@@ -745,7 +745,8 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
         from .models import SpringVolumeModel
 
         model = SpringVolumeModel(mesh)
-        k, a = (np.asarray(v, dtype=float) for v in model.spring_constants(card.material()))
+        # pre-stretch is dropped (and noted) for this target: springs of the unstretched lattice
+        k, a = (np.asarray(v, dtype=float) for v in model.spring_constants(card.material().replace(pre_stretch=1.0)))
         split = sofa_springs_split(card, spring_fraction)
         coeffs = sofa_polynomial_coefficients(split["spring_fraction"] * k, a, model.rest_lengths)
         springs = np.asarray(model.springs)

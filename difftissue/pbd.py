@@ -201,7 +201,7 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 6
         from .models import SpringVolumeModel
 
         model = SpringVolumeModel(mesh)
-        k, _ = model.spring_constants(card.material())
+        k, _ = model.spring_constants(card.material().replace(pre_stretch=1.0))  # pre-stretch is dropped (noted) for this target
         k = np.asarray(k, dtype=float)
         scene["distance_constraints"] = {"pairs": np.asarray(model.springs).tolist(), "stiffness": k.tolist(),
                                          "call": "addDistanceConstraint_XPBD(i, j, stiffness)", "unit": "N/m"}
