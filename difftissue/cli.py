@@ -160,21 +160,59 @@ def _parse_specimen(spec: str, factor: float):
     return block(tuple(v * factor for v in size), tuple(res))
 
 
+def _triple(opt: str, text: str, kind):
+    try:
+        vals = [kind(v) for v in text.split(",")]
+    except ValueError:
+        raise _UsageError(f"--{opt} {text!r}: expected three comma-separated numbers") from None
+    if len(vals) != 3 or any(not (v > 0) for v in vals):
+        raise _UsageError(f"--{opt} {text!r}: expected three positive numbers")
+    return tuple(vals)
+
+
+def _indentation_from_args(card, args, f: float):
+    """``--specimen indentation`` + --indenter/--radius/--half-angle/--depth/--block/--cells/--base
+    (lengths in --unit, the half-angle in degrees); missing values come from the card's scenario record."""
+    import math
+
+    from .export_indentation import indentation_specimen
+
+    if args.displacement is not None:
+        raise _UsageError("--displacement is the compression block's; an indentation specimen takes --depth")
+    return indentation_specimen(
+        card, indenter=args.indenter, radius=None if args.radius is None else args.radius * f,
+        half_angle=None if args.half_angle is None else math.radians(args.half_angle),
+        depth=None if args.depth is None else args.depth * f,
+        size=None if args.block is None else tuple(v * f for v in _triple("block", args.block, float)),
+        cells=None if args.cells is None else _triple("cells", args.cells, int), base=args.base,
+        bonded_punch=args.bonded_punch, penalty=args.penalty, steps=args.steps, scenario=args.scenario)
+
+
 def _cmd_export(args) -> int:
     from .export import export, read_card
 
     card = read_card(args.card)
     f = _length_factor(args.unit)
-    mesh = _parse_specimen(args.specimen, f) if args.specimen else None
-    if args.to == "vtu" and mesh is None:
+    indentation = None
+    ind_opts = {k: getattr(args, k) for k in ("indenter", "radius", "half_angle", "depth", "block", "cells", "base", "scenario")
+                if getattr(args, k) is not None}
+    if args.specimen == "indentation":
+        indentation = _indentation_from_args(card, args, f)
+        mesh = None
+    else:
+        if ind_opts or args.bonded_punch:
+            raise _UsageError(f"--{sorted(ind_opts)[0].replace('_', '-') if ind_opts else 'bonded-punch'} belongs to --specimen indentation")
+        mesh = _parse_specimen(args.specimen, f) if args.specimen else None
+    if args.to == "vtu" and mesh is None and indentation is None:
         raise _UsageError("--to vtu needs --specimen block:LX,LY,LZ:NX,NY,NZ")
     if args.to == "xpbd" and (args.dt is None or args.iterations is None):
         raise _UsageError("--to xpbd needs --dt SECONDS and --iterations N")
     disp = None if args.displacement is None else args.displacement * f
     path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
                   dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp,
-                  constraints=args.constraints)
-    what = "complete specimen model" if mesh is not None else "material"
+                  constraints=args.constraints, indentation=indentation)
+    what = ("complete specimen model" if mesh is not None else
+            f"{indentation.indenter} indentation specimen, depth {indentation.depth:.6g} m" if indentation is not None else "material")
     print(f"wrote {path}: {card.model} card as {args.to} ({what})")
     return 0
 
@@ -293,7 +331,10 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
             raise FitError(f"the fit stopped: a model evaluation failed at trial parameters: {_runtime_message(e)} "
                            f"(narrow fit.bounds or change the initial material; --debug shows the traceback){hint}") from e
     elapsed = time.perf_counter() - t0
-    paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name, force=force or resume)
+    from .export_indentation import scenario_record
+
+    paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name,
+                              force=force or resume, scenario_records=[scenario_record(s) for s in cfg.scenarios])
     if cfg.path is not None:
         with atomic_output(out / "config.toml", overwrite=True) as tmp:
             tmp.write_bytes(Path(cfg.path).read_bytes())
@@ -453,8 +494,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop what the target cannot represent (cubic stiffening, pre-stretch) and record the approximation in the file")
     x.add_argument("--law", choices=("linear", "neo_hookean", "springs"), default=None,
                    help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
-    x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ",
-                   help="write a complete specimen model (fixed base, prescribed top displacement) on this block; required for vtu")
+    x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|indentation",
+                   help="write a complete specimen model: a compression block (fixed base, prescribed top displacement), or "
+                        "'indentation' (the fitted indentation experiment from the card's scenario record, completed by the "
+                        "options below); required for vtu")
+    x.add_argument("--indenter", choices=("sphere", "cone", "flat_punch"), default=None, help="indentation: indenter (default: the card's record)")
+    x.add_argument("--radius", type=float, default=None, help="indentation: sphere / punch radius in --unit (default: the card's record)")
+    x.add_argument("--half-angle", type=float, default=None, help="indentation: cone half-angle in degrees (default: the card's record)")
+    x.add_argument("--depth", type=float, default=None, help="indentation: final depth in --unit (default: the record's largest depth)")
+    x.add_argument("--block", default=None, metavar="LX,LY,H", help="indentation: block size in --unit (default: from the record, see docs/export.md)")
+    x.add_argument("--cells", default=None, metavar="NX,NY,NZ", help="indentation: cells of the block (default 10,10,6)")
+    x.add_argument("--base", choices=("bonded", "sliding"), default=None, help="indentation: base condition (default: the record's, else bonded)")
+    x.add_argument("--bonded-punch", action="store_true", help="indentation: flat punch face bonded (x, y held) instead of frictionless")
+    x.add_argument("--penalty", type=float, default=100.0, help="indentation: difftissue's contact penalty factor (default 100)")
+    x.add_argument("--steps", type=int, default=10, help="indentation: load increments (default 10)")
+    x.add_argument("--scenario", default=None, help="indentation: the card's scenario record to use (default: the first indentation record)")
     x.add_argument("--displacement", type=float, default=None, help="top displacement along z in --unit (default: -10%% of the height)")
     x.add_argument("--unit", choices=_UNITS, default="mm", help="length unit of --specimen and --displacement (default mm); files are in metres")
     x.add_argument("--dt", type=float, default=None, help="time step [s] (xpbd: required; pbd: default 1/60)")

@@ -314,8 +314,14 @@ def _version() -> str:
 
 
 def card_from_fit(result, *, model: str, scenario_names: Sequence[str] | None = None,
-                  data_files: Sequence[str | os.PathLike] = (), name: str = "tissue") -> MaterialCard:
+                  data_files: Sequence[str | os.PathLike] = (), name: str = "tissue",
+                  scenario_records: Sequence[Mapping] | None = None) -> MaterialCard:
     """A card from a :class:`~difftissue.fit.FitResult`.
+
+    ``scenario_records`` (e.g. ``[scenario_record(s) for s in scenarios]``,
+    :func:`difftissue.export_indentation.scenario_record`) are stored as
+    ``provenance.scenario_records``: the indenter geometry and depth protocol that
+    ``export(..., indentation=indentation_specimen(card))`` rebuilds the specimen from.
 
     Every field of the fitted material is recorded; fitted fields carry their standard error
     (``None`` where the data do not determine it), fixed fields ``standard_error: None`` and
@@ -338,6 +344,8 @@ def card_from_fit(result, *, model: str, scenario_names: Sequence[str] | None = 
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "fit": {"loss": float(result.loss), "converged": bool(result.converged), "method": result.method},
     }
+    if scenario_records:
+        prov["scenario_records"] = [dict(r) for r in scenario_records if r]
     return MaterialCard(model=model, parameters=params, name=name, provenance=prov)
 
 
@@ -596,9 +604,15 @@ def _xml_text(root: ET.Element) -> str:
 
 
 def write_febio(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
-                displacement: float | None = None, force: bool = False) -> Path:
-    """Write an FEBio ``.feb`` file (febio_spec 4.0): the material alone, or with ``mesh`` a
-    complete compression specimen (see :func:`febio_model`). Conversion: :func:`febio_material`."""
+                displacement: float | None = None, force: bool = False, indentation=None) -> Path:
+    """Write an FEBio ``.feb`` file (febio_spec 4.0): the material alone, with ``mesh`` a
+    complete compression specimen (see :func:`febio_model`), or with ``indentation`` (an
+    :class:`~difftissue.export_indentation.IndentationSpecimen`) an indentation specimen
+    (:func:`febio_indentation_model`). Conversion: :func:`febio_material`."""
+    if indentation is not None:
+        _no_mesh_with_indentation(mesh)
+        text = _xml_text(febio_indentation_model(card, indentation, law=law, approximate=approximate))
+        return _write_text(path, text, force)
     text = _xml_text(febio_model(card, mesh, law=law, approximate=approximate, displacement=displacement))
     return _write_text(path, text, force)
 
@@ -769,9 +783,15 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
 
 
 def write_sofa(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
-               displacement: float | None = None, spring_fraction: float = 0.5, force: bool = False) -> Path:
+               displacement: float | None = None, spring_fraction: float = 0.5, force: bool = False, indentation=None) -> Path:
     """Write a SOFA ``.scn`` scene (see :func:`sofa_scene`; conversions in :func:`sofa_force_field`,
-    :func:`sofa_polynomial_coefficients`, :func:`sofa_springs_split`)."""
+    :func:`sofa_polynomial_coefficients`, :func:`sofa_springs_split`; indentation specimens:
+    :func:`sofa_indentation_scene`)."""
+    if indentation is not None:
+        _no_mesh_with_indentation(mesh)
+        if law == "springs":
+            raise ExportError("law='springs' is written for the compression block only, not for an indentation specimen")
+        return _write_text(path, _xml_text(sofa_indentation_scene(card, indentation, law=law, approximate=approximate)), force)
     return _write_text(path, _xml_text(sofa_scene(card, mesh, law=law, approximate=approximate, displacement=displacement,
                                                   spring_fraction=spring_fraction)), force)
 
@@ -860,14 +880,18 @@ def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, appro
 
 
 def write_abaqus(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
-                 displacement: float | None = None, force: bool = False) -> Path:
-    """Write an Abaqus ``.inp`` (see :func:`abaqus_model`; conversion in :func:`abaqus_material`)."""
+                 displacement: float | None = None, force: bool = False, indentation=None) -> Path:
+    """Write an Abaqus ``.inp`` (see :func:`abaqus_model`; conversion in :func:`abaqus_material`;
+    indentation specimens: :func:`abaqus_indentation_model`)."""
+    if indentation is not None:
+        _no_mesh_with_indentation(mesh)
+        return _write_text(path, abaqus_indentation_model(card, indentation, law=law, approximate=approximate), force)
     return _write_text(path, abaqus_model(card, mesh, law=law, approximate=approximate, displacement=displacement), force)
 
 
 # ============================================================================= XPBD
 def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps: int = 1, mesh=None,
-                    approximate: bool = False, displacement: float | None = None) -> dict:
+                    approximate: bool = False, displacement: float | None = None, indentation=None) -> dict:
     """Stable neo-Hookean XPBD constraint data (Macklin & Müller 2021) for a stated time step.
 
     Per tetrahedron of rest volume ``V0``: deviatoric constraint ``C_D = sqrt(tr F^T F)`` with
@@ -911,6 +935,9 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
         "notes": notes,
         "card_provenance": card.provenance,
     }
+    if indentation is not None:
+        _no_mesh_with_indentation(mesh)
+        mesh = indentation.mesh()
     if mesh is not None:
         pts = np.asarray(mesh.points, dtype=float)
         t = np.asarray(mesh.tets)
@@ -923,8 +950,26 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
             "hydrostatic_alpha_tilde": (1.0 / (lam_s * v0) / h**2).tolist(),
             "unit": "compliance 1/(Pa m^3); alpha_tilde = compliance / h^2",
         }
-        out["specimen"] = _specimen_dict(card, mesh, displacement)
+        out["specimen"] = _specimen_dict(card, mesh, displacement) if indentation is None else _xpbd_indentation_specimen(card, indentation, mesh)
     return out
+
+
+def _xpbd_indentation_specimen(card: MaterialCard, spec, mesh) -> dict:
+    from .export_indentation import indentation_sets
+
+    s = indentation_sets(spec, mesh, card)
+    pts = np.asarray(mesh.points, dtype=float)
+    t = np.asarray(mesh.tets)
+    v0 = np.abs(np.einsum("ij,ij->i", np.cross(pts[t[:, 1]] - pts[t[:, 0]], pts[t[:, 2]] - pts[t[:, 0]]), pts[t[:, 3]] - pts[t[:, 0]])) / 6.0
+    m = np.zeros(len(pts))
+    np.add.at(m, t.reshape(-1), np.repeat(card.density * v0 / 4.0, 4))
+    if spec.base == "bonded":
+        fixed = {"all_components": s["base"].tolist()}
+    else:
+        fixed = {"z": s["base"].tolist(), "x": [s["anchor"]], "y": [s["anchor"], s["other"]]}
+    return {"experiment": "indentation", "positions": pts.tolist(), "tets": t.tolist(), "masses": m.tolist(),
+            "fixed": fixed, "indenter": _xpbd_indenter(card, spec, mesh), "assumptions": spec.describe(),
+            "note": "SI; fixed: node ids per held component (base z = 0); masses rho V/4 per tet node"}
 
 
 def _specimen_dict(card: MaterialCard, mesh, displacement: float | None) -> dict:
@@ -942,15 +987,15 @@ def _specimen_dict(card: MaterialCard, mesh, displacement: float | None) -> dict
 
 
 def write_xpbd(card: MaterialCard, path, *, dt: float, iterations: int, substeps: int = 1, mesh=None,
-               approximate: bool = False, displacement: float | None = None, force: bool = False) -> Path:
+               approximate: bool = False, displacement: float | None = None, force: bool = False, indentation=None) -> Path:
     """Write :func:`xpbd_parameters` as JSON."""
     doc = xpbd_parameters(card, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate,
-                          displacement=displacement)
+                          displacement=displacement, indentation=indentation)
     return _write_text(path, json.dumps(doc, indent=2, allow_nan=False) + "\n", force)
 
 
 # ============================================================================== VTU
-def write_vtu(card: MaterialCard, mesh, path, *, displacement: float | None = None, force: bool = False) -> Path:
+def write_vtu(card: MaterialCard, mesh, path, *, displacement: float | None = None, force: bool = False, indentation=None) -> Path:
     """Write ``mesh`` as VTU with per-cell material fields: ``youngs_modulus``, ``poisson_ratio``,
     ``cubic_coefficient``, ``density``, ``pre_stretch``, ``shear_modulus`` (mu), ``lame_lambda``,
     ``bulk_modulus`` (all SI), constant over the cells, and the specimen's boundary conditions as
@@ -958,6 +1003,9 @@ def write_vtu(card: MaterialCard, mesh, path, *, displacement: float | None = No
     [m] (top: ``(0, 0, displacement)``, default -10 % of the height). No conversion is involved."""
     from .mesh import write_mesh
 
+    if indentation is not None:
+        _no_mesh_with_indentation(mesh)
+        return _write_vtu_indentation(card, indentation, path, force)
     if mesh is None:
         raise ExportError("a VTU export needs a mesh (--specimen)")
     if Path(path).suffix.lower() != ".vtu":
@@ -1010,6 +1058,42 @@ def to_skfem(card: MaterialCard, mesh=None, *, approximate: bool = False) -> dic
                    dofs=np.asarray(basis.nodal_dofs).T.copy())
     return out
 
+def _write_vtu_indentation(card: MaterialCard, spec, path, force: bool) -> Path:
+    """VTU of an indentation specimen: material cell fields as for the block, point data
+    ``boundary`` (0 free, 1 base bonded, 4 base sliding (u_z = 0), 2 punch, 3 contact
+    candidate), ``prescribed_displacement`` [m] (punch: ``(0, 0, -depth)``) and
+    ``contact_penalty`` [N/m] (difftissue's ``kappa_i`` of the candidate nodes)."""
+    from .export_indentation import indentation_sets
+    from .mesh import write_mesh
+
+    if Path(path).suffix.lower() != ".vtu":
+        raise ExportError(f"{path}: a VTU export must end in .vtu")
+    mesh = spec.mesh()
+    s = indentation_sets(spec, mesh, card)
+    n = int(np.asarray(mesh.tets).shape[0])
+    vals = {k: card.value(k) for k in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
+    vals.update(shear_modulus=card.shear_modulus, lame_lambda=card.lame_lambda, bulk_modulus=card.bulk_modulus)
+    cell = {k: np.full(n, float(v)) for k, v in vals.items()}
+    npts = len(np.asarray(mesh.points))
+    boundary = np.zeros(npts)
+    presc = np.zeros((npts, 3))
+    kappa = np.zeros(npts)
+    if spec.indenter == "flat_punch":
+        boundary[s["punch"]] = 2.0
+        presc[s["punch"], 2] = -spec.depth
+    else:
+        boundary[s["contact_nodes"]] = 3.0
+        kappa[s["contact_nodes"]] = s["kappa"]
+    boundary[s["base"]] = 1.0 if spec.base == "bonded" else 4.0
+    point = {"boundary": boundary, "prescribed_displacement": presc, "contact_penalty": kappa}
+    return write_mesh(path, mesh, point_data=point, cell_data=cell, overwrite=force)
+
+
+def _no_mesh_with_indentation(mesh) -> None:
+    if mesh is not None:
+        raise ExportError("give either a block specimen (mesh) or an indentation specimen, not both")
+
+
 # =========================================================================== common
 def _write_text(path, text: str, force: bool) -> Path:
     with atomic_output(path, overwrite=force) as tmp:
@@ -1019,28 +1103,315 @@ def _write_text(path, text: str, force: bool) -> Path:
 
 def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
            law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int = 1,
-           displacement: float | None = None, constraints: str = "xpbd") -> Path:
+           displacement: float | None = None, constraints: str = "xpbd", indentation=None) -> Path:
     """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``.
 
     ``to="pbd"``: a pypbd scene (:func:`difftissue.pbd.write_pbd`; ``constraints`` ``"xpbd"`` or
-    ``"fem"``, ``dt`` default 1/60 s, ``iterations`` default 10)."""
+    ``"fem"``, ``dt`` default 1/60 s, ``iterations`` default 10). ``indentation``: an
+    :class:`~difftissue.export_indentation.IndentationSpecimen` (instead of ``mesh``)."""
+    if indentation is not None and displacement is not None:
+        raise ExportError("displacement is the compression block's top displacement; an indentation specimen takes its depth")
     if to == "febio":
-        return write_febio(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
+        return write_febio(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force,
+                           indentation=indentation)
     if to == "sofa":
-        return write_sofa(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
+        return write_sofa(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force,
+                          indentation=indentation)
     if to == "abaqus":
-        return write_abaqus(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force)
+        return write_abaqus(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force,
+                            indentation=indentation)
     if to == "pbd":
         from .pbd import write_pbd
 
         return write_pbd(card, path, mesh=mesh, constraints=constraints, dt=1.0 / 60.0 if dt is None else dt,
                          iterations=10 if iterations is None else iterations, substeps=substeps,
-                         approximate=approximate, displacement=displacement, force=force)
+                         approximate=approximate, displacement=displacement, force=force, indentation=indentation)
     if to == "xpbd":
         if dt is None or iterations is None:
             raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")
         return write_xpbd(card, path, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate,
-                          displacement=displacement, force=force)
+                          displacement=displacement, force=force, indentation=indentation)
     if to == "vtu":
-        return write_vtu(card, mesh, path, displacement=displacement, force=force)
+        return write_vtu(card, mesh, path, displacement=displacement, force=force, indentation=indentation)
     raise ExportError(f"unknown export target {to!r}; choose one of {list(TARGETS)}")
+
+
+# ===================================================================== indentation
+def _ind_check(spec, target: str, *, cone: bool = True, sliding: bool = True, frictionless_punch: bool = True,
+               contact: bool = True) -> None:
+    why = {"cone": cone, "sliding": sliding}
+    if spec.indenter == "cone" and not why["cone"]:
+        raise ExportError(f"{target} cannot represent the cone indenter of this specimen (see docs/export.md, Indentation specimens)")
+    if spec.indenter == "sphere" and not contact:
+        raise ExportError(f"{target} cannot represent the sphere indenter of this specimen (see docs/export.md, Indentation specimens)")
+    if spec.base == "sliding" and not sliding:
+        raise ExportError(f"{target}: the indentation specimen supports base='bonded' only (a sliding base is not written for this target)")
+    if spec.indenter == "flat_punch" and not spec.bonded_punch and not frictionless_punch:
+        raise ExportError(f"{target} prescribes all components of moved nodes: only a bonded flat punch (bonded_punch=True, "
+                          "--bonded-punch) can be written, not a frictionless one")
+
+
+def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None, approximate: bool = False) -> ET.Element:
+    """FEBio 4.0 model of an indentation specimen (:mod:`difftissue.export_indentation`).
+
+    * sphere: ``<Contact><contact type="rigid sphere" surface="contact">`` (FEBio's analytical
+      rigid sphere, ``FERigidSphereContact``: parameters ``laugon``, ``tolerance``,
+      ``penalty``, ``radius``, ``center``, ``ux``/``uy``/``uz``), frictionless, penalty method
+      (``laugon`` 0); the centre starts at ``(0, 0, H + R)`` and is displaced by
+      ``<uz lc="1">-depth</uz>``. FEBio's contact traction is ``penalty * gap`` [Pa] integrated
+      over the surface, so difftissue's per-node ``kappa_i = p E sqrt(A_i)`` [N/m] (force
+      ``kappa_i g``) becomes the per-area ``penalty = p E / h`` [Pa/m], ``h`` the interior
+      top-node length ``sqrt(A)``.
+    * flat punch: ``prescribed displacement`` (``dof`` z, ``-depth``) of the node set ``punch``
+      (plus ``zero displacement`` x, y for a bonded punch).
+    * cone: refused (FEBio offers analytical rigid sphere and rigid wall contact only).
+    """
+    from .export_indentation import indentation_sets
+
+    _ind_check(spec, "FEBio", cone=False)
+    mesh = spec.mesh()
+    s = indentation_sets(spec, mesh, card)
+    root = ET.Element("febio_spec", {"version": "4.0"})
+    for line in spec.describe():
+        root.append(_xml_comment(line))
+    ET.SubElement(root, "Module", {"type": "solid"})
+    ctrl = ET.SubElement(root, "Control")
+    ET.SubElement(ctrl, "analysis").text = "STATIC"
+    ET.SubElement(ctrl, "time_steps").text = str(int(spec.steps))
+    ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / spec.steps)
+    root.append(febio_material(card, law=law, approximate=approximate))
+    meshel = ET.SubElement(root, "Mesh")
+    nodes = ET.SubElement(meshel, "Nodes", {"name": "specimen"})
+    for i, p in enumerate(np.asarray(mesh.points, dtype=float), start=1):
+        ET.SubElement(nodes, "node", {"id": str(i)}).text = ",".join(_fmt(c) for c in p)
+    elems = ET.SubElement(meshel, "Elements", {"type": "tet4", "name": "tissue"})
+    for i, t in enumerate(np.asarray(mesh.tets), start=1):
+        ET.SubElement(elems, "elem", {"id": str(i)}).text = ",".join(str(int(n) + 1) for n in t)
+    ids = lambda a: ",".join(str(int(n) + 1) for n in np.atleast_1d(a))  # noqa: E731
+    ET.SubElement(meshel, "NodeSet", {"name": "base"}).text = ids(s["base"])
+    ET.SubElement(meshel, "NodeSet", {"name": "top"}).text = ids(s["top"])
+    if spec.base == "sliding":
+        ET.SubElement(meshel, "NodeSet", {"name": "base_anchor"}).text = ids(s["anchor"])
+        ET.SubElement(meshel, "NodeSet", {"name": "base_other"}).text = ids(s["other"])
+    if spec.indenter == "flat_punch":
+        ET.SubElement(meshel, "NodeSet", {"name": "punch"}).text = ids(s["punch"])
+    else:
+        surf = ET.SubElement(meshel, "Surface", {"name": "contact"})
+        for i, f in enumerate(s["top_faces"], start=1):
+            ET.SubElement(surf, "tri3", {"id": str(i)}).text = ids(f)
+    doms = ET.SubElement(root, "MeshDomains")
+    ET.SubElement(doms, "SolidDomain", {"name": "tissue", "mat": card.name})
+    bnd = ET.SubElement(root, "Boundary")
+
+    def zero(name, nset, dofs):
+        bc = ET.SubElement(bnd, "bc", {"name": name, "node_set": nset, "type": "zero displacement"})
+        for dof in ("x_dof", "y_dof", "z_dof"):
+            ET.SubElement(bc, dof).text = "1" if dof[0] in dofs else "0"
+
+    if spec.base == "bonded":
+        zero("fixed_base", "base", "xyz")
+    else:
+        zero("sliding_base", "base", "z")
+        zero("base_anchor", "base_anchor", "xy")
+        zero("base_other", "base_other", "y")
+    if spec.indenter == "flat_punch":
+        pre = ET.SubElement(bnd, "bc", {"name": "punch_displacement", "node_set": "punch", "type": "prescribed displacement"})
+        ET.SubElement(pre, "dof").text = "z"
+        ET.SubElement(pre, "value", {"lc": "1"}).text = _fmt(-spec.depth)
+        ET.SubElement(pre, "relative").text = "0"
+        if spec.bonded_punch:
+            zero("punch_bonded", "punch", "xy")
+    else:
+        eps = spec.penalty * card.youngs_modulus / s["h"]
+        H = s["H"]
+        root.append(_xml_comment(
+            f"rigid sphere penalty = p E / h = {spec.penalty:g} * {card.youngs_modulus:.10g} Pa / {s['h']:.10g} m = {eps:.10g} Pa/m "
+            "(FEBio traction penalty*gap per area; difftissue force kappa_i*gap per node with kappa_i = p E sqrt(A_i))"))
+        con = ET.SubElement(root, "Contact")
+        c = ET.SubElement(con, "contact", {"name": "indenter", "type": "rigid sphere", "surface": "contact"})
+        ET.SubElement(c, "laugon").text = "0"
+        ET.SubElement(c, "tolerance").text = "0.2"
+        ET.SubElement(c, "penalty").text = _fmt(eps)
+        ET.SubElement(c, "radius").text = _fmt(spec.radius)
+        ET.SubElement(c, "center").text = ",".join(_fmt(v) for v in (0.0, 0.0, H + spec.radius))
+        ET.SubElement(c, "ux").text = "0"
+        ET.SubElement(c, "uy").text = "0"
+        ET.SubElement(c, "uz", {"lc": "1"}).text = _fmt(-spec.depth)
+    ld = ET.SubElement(root, "LoadData")
+    lc = ET.SubElement(ld, "load_controller", {"id": "1", "name": "ramp", "type": "loadcurve"})
+    ET.SubElement(lc, "interpolate").text = "LINEAR"
+    pts = ET.SubElement(lc, "points")
+    ET.SubElement(pts, "pt").text = "0,0"
+    ET.SubElement(pts, "pt").text = "1,1"
+    out = ET.SubElement(root, "Output")
+    plot = ET.SubElement(out, "plotfile", {"type": "febio"})
+    for var in ("displacement", "stress", "reaction forces"):
+        ET.SubElement(plot, "var", {"type": var})
+    return root
+
+
+def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None, approximate: bool = False) -> str:
+    """Abaqus input of an indentation specimen.
+
+    Sphere and cone: an analytical rigid surface ``*SURFACE, TYPE=REVOLUTION, NAME=INDENTER``
+    (first data line: point a = origin of the local (r, z) system, point b on the symmetry
+    axis, local z pointing away from the tissue; then ``START`` and ``CIRCL`` (sphere: arc from
+    the equator (R, 0) to the tip (0, -R) about the centre) or ``LINE`` (cone: from r = the
+    block's half-diagonal down to the tip); the profile runs towards the tip, as in
+    Abaqus/CAE-written indenter inputs, so that the outward normal faces the tissue),
+    ``*RIGID BODY, ANALYTICAL SURFACE=INDENTER, REF NODE=<n>`` with the reference node at the
+    sphere centre / cone tip, ``*SURFACE INTERACTION`` with ``*FRICTION`` 0 (frictionless),
+    ``*CONTACT PAIR`` of the node-based top surface ``TOP_SURF`` with ``INDENTER`` (Abaqus's
+    default hard contact: no penalty), and ``*BOUNDARY`` on the reference node (dofs 1, 2,
+    4-6 zero, dof 3 = -depth). Flat punch: ``*BOUNDARY`` ``PUNCH, 3, 3, -depth`` (plus
+    ``PUNCH, 1, 2`` for a bonded punch).
+    """
+    from .export_indentation import indentation_sets
+
+    _ind_check(spec, "Abaqus")
+    mesh = spec.mesh()
+    s = indentation_sets(spec, mesh, card)
+    law = _law(card, law)
+    mat = abaqus_material(card, law=law, approximate=approximate)
+    mname = abaqus_name(card.name)
+    pts = np.asarray(mesh.points, dtype=float)
+    H = s["H"]
+    lines = ["*HEADING", f"difftissue indentation specimen for material {mname} (SI units: m, N, Pa, kg)"]
+    lines += [_abaqus_comment(t) for t in spec.describe()]
+    lines.append("*NODE")
+    for i, p in enumerate(pts, start=1):
+        lines.append(f"{i}, " + ", ".join(_fmt(c) for c in p))
+    contact = spec.indenter in ("sphere", "cone")
+    ref = len(pts) + 1
+    if contact:
+        zr = H + spec.radius if spec.indenter == "sphere" else H
+        lines.append(f"{ref}, 0.0, 0.0, {_fmt(zr)}")
+    lines.append("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")
+    for i, t in enumerate(np.asarray(mesh.tets), start=1):
+        lines.append(f"{i}, " + ", ".join(str(int(n) + 1) for n in t))
+    for name, arr in (("BASE", s["base"]), ("TOP", s["top"])):
+        lines.append(f"*NSET, NSET={name}")
+        lines += _wrap_ids(np.atleast_1d(arr) + 1)
+    if spec.base == "sliding":
+        lines += ["*NSET, NSET=BASE_ANCHOR", str(s["anchor"] + 1), "*NSET, NSET=BASE_OTHER", str(s["other"] + 1)]
+    if spec.indenter == "flat_punch":
+        lines.append("*NSET, NSET=PUNCH")
+        lines += _wrap_ids(s["punch"] + 1)
+    lines += [f"*SOLID SECTION, ELSET=TISSUE, MATERIAL={mname}", ","]
+    lines += mat
+    if contact:
+        lines += ["*NSET, NSET=RP", str(ref), "*SURFACE, TYPE=NODE, NAME=TOP_SURF", "TOP,",
+                  "*SURFACE, TYPE=REVOLUTION, NAME=INDENTER", f"0.0, 0.0, {_fmt(zr)}, 0.0, 0.0, {_fmt(zr + 1.0)}"]
+        if spec.indenter == "sphere":
+            R = spec.radius
+            lines += [_abaqus_comment(f"sphere: local origin at the centre (0, 0, H + R = {zr:.10g}), profile from the equator (R, 0) to the tip (0, -R)"),
+                      f"START, {_fmt(R)}, 0.0", f"CIRCL, 0.0, {_fmt(-R)}, 0.0, 0.0"]
+        else:
+            rmax = 0.5 * math.hypot(spec.size[0], spec.size[1])
+            lines += [_abaqus_comment(f"cone: local origin at the tip (0, 0, H), half-angle {spec.half_angle:.10g} rad, profile from r = {rmax:.10g} m to the tip"),
+                      f"START, {_fmt(rmax)}, {_fmt(rmax / math.tan(spec.half_angle))}", "LINE, 0.0, 0.0"]
+        lines += ["*RIGID BODY, ANALYTICAL SURFACE=INDENTER, REF NODE=RP",
+                  "*SURFACE INTERACTION, NAME=FRICTIONLESS", "*FRICTION", "0.0",
+                  "*CONTACT PAIR, INTERACTION=FRICTIONLESS", "TOP_SURF, INDENTER"]
+    lines += [f"*STEP, NLGEOM={'YES' if (law == 'neo_hookean' or contact) else 'NO'}", "*STATIC",
+              f"{_fmt(1.0 / spec.steps)}, 1.0, 1e-05, {_fmt(1.0 / spec.steps)}", "*BOUNDARY"]
+    if spec.base == "bonded":
+        lines.append("BASE, ENCASTRE")
+    else:
+        lines += ["BASE, 3, 3, 0.0", "BASE_ANCHOR, 1, 2, 0.0", "BASE_OTHER, 2, 2, 0.0"]
+    if contact:
+        lines += ["RP, 1, 2, 0.0", "RP, 4, 6, 0.0", f"RP, 3, 3, {_fmt(-spec.depth)}"]
+    else:
+        lines.append(f"PUNCH, 3, 3, {_fmt(-spec.depth)}")
+        if spec.bonded_punch:
+            lines.append("PUNCH, 1, 2, 0.0")
+    lines += ["*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
+    if contact:
+        lines += ["*OUTPUT, HISTORY", "*NODE OUTPUT, NSET=RP", "U3, RF3"]
+    lines.append("*END STEP")
+    return "\n".join(lines) + "\n"
+
+
+def sofa_indentation_scene(card: MaterialCard, spec, *, law: str | None = None, approximate: bool = False) -> ET.Element:
+    """SOFA scene of an indentation specimen (base bonded only).
+
+    Sphere: ``SphereForceField`` (``Sofa.Component.MechanicalLoad``; force on every point inside
+    the sphere ``stiffness * (R - |x - c|)`` along the outward normal, i.e. difftissue's
+    per-node penalty force with one ``stiffness`` = ``p E h`` for all nodes), fixed at the
+    centre ``(0, 0, H + R)``, with ``damping="0"``; the indentation is the base moved up by
+    ``depth`` (``LinearMovementProjectiveConstraint`` on the base, all components, over
+    ``steps`` steps): the same relative motion, and a static equilibrium does not depend on
+    the frame. Flat punch: base fixed, punch nodes moved by ``(0, 0, -depth)`` (bonded punch
+    only: the constraint prescribes all components). Cone: refused (``ConicalForceField``'s
+    angle and inside/outside conventions were not verified).
+    """
+    from .export_indentation import indentation_sets
+
+    _ind_check(spec, "SOFA", cone=False, sliding=False, frictionless_punch=False)
+    mesh = spec.mesh()
+    s = indentation_sets(spec, mesh, card)
+    law = _law(card, law)
+    notes = _approximations(card, "SOFA " + law, approximate=approximate)
+    root = ET.Element("Node", {"name": "root", "gravity": "0 0 0", "dt": _fmt(1.0 / spec.steps)})
+    for line in _header_lines(card, "SOFA", law) + notes + spec.describe():
+        root.append(_xml_comment(line))
+    plugins = ["Sofa.Component.SolidMechanics.FEM.Elastic" if law == "linear" else "Sofa.Component.SolidMechanics.FEM.HyperElastic",
+               "Sofa.Component.ODESolver.Backward", "Sofa.Component.LinearSolver.Direct", "Sofa.Component.Mass",
+               "Sofa.Component.StateContainer", "Sofa.Component.Topology.Container.Constant", "Sofa.Component.Constraint.Projective"]
+    if spec.indenter == "sphere":
+        plugins.append("Sofa.Component.MechanicalLoad")
+    for p in plugins:
+        ET.SubElement(root, "RequiredPlugin", {"name": p})
+    node = ET.SubElement(root, "Node", {"name": "tissue"})
+    ET.SubElement(node, "StaticSolver")
+    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
+    pts = np.asarray(mesh.points, dtype=float)
+    ET.SubElement(node, "MeshTopology", {"name": "topology", "position": " ".join(_fmt(c) for c in pts.reshape(-1)),
+                                         "tetrahedra": " ".join(str(int(n)) for n in np.asarray(mesh.tets).reshape(-1))})
+    ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "src": "@topology"})
+    ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
+    node.append(sofa_force_field(card, law=law, approximate=True))
+    join = lambda a: " ".join(str(int(i)) for i in np.atleast_1d(a))  # noqa: E731
+    if spec.indenter == "sphere":
+        k = spec.penalty * card.youngs_modulus * s["h"]
+        node.append(_xml_comment(
+            f"SphereForceField stiffness = p E h = {spec.penalty:g} * {card.youngs_modulus:.10g} Pa * {s['h']:.10g} m = {k:.10g} N/m "
+            "(difftissue's kappa_i of an interior top node; edge nodes differ, docs/export.md); the sphere is fixed and the "
+            f"base moves up by the depth {spec.depth:.10g} m"))
+        ET.SubElement(node, "SphereForceField", {"name": "indenter", "template": "Vec3d",
+                                                 "center": f"0 0 {_fmt(s['H'] + spec.radius)}", "radius": _fmt(spec.radius),
+                                                 "stiffness": _fmt(k), "damping": "0"})
+        ET.SubElement(node, "LinearMovementProjectiveConstraint", {
+            "name": "base_displacement", "template": "Vec3d", "indices": join(s["base"]),
+            "keyTimes": "0 1", "movements": f"0 0 0  0 0 {_fmt(spec.depth)}", "relativeMovements": "1"})
+    else:
+        ET.SubElement(node, "FixedProjectiveConstraint", {"name": "fixed_base", "indices": join(s["base"])})
+        ET.SubElement(node, "LinearMovementProjectiveConstraint", {
+            "name": "punch_displacement", "template": "Vec3d", "indices": join(s["punch"]),
+            "keyTimes": "0 1", "movements": f"0 0 0  0 0 {_fmt(-spec.depth)}", "relativeMovements": "1"})
+    return root
+
+
+def _xpbd_indenter(card: MaterialCard, spec, mesh) -> dict:
+    """The ``indenter`` block of an XPBD indentation specimen (difftissue's contact energy)."""
+    from .export_indentation import indentation_sets
+
+    s = indentation_sets(spec, mesh, card)
+    H = s["H"]
+    out: dict[str, Any] = {"shape": spec.indenter, "axis": [0.0, 0.0], "surface_z": H, "depth": spec.depth,
+                           "depth_steps": [spec.depth * (i + 1) / spec.steps for i in range(spec.steps)]}
+    if spec.indenter == "flat_punch":
+        out.update(radius=spec.radius, bonded=spec.bonded_punch, nodes=s["punch"].tolist(),
+                   prescribed="u_z = -depth" + (", u_x = u_y = 0" if spec.bonded_punch else " (x, y free: frictionless)"))
+        return out
+    if spec.indenter == "sphere":
+        out.update(radius=spec.radius, center_at_depth=[0.0, 0.0, H - spec.depth + spec.radius],
+                   penetration="p_i = R - |x_i - c|, c = (0, 0, H - depth + R)")
+    else:
+        out.update(half_angle=spec.half_angle, tip_at_depth=[0.0, 0.0, H - spec.depth],
+                   penetration="p_i = (z_i - z_tip) sin(theta) - r_i cos(theta), r_i = distance to the axis")
+    out.update(contact_nodes=s["contact_nodes"].tolist(), penalty=s["kappa"].tolist(),
+               energy="sum_i penalty_i / 2 max(p_i, 0)^2 (frictionless; penalty_i = p E sqrt(A_i) [N/m], "
+                      f"p = {spec.penalty:g}, A_i the node's tributary boundary area)",
+               force="indentation force = sum_i penalty_i max(p_i, 0) dp_i/d(depth) (positive compressive)")
+    return out

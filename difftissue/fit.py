@@ -1243,6 +1243,7 @@ def write_fit_outputs(
     model=None,
     scenario_names: Sequence[str] | None = None,
     force: bool = False,
+    scenario_records: Sequence[dict] | None = None,
 ) -> dict[str, Path]:
     """Write ``fit.json``, ``material.json``, ``fit.png``, ``loss.png`` and ``report.md`` into ``out_dir``.
 
@@ -1258,6 +1259,9 @@ def write_fit_outputs(
         data_files: measured-data files used by the fit; each is recorded with its sha256.
         model: model name (str) or object (its ``name`` or type name is recorded).
         scenario_names: names to record instead of the result's scenarios.
+        scenario_records: per-scenario experiment records for the card
+            (:func:`difftissue.export_indentation.scenario_record`: indenter, radius, depths, ...),
+            used by ``difftissue export --specimen indentation``.
         force: overwrite existing output files. Without it, an existing file among the five
             raises :class:`~difftissue.errors.OutputExistsError` naming it, before anything is written.
 
@@ -1285,7 +1289,8 @@ def write_fit_outputs(
     from .export import card_from_fit
 
     model_name = None if model is None else (model if isinstance(model, str) else getattr(model, "name", None) or type(model).__name__)
-    card = card_from_fit(result, model=model_name or "unspecified", scenario_names=names, data_files=data_files)
+    card = card_from_fit(result, model=model_name or "unspecified", scenario_names=names, data_files=data_files,
+                         scenario_records=scenario_records)
     with atomic_output(paths["material.json"], overwrite=force) as tmp:
         tmp.write_text(card.to_json(), encoding="utf-8")
     with atomic_output(paths["fit.png"], overwrite=force) as tmp:

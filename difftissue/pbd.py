@@ -86,7 +86,7 @@ def _lumped_masses(points, tets, density) -> np.ndarray:
 
 
 def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 60.0, substeps: int = 1,
-              iterations: int = 10, approximate: bool = False, displacement: float | None = None) -> dict:
+              iterations: int = 10, approximate: bool = False, displacement: float | None = None, indentation=None) -> dict:
     """A pypbd scene for ``card`` (a :class:`~difftissue.export.MaterialCard`) as a JSON-ready dict.
 
     ``constraints="xpbd"`` (default): difftissue's spring lattice as XPBD distance constraints
@@ -114,6 +114,15 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 6
     tets (0-based, positively oriented), constraints, base (min z) and top (max z) particles
     static (mass 0), the top moved by ``displacement`` [m] along z (default -10 % of the
     height), and the time setting ``dt`` [s], ``substeps``, ``iterations`` it is meant for.
+
+    ``indentation`` (an :class:`~difftissue.export_indentation.IndentationSpecimen`, instead of
+    ``mesh``): a flat-punch specimen with a bonded punch and a bonded base: base particles
+    static, the particles under the punch static and moved by ``(0, 0, -depth)``. A pypbd
+    particle is either static (all components held) or free, so a frictionless punch or a
+    sliding base cannot be written; sphere and cone indenters are refused (pypbd's collision
+    handling is rigid-body / distance-field collision with position-based restitution and
+    friction, not a static frictionless contact that :func:`run_pbd_scene` could drive to
+    equilibrium).
     """
     from .export import _approximations, _default_displacement, _finite, _header_lines, _specimen_sets
 
@@ -125,6 +134,24 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 6
     for name, v in (("iterations", iterations), ("substeps", substeps)):
         if isinstance(v, bool) or int(v) != v or v < 1:
             raise ExportError(f"{name} = {v!r} must be a positive integer")
+    ind_sets = None
+    if indentation is not None:
+        if mesh is not None:
+            raise ExportError("give either a block specimen (mesh) or an indentation specimen, not both")
+        if displacement is not None:
+            raise ExportError("displacement is the compression block's top displacement; an indentation specimen takes its depth")
+        if indentation.indenter != "flat_punch":
+            raise ExportError(f"pypbd: a {indentation.indenter} indenter needs frictionless contact, which the pypbd scene cannot "
+                              "represent (pypbd's collision detection is for rigid bodies / distance fields with position-based "
+                              "restitution and friction, not a static penalty contact); export a flat punch, or use FEBio / "
+                              "Abaqus / SOFA / the XPBD JSON for a sphere")
+        if indentation.base != "bonded" or not indentation.bonded_punch:
+            raise ExportError("pypbd: a particle is either static (all components held) or free, so only a bonded base and a "
+                              "bonded flat punch (bonded_punch=True, --bonded-punch) can be written")
+        from .export_indentation import indentation_sets
+
+        mesh = indentation.mesh()
+        ind_sets = indentation_sets(indentation, mesh, card)
     E, nu, rho = card.youngs_modulus, card.poisson_ratio, card.density
     mu, lam = card.shear_modulus, card.lame_lambda
     notes: list[str] = []
@@ -184,16 +211,24 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 6
     vol = _tet_volumes(pts, tets)
     if np.any(vol <= 0):
         raise ExportError(f"{int(np.sum(vol <= 0))} tet(s) are not positively oriented; pypbd's volume constraint needs V > 0")
-    base, top, height = _specimen_sets(mesh)
-    d = _default_displacement(height, displacement)
+    if ind_sets is None:
+        base, top, height = _specimen_sets(mesh)
+        dvec = [0.0, 0.0, _default_displacement(height, displacement)]
+        bnote = "static particles; 'moved' ones are displaced by 'displacement' [m] (all components prescribed)"
+    else:
+        base, top = ind_sets["base"], ind_sets["punch"]
+        dvec = [0.0, 0.0, -float(indentation.depth)]
+        bnote = ("indentation by a bonded flat punch: 'fixed' = base (z = 0), 'moved' = the particles under the punch, "
+                 "displaced by 'displacement' [m] (all components prescribed)")
+        scene["indentation"] = indentation.to_dict()
+        scene["header"] = scene["header"] + indentation.describe()
     masses = _lumped_masses(pts, tets, rho)
     masses[base] = 0.0
     masses[top] = 0.0
     scene["particles"] = {"positions": pts.tolist(), "masses": masses.tolist(),
                           "unit": "m, kg; mass 0 = static particle (pypbd)"}
     scene["tets"] = tets.tolist()
-    scene["boundary"] = {"fixed": base.tolist(), "moved": top.tolist(), "displacement": [0.0, 0.0, d],
-                         "note": "static particles; 'moved' ones are displaced by 'displacement' [m] (all components prescribed)"}
+    scene["boundary"] = {"fixed": base.tolist(), "moved": top.tolist(), "displacement": dvec, "note": bnote}
     if constraints == "xpbd":
         if getattr(mesh, "lattice", None) is None:
             raise ExportError("constraints='xpbd' needs a structured block with a cube lattice (difftissue.mesh.block); "
@@ -219,13 +254,14 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 6
 
 
 def write_pbd(card, path, *, mesh=None, constraints: str = "xpbd", dt: float = 1.0 / 60.0, substeps: int = 1,
-              iterations: int = 10, approximate: bool = False, displacement: float | None = None, force: bool = False) -> Path:
+              iterations: int = 10, approximate: bool = False, displacement: float | None = None, force: bool = False,
+              indentation=None) -> Path:
     """Write :func:`pbd_scene` as JSON (``"format": "difftissue-pbd/1"``); load it with
     :func:`read_pbd_scene` and :func:`pbd_simulation_from_scene`."""
     from .export import _write_text
 
     scene = pbd_scene(card, mesh, constraints=constraints, dt=dt, substeps=substeps, iterations=iterations,
-                      approximate=approximate, displacement=displacement)
+                      approximate=approximate, displacement=displacement, indentation=indentation)
     return _write_text(path, json.dumps(scene, indent=1, allow_nan=False) + "\n", force)
 
 

@@ -1,0 +1,403 @@
+"""Indentation specimens for the export writers (docs/export.md, "Indentation specimens").
+
+A card fitted to an indentation experiment (AFM sphere, cone, flat punch; analytic Hertz /
+Sneddon or simulated :class:`~difftissue.scenarios.Indentation`) is exported as a complete
+model of that experiment: a block ``[-Lx/2, Lx/2] x [-Ly/2, Ly/2] x [0, H]``
+(:func:`difftissue.scenarios.indentation_block` with ``symmetry="none"``), the indenter on the
+axis ``x = y = 0`` touching the top face ``z = H`` at depth 0 and pushed to ``depth`` along
+``-z``, the base ``z = 0`` bonded (all components fixed) or sliding (``u_z = 0`` plus the
+same two pinned nodes as :class:`~difftissue.scenarios.Indentation`).
+
+:class:`IndentationSpecimen` holds the geometry and protocol, each value with where it came
+from (the card's ``provenance.scenario_records``, an explicit option, or a stated default);
+:func:`indentation_specimen` builds it; :func:`scenario_record` writes the record a fit puts
+into its card. The writers (``difftissue.export`` and ``difftissue.pbd``) call
+:func:`indentation_sets` for the node sets and the contact penalty.
+
+What each target gets (conversions and citations in docs/export.md):
+
+* FEBio: sphere -> ``<contact type="rigid sphere">`` (analytical sphere, penalty contact,
+  frictionless, center displaced by ``<uz lc="1">``); flat punch -> prescribed displacement
+  of the nodes under the punch; cone -> refused (FEBio has no analytical cone contact).
+* Abaqus: sphere and cone -> ``*SURFACE, TYPE=REVOLUTION`` analytical rigid surface with
+  ``*RIGID BODY, ANALYTICAL SURFACE=..., REF NODE=...``, frictionless ``*SURFACE
+  INTERACTION`` / ``*FRICTION`` 0, ``*CONTACT PAIR`` with the top node surface, ``*BOUNDARY``
+  on the reference node; flat punch -> ``*BOUNDARY`` on the punch nodes.
+* SOFA: sphere -> ``SphereForceField``, cone -> ``ConicalForceField`` (penalty force fields of
+  ``Sofa.Component.MechanicalLoad``, fixed in space; the base is moved up by the depth, the
+  same relative motion); flat punch -> ``LinearMovementProjectiveConstraint`` on the punch
+  nodes (bonded punch only); base bonded only.
+* pypbd: flat punch (bonded punch, bonded base) only; sphere/cone refused.
+* XPBD JSON: an ``indenter`` block with the geometry, depth and difftissue's per-node
+  penalty; flat-punch files run in difftissue's own XPBD solver (:func:`run_xpbd_indentation`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import Any, Mapping
+
+import numpy as np
+
+from .errors import ExportError
+
+__all__ = ["IndentationSpecimen", "indentation_specimen", "scenario_record", "indentation_sets", "run_xpbd_indentation", "INDENTERS"]
+
+INDENTERS = ("sphere", "cone", "flat_punch")
+
+
+@dataclasses.dataclass(frozen=True)
+class IndentationSpecimen:
+    """Geometry and protocol of an indentation specimen (SI units).
+
+    Attributes:
+        indenter: ``"sphere"``, ``"cone"`` or ``"flat_punch"``.
+        depth: final indenter depth [m] (> 0), reached over ``steps`` equal increments.
+        size: ``(Lx, Ly, H)`` [m] of the block.
+        cells: ``(nx, ny, nz)`` cells of the block.
+        radius: sphere or punch radius [m]; half_angle: cone half-angle [rad].
+        base: ``"bonded"`` or ``"sliding"``; bonded_punch: punch nodes fixed in x and y too.
+        penalty: difftissue's dimensionless contact penalty (per-node ``kappa_i = penalty E sqrt(A_i)``).
+        steps: load increments; refine, core: graded cells (first cell size [m] at the axis and
+            the surface, kept uniform within ``core`` [m]; :func:`~difftissue.scenarios.indentation_block`),
+            ``None``: uniform cells; sources: ``{field: where the value came from}``.
+    """
+
+    indenter: str
+    depth: float
+    size: tuple[float, float, float]
+    cells: tuple[int, int, int]
+    radius: float | None = None
+    half_angle: float | None = None
+    base: str = "bonded"
+    bonded_punch: bool = False
+    penalty: float = 100.0
+    steps: int = 10
+    refine: float | None = None
+    core: float | None = None
+    sources: Mapping[str, str] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.indenter not in INDENTERS:
+            raise ExportError(f"indenter = {self.indenter!r}: expected one of {list(INDENTERS)}")
+        for name in ("depth", "penalty"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ExportError(f"indentation {name} = {v!r} must be a positive finite number")
+        if len(self.size) != 3 or not all(math.isfinite(v) and v > 0 for v in self.size):
+            raise ExportError(f"indentation block size = {self.size!r}: expected three positive lengths [m]")
+        if len(self.cells) != 3 or not all(int(n) == n and n >= 1 for n in self.cells):
+            raise ExportError(f"indentation cells = {self.cells!r}: expected three positive integers")
+        if self.indenter == "cone":
+            if self.half_angle is None or not 0.0 < self.half_angle < math.pi / 2:
+                raise ExportError(f"a cone needs half_angle in (0, pi/2) rad, got {self.half_angle!r}")
+        elif self.radius is None or not (math.isfinite(self.radius) and self.radius > 0):
+            raise ExportError(f"a {self.indenter} needs a positive radius [m], got {self.radius!r}")
+        if self.base not in ("bonded", "sliding"):
+            raise ExportError(f"base = {self.base!r}: expected 'bonded' or 'sliding'")
+        if int(self.steps) != self.steps or self.steps < 1:
+            raise ExportError(f"steps = {self.steps!r} must be a positive integer")
+        if self.depth >= self.size[2]:
+            raise ExportError(f"depth = {self.depth:g} m is not below the block height H = {self.size[2]:g} m")
+
+    def mesh(self):
+        """The block (``indentation_block(size, cells, symmetry="none")``, axis at x = y = 0)."""
+        from .scenarios import indentation_block
+
+        return indentation_block(self.size, self.cells, symmetry="none", refine=self.refine, core=self.core)
+
+    def contact_radius(self) -> float:
+        """Small-strain contact radius [m] at ``depth``: ``sqrt(R d)`` (Hertz), ``2 d tan(theta) / pi``
+        (Sneddon cone), ``R`` (punch)."""
+        if self.indenter == "sphere":
+            return math.sqrt(self.radius * self.depth)
+        if self.indenter == "cone":
+            return 2.0 * self.depth * math.tan(self.half_angle) / math.pi
+        return float(self.radius)
+
+    def describe(self) -> list[str]:
+        """Comment lines: every value and where it came from."""
+        geo = (f"sphere radius R = {self.radius:.10g} m" if self.indenter == "sphere" else
+               f"cone half-angle = {self.half_angle:.10g} rad ({math.degrees(self.half_angle):.6g} deg)" if self.indenter == "cone" else
+               f"flat punch radius = {self.radius:.10g} m ({'bonded' if self.bonded_punch else 'frictionless'} punch face)")
+        lines = [
+            f"indentation specimen: {geo}, on the axis x = y = 0, touching the top face z = H at depth 0, pushed along -z",
+            f"depth = {self.depth:.10g} m in {self.steps} equal steps; block {self.size[0]:.10g} x {self.size[1]:.10g} x "
+            f"{self.size[2]:.10g} m (x, y centred, 0 <= z <= H), {self.cells[0]} x {self.cells[1]} x {self.cells[2]} cells "
+            + ("" if self.refine is None else f"graded from {self.refine:.6g} m at the axis and the surface (uniform within {self.core:.6g} m) ")
+            + f"of 6 tets; base z = 0 {self.base}" + (" (u_z = 0, one node pinned in x and y, one in y)" if self.base == "sliding" else
+                                                    " (all components fixed)"),
+        ]
+        if self.indenter != "flat_punch":
+            lines.append(f"frictionless contact; difftissue's penalty factor {self.penalty:g} (kappa_i = penalty E sqrt(A_i) per node)")
+        for k, v in sorted(self.sources.items()):
+            lines.append(f"{k}: {v}")
+        return lines
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"indenter": self.indenter, "depth": self.depth, "size": list(self.size), "cells": list(self.cells),
+                "radius": self.radius, "half_angle": self.half_angle, "base": self.base, "bonded_punch": self.bonded_punch,
+                "penalty": self.penalty, "steps": self.steps, "refine": self.refine, "core": self.core,
+                "axis": [0.0, 0.0], "sources": dict(self.sources),
+                "unit": "m, rad"}
+
+
+def scenario_record(scenario) -> dict | None:
+    """JSON record of a scenario's experiment for a material card (``provenance.scenario_records``).
+
+    Indentation scenarios (:class:`~difftissue.scenarios.AnalyticIndentation`,
+    :class:`~difftissue.scenarios.Indentation`) record the indenter, its size, the largest
+    depth and the number of points (and for the analytic ones the layer thickness and base);
+    other scenarios record their name and type only. Returns ``None`` for an object without a name.
+    """
+    name = getattr(scenario, "name", None)
+    if name is None:
+        return None
+    rec: dict[str, Any] = {"name": str(name), "type": type(scenario).__name__}
+    x = getattr(scenario, "abscissa", None)
+    tname = type(scenario).__name__
+    if tname == "AnalyticIndentation":
+        rec["experiment"] = "indentation"
+        rec["indenter"] = scenario.indenter
+        rec["half_angle" if scenario.indenter == "cone" else "radius"] = float(scenario.size)
+        rec["thickness"] = None if scenario.thickness is None else float(scenario.thickness)
+        rec["base"] = scenario.base
+        rec["solution"] = scenario.solution
+    elif tname == "Indentation":
+        from .contact import ConeIndenter, SphereIndenter
+
+        rec["experiment"] = "indentation"
+        geom = getattr(getattr(scenario, "model", None), "indenter", None)
+        if isinstance(geom, SphereIndenter):
+            rec["indenter"], rec["radius"] = "sphere", float(geom.radius)
+        elif isinstance(geom, ConeIndenter):
+            rec["indenter"], rec["half_angle"] = "cone", float(geom.half_angle)
+        elif getattr(scenario, "punch_mask", None) is not None:
+            rec["indenter"] = "flat_punch"
+        rest = np.asarray(getattr(scenario.model, "rest_points", np.zeros((0, 3))))
+        if rest.size:
+            lo, hi = rest.min(axis=0), rest.max(axis=0)
+            mult = float(getattr(scenario, "force_multiplier", 1.0))
+            span = hi - lo
+            rec["block_size"] = [float(span[0] * (2 if mult == 4.0 else 1)), float(span[1] * (2 if mult == 4.0 else 1)), float(span[2])]
+    if x is not None and np.size(x) and rec.get("experiment") == "indentation":
+        rec["max_depth"] = float(np.max(x))
+        rec["points"] = int(np.size(x))
+    return rec
+
+
+def _records(card) -> list[dict]:
+    recs = (card.provenance or {}).get("scenario_records") or []
+    return [r for r in recs if isinstance(r, Mapping) and r.get("experiment") == "indentation"]
+
+
+def indentation_specimen(card=None, *, indenter: str | None = None, radius: float | None = None,
+                         half_angle: float | None = None, depth: float | None = None, size=None, cells=None,
+                         base: str | None = None, bonded_punch: bool = False, penalty: float = 100.0, steps: int = 10,
+                         scenario: str | None = None) -> IndentationSpecimen:
+    """The indentation specimen for ``card``: explicit options first, then the card's
+    ``provenance.scenario_records`` (the first indentation record, or the one named ``scenario``),
+    then defaults; every value's origin goes into ``sources`` (and into the written file).
+
+    Defaults where neither gives a value: ``depth`` = the record's ``max_depth``; block height
+    ``H`` = the record's layer ``thickness`` or else ``10 a`` (``a`` the small-strain contact
+    radius at ``depth``; a half-space represented by a finite block, see docs/export.md),
+    lateral size ``2 H`` (or ``20 a``, whichever is larger); cells ``(10, 10, 6)``; base
+    ``bonded`` (an analytic ``lubricated`` base becomes ``sliding``).
+    """
+    rec: Mapping = {}
+    recs = _records(card) if card is not None else []
+    if scenario is not None:
+        named = [r for r in recs if r.get("name") == scenario]
+        if not named:
+            raise ExportError(f"the card records no indentation scenario named {scenario!r} (recorded: {[r.get('name') for r in recs]})")
+        rec = named[0]
+    elif recs:
+        rec = recs[0]
+    src: dict[str, str] = {}
+    where = f"card scenario record {rec.get('name')!r}" if rec else ""
+
+    def pick(name, explicit, recname=None):
+        if explicit is not None:
+            src[name] = "explicit option"
+            return explicit
+        v = rec.get(recname or name) if rec else None
+        if v is not None:
+            src[name] = where
+            return v
+        return None
+
+    ind = pick("indenter", indenter)
+    if ind is None:
+        raise ExportError("an indentation specimen needs the indenter (sphere, cone, flat_punch): the card records no indentation "
+                          "scenario; give it explicitly (--indenter, --radius / --half-angle, --depth)")
+    r = pick("radius", radius) if ind != "cone" else None
+    th = pick("half_angle", half_angle) if ind == "cone" else None
+    d = pick("depth", depth, "max_depth")
+    if d is None:
+        raise ExportError("an indentation specimen needs the final depth: the card records none; give --depth")
+    if ind == "cone" and th is None:
+        raise ExportError("a cone specimen needs its half-angle (--half-angle)")
+    if ind != "cone" and r is None:
+        raise ExportError(f"a {ind} specimen needs its radius (--radius)")
+    tmp = IndentationSpecimen(indenter=ind, depth=float(d), size=(1.0, 1.0, 2.0 * float(d) + 1.0), cells=(1, 1, 1),
+                              radius=None if r is None else float(r), half_angle=None if th is None else float(th))
+    a = tmp.contact_radius()
+    if size is not None:
+        size = tuple(float(v) for v in size)
+        src["size"] = "explicit option"
+    else:
+        thick = rec.get("thickness") if rec else None
+        blk = rec.get("block_size") if rec else None
+        if blk:
+            size = tuple(float(v) for v in blk)
+            src["size"] = where + " (simulated block)"
+        elif thick:
+            H = float(thick)
+            L = max(2.0 * H, 20.0 * a)
+            size = (L, L, H)
+            src["size"] = f"H = layer thickness from {where}; lateral size max(2 H, 20 a) with a = {a:.6g} m (assumed)"
+        else:
+            H = max(10.0 * a, 5.0 * float(d))
+            L = max(2.0 * H, 20.0 * a)
+            size = (L, L, H)
+            src["size"] = (f"ASSUMED: the fitted model is a half-space; block H = max(10 a, 5 depth), lateral max(2 H, 20 a) "
+                           f"with the contact radius a = {a:.6g} m at the final depth (Hertz/Sneddon); the finite block is stiffer "
+                           "than the half-space (see docs/export.md)")
+    refine = core = None
+    if cells is not None:
+        cells = tuple(int(v) for v in cells)
+        src["cells"] = "explicit option (uniform cells)"
+    else:
+        # resolve the contact: first cell a/3 (punch: R/4), uniform within 1.2 a (1.1 R), 6 graded cells beyond
+        refine = a / 3.0 if ind != "flat_punch" else a / 4.0
+        core = 1.2 * a if ind != "flat_punch" else 1.1 * a
+        n_core = max(1, int(round(core / refine)))
+        half = n_core + 6
+        cells = (2 * half, 2 * half, half)
+        if refine >= min(size[0], size[1]) / 2 / half:
+            refine = core = None
+        src["cells"] = (f"default {cells}: " + ("uniform" if refine is None else
+                        f"graded, first cell {refine:.6g} m at the axis and the surface, uniform within {core:.6g} m of them"))
+    if base is None:
+        rb = rec.get("base") if rec else None
+        if rb is not None:
+            base = "sliding" if rb in ("lubricated", "sliding") else "bonded"
+            src["base"] = where + (f" ({rb!r})" if rb != base else "")
+        else:
+            base = "bonded"
+            src["base"] = "default (bonded)"
+    else:
+        src["base"] = "explicit option"
+    return IndentationSpecimen(indenter=ind, depth=float(d), size=size, cells=cells, radius=None if r is None else float(r),
+                               half_angle=None if th is None else float(th), base=base, bonded_punch=bool(bonded_punch),
+                               penalty=float(penalty), steps=int(steps), refine=refine, core=core, sources=src)
+
+
+def indentation_sets(spec: IndentationSpecimen, mesh, card) -> dict:
+    """Node sets and contact data of ``spec`` on ``mesh`` (0-based node ids).
+
+    Returns ``base`` (z = 0 nodes), ``top`` (z = H nodes), ``anchor`` / ``other`` (the sliding
+    base's pinned nodes: ``anchor`` fixed in x and y, ``other`` in y, as in
+    :class:`~difftissue.scenarios.Indentation`), ``punch`` (flat punch: top nodes within the
+    radius), ``top_faces`` (boundary triangles on the top face, outward +z), ``contact_nodes``
+    and ``kappa`` [N/m] (difftissue's per-node penalty ``penalty * E * sqrt(A_i)``, ``A_i`` the
+    node's tributary boundary area), ``h`` [m] (``sqrt(A)`` of the top node on the axis: the
+    length that turns difftissue's per-node penalty into a per-area one, or one stiffness for
+    all nodes, exact for the nodes in contact where the cells are uniform), ``H``.
+    """
+    from .contact import FlatPunch, surface_node_areas, top_surface_nodes
+    from .mesh import boundary_faces
+
+    p = np.asarray(mesh.points, dtype=float)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    tol = 1e-9 * float(np.linalg.norm(hi - lo))
+    base = np.flatnonzero(np.abs(p[:, 2] - lo[2]) <= tol)
+    top = np.flatnonzero(np.abs(p[:, 2] - hi[2]) <= tol)
+    anchor = base[np.argmin(np.hypot(p[base, 0], p[base, 1]))]
+    other = base[np.argmax(np.abs(p[base, 0] - p[anchor, 0]))]
+    faces, _ = boundary_faces(np.asarray(mesh.tets))
+    on_top = np.all(np.abs(p[faces, 2] - hi[2]) <= tol, axis=1)
+    top_faces = faces[on_top]
+    n = np.cross(p[top_faces[:, 1]] - p[top_faces[:, 0]], p[top_faces[:, 2]] - p[top_faces[:, 0]])
+    flip = n[:, 2] < 0
+    top_faces[flip] = top_faces[flip][:, [0, 2, 1]]
+    ids, area = surface_node_areas(mesh, top_surface_nodes(mesh))
+    out = {"base": base, "top": top, "anchor": int(anchor), "other": int(other), "top_faces": top_faces,
+           "contact_nodes": np.asarray(ids, dtype=np.int64), "kappa": spec.penalty * card.youngs_modulus * np.sqrt(area),
+           "h": float(np.sqrt(area[np.argmin(np.hypot(p[ids, 0], p[ids, 1]))])), "H": float(hi[2] - lo[2])}
+    if spec.indenter == "flat_punch":
+        out["punch"] = np.asarray(FlatPunch(spec.radius, axis_xy=(0.0, 0.0), bonded=spec.bonded_punch).nodes(mesh), dtype=np.int64)
+    return out
+
+
+def run_xpbd_indentation(doc: Mapping, *, tol: float = 1e-9, max_steps: int = 100_000, warm_start: bool = True,
+                         iterations: int | None = None) -> dict:
+    """Run an XPBD JSON indentation specimen (``write_xpbd(..., indentation=...)``, a flat punch)
+    with difftissue's own XPBD solver, from the file's numbers only.
+
+    The constraints are the file's: :class:`~difftissue.solvers.xpbd.StableNeoHookeanConstraints`
+    with ``mu``, ``lambda' = lambda_shifted`` and the per-tet rest volumes, ``Dm^-1`` from the
+    positions; masses, held components and the punch nodes (moved to ``u_z = -depth``, and
+    ``u_x = u_y = 0`` for a bonded punch) from ``specimen``; ``dt``, ``substeps``,
+    ``iterations`` from ``setting`` (``iterations`` overrides it). Solved by
+    :func:`~difftissue.solvers.xpbd.xpbd_quasi_static_constraints` at each depth of
+    ``indenter.depth_steps`` in turn, with ``warm_start`` (default True: the rest state is the
+    energy minimum whatever the iteration budget; False: standard XPBD, softer with a small
+    budget). Sphere and cone specimens are refused: difftissue's XPBD solver has no contact
+    constraint (the ``indenter`` block is for an engine that has one).
+
+    Returns ``{"depths": [m], "forces": [N] (punch reaction along +z, positive compressive),
+    "converged": [bool], "steps": [int]}``.
+    """
+    import jax.numpy as jnp
+
+    from .boundary import BoundaryConditions
+    from .solvers.xpbd import StableNeoHookeanConstraints, XPBDSettings, xpbd_quasi_static_constraints
+
+    if doc.get("format") != "difftissue-xpbd/1":
+        raise ExportError(f"not a difftissue-xpbd/1 document (format = {doc.get('format')!r})")
+    spec = doc.get("specimen") or {}
+    if spec.get("experiment") != "indentation":
+        raise ExportError("the XPBD document holds no indentation specimen (write it with indentation=...)")
+    ind = spec["indenter"]
+    if ind["shape"] != "flat_punch":
+        raise ExportError(f"difftissue's XPBD solver has no contact constraint: the {ind['shape']} indenter of this file "
+                          "(its 'indenter' block: geometry, depth, per-node penalty) is for an XPBD engine with contact; "
+                          "only flat-punch specimens run here")
+    pts = np.asarray(spec["positions"], dtype=float)
+    tets = np.asarray(spec["tets"], dtype=np.int64)
+    Ds = np.stack([pts[tets[:, k + 1]] - pts[tets[:, 0]] for k in range(3)], axis=-1)
+    Dm_inv = np.linalg.inv(Ds)
+    V0 = np.asarray(doc["per_tet"]["rest_volume"], dtype=float)
+    lame = doc["lame"]
+    cons = StableNeoHookeanConstraints(tets, Dm_inv, V0, np.full(len(tets), lame["mu"]), np.full(len(tets), lame["lambda_shifted"]))
+    n = len(pts)
+    fixed = np.zeros((n, 3), dtype=bool)
+    fx = spec["fixed"]
+    if "all_components" in fx:
+        fixed[np.asarray(fx["all_components"], dtype=np.int64)] = True
+    for c, axis in (("x", 0), ("y", 1), ("z", 2)):
+        if c in fx:
+            fixed[np.asarray(fx[c], dtype=np.int64), axis] = True
+    punch = np.asarray(ind["nodes"], dtype=np.int64)
+    fixed[punch, 2] = True
+    if ind.get("bonded"):
+        fixed[punch, :2] = True
+    st = doc["setting"]
+    settings = XPBDSettings(dt=st["dt"], substeps=int(st["substeps"]), iterations=int(iterations or st["iterations"]),
+                            damping=float("inf"), warm_start=warm_start)
+    masses = jnp.asarray(spec["masses"])
+    out = {"depths": [], "forces": [], "converged": [], "steps": []}
+    for d in ind["depth_steps"]:
+        disp = np.zeros((n, 3))
+        disp[punch, 2] = -float(d)
+        bc = BoundaryConditions(fixed, jnp.asarray(disp), jnp.zeros((n, 3)))
+        sol = xpbd_quasi_static_constraints((cons,), jnp.asarray(pts), masses, bc, settings=settings, tol=tol,
+                                            max_steps=max_steps, throw=False)
+        out["depths"].append(float(d))
+        out["forces"].append(-float(np.asarray(sol.reaction)[punch, 2].sum()))
+        out["converged"].append(bool(sol.converged))
+        out["steps"].append(int(sol.steps))
+    return out
