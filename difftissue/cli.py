@@ -390,6 +390,42 @@ def _cmd_fit(args) -> int:
     return 0
 
 
+def _parse_overrides(items) -> dict:
+    """``--set FIELD=VALUE`` pairs (SI units) -> {field: float}."""
+    out = {}
+    for item in items or ():
+        name, sep, value = item.partition("=")
+        name = name.strip().replace("-", "_")
+        if not sep or not name:
+            raise _UsageError(f"--set {item!r}: expected FIELD=VALUE, e.g. --set youngs_modulus=12e3")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise _UsageError(f"--set {item!r}: {value!r} is not a number") from None
+    return out
+
+
+def _cmd_simulate(args) -> int:
+    """Evaluate a config's experiments at its [material] (or --set values) without fitting."""
+    from .config import load_config
+    from .simulate import simulate_config, write_simulation_outputs
+
+    _enable_float64()
+    overrides = _parse_overrides(args.set)
+    cfg = load_config(args.config)
+    out = Path(args.out)
+    with _quiet_callback_logs():
+        material, sims = simulate_config(cfg, overrides=overrides)
+    paths = write_simulation_outputs(material, sims, out, config=cfg.path, force=args.force)
+    print(f"material: E = {float(material.youngs_modulus):.6g} Pa, nu = {float(material.poisson_ratio):.6g}, "
+          f"b = {float(material.cubic_coefficient):.6g}, pre-stretch = {float(material.pre_stretch):.6g}")
+    for s in sims:
+        print(f"{s.name} ({s.kind}{', ' + s.model if s.model else ''}): {s.observed.size} points, relative RMS error "
+              f"{100 * s.relative_rms:.3g} %, weighted RMS {s.weighted_rms:.3g}, {s.seconds:.1f} s")
+    print(f"wrote {out}/: " + ", ".join(sorted(paths)))
+    return 0
+
+
 #: Demo configs shipped in difftissue/configs, with the output subfolder of each.
 DEMO_CONFIGS = (("afm_hertz.toml", "afm_hertz"), ("ecoflex_compression.toml", "ecoflex_compression"))
 
@@ -460,6 +496,14 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="show a progress bar on stderr (default: when stderr is a terminal)")
     f.add_argument("--starts", type=int, default=None, metavar="N", help="number of starts (overrides fit.starts)")
     f.set_defaults(func=_cmd_fit)
+
+    sim = sub.add_parser("simulate", help="evaluate the experiments of a fit config at its [material] (or --set values) without fitting")
+    sim.add_argument("config", help="the fit config (TOML), as for difftissue fit")
+    sim.add_argument("--out", required=True, help="output directory: simulation.json, simulation.png, one CSV per experiment")
+    sim.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
+                     help="replace a material field, SI units (youngs_modulus, poisson_ratio, cubic_coefficient, density, pre_stretch); repeatable")
+    sim.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
+    sim.set_defaults(func=_cmd_simulate)
 
     m = sub.add_parser("mesh", help="generate a specimen mesh")
     msub = m.add_subparsers(dest="kind", metavar="KIND", required=True)

@@ -226,7 +226,12 @@ __all__ += [
     "CheckpointError",
     "CheckpointMismatchError",
     "IdentifiabilityWarning",
+    "SimulationError",
 ]
+
+
+class SimulationError(DifftissueError):
+    """A forward model evaluation (``difftissue simulate``) failed or predicted a non-finite value."""
 
 
 class FitError(DifftissueError):
