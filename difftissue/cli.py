@@ -185,7 +185,7 @@ def _indentation_from_args(card, args, f: float):
         depth=None if args.depth is None else args.depth * f,
         size=None if args.block is None else tuple(v * f for v in _triple("block", args.block, float)),
         cells=None if args.cells is None else _triple("cells", args.cells, int), base=args.base,
-        bonded_punch=args.bonded_punch, penalty=args.penalty, steps=args.steps, scenario=args.scenario)
+        bonded_punch=True if args.bonded_punch else None, penalty=args.penalty, steps=args.steps, scenario=args.scenario)
 
 
 def _cmd_export(args) -> int:

@@ -1137,38 +1137,49 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
 
 
 # ===================================================================== indentation
-def _ind_check(spec, target: str, *, cone: bool = True, sliding: bool = True, frictionless_punch: bool = True,
-               contact: bool = True) -> None:
-    why = {"cone": cone, "sliding": sliding}
-    if spec.indenter == "cone" and not why["cone"]:
-        raise ExportError(f"{target} cannot represent the cone indenter of this specimen (see docs/export.md, Indentation specimens)")
-    if spec.indenter == "sphere" and not contact:
-        raise ExportError(f"{target} cannot represent the sphere indenter of this specimen (see docs/export.md, Indentation specimens)")
+_WHY = {
+    ("FEBio", "sphere"): ("FEBio 4.0 has no analytical rigid sphere contact: its contact interfaces (FEBioMech module "
+                          "registration) are sliding-node-on-facet, sliding-facet-on-facet, sliding-elastic, tied-*, sticky, "
+                          "rigid_wall, contact potential and mortar; the old 'rigid sphere' contact of FEBio 1.x/2.x is not "
+                          "registered. Mesh the sphere as a rigid body with sliding-elastic contact in FEBio Studio, or export "
+                          "the sphere to Abaqus, SOFA or the XPBD JSON"),
+    ("FEBio", "cone"): ("FEBio 4.0 has no analytical rigid cone (its only analytical rigid surface is rigid_wall, a plane); "
+                        "export the cone to Abaqus or the XPBD JSON"),
+    ("SOFA", "cone"): ("the SOFA scene has no cone: SOFA's ConicalForceField (Sofa.Component.MechanicalLoad) was not "
+                       "checked against difftissue's cone penetration; export the cone to Abaqus or the XPBD JSON"),
+}
+
+
+def _ind_check(spec, target: str, *, cone: bool = True, sphere: bool = True, sliding: bool = True,
+               frictionless_punch: bool = True) -> None:
+    """Refuse (one ExportError line) what ``target`` cannot represent of the indentation ``spec``."""
+    for shape, ok in (("cone", cone), ("sphere", sphere)):
+        if spec.indenter == shape and not ok:
+            raise ExportError(f"{target} indentation specimen: a {shape} indenter cannot be written: " + _WHY[(target, shape)])
     if spec.base == "sliding" and not sliding:
-        raise ExportError(f"{target}: the indentation specimen supports base='bonded' only (a sliding base is not written for this target)")
+        raise ExportError(f"{target} indentation specimen: base='sliding' (u_z = 0, x and y free) cannot be written: "
+                          f"{target}'s moved/fixed nodes hold all three components; use base='bonded' (--base bonded)")
     if spec.indenter == "flat_punch" and not spec.bonded_punch and not frictionless_punch:
-        raise ExportError(f"{target} prescribes all components of moved nodes: only a bonded flat punch (bonded_punch=True, "
-                          "--bonded-punch) can be written, not a frictionless one")
+        raise ExportError(f"{target} indentation specimen: a frictionless flat punch (u_z prescribed, x and y free) cannot be "
+                          f"written: {target} prescribes all three components of moved nodes; use bonded_punch=True (--bonded-punch)")
 
 
 def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None, approximate: bool = False) -> ET.Element:
-    """FEBio 4.0 model of an indentation specimen (:mod:`difftissue.export_indentation`).
+    """FEBio 4.0 model of a flat-punch indentation specimen (:mod:`difftissue.export_indentation`).
 
-    * sphere: ``<Contact><contact type="rigid sphere" surface="contact">`` (FEBio's analytical
-      rigid sphere, ``FERigidSphereContact``: parameters ``laugon``, ``tolerance``,
-      ``penalty``, ``radius``, ``center``, ``ux``/``uy``/``uz``), frictionless, penalty method
-      (``laugon`` 0); the centre starts at ``(0, 0, H + R)`` and is displaced by
-      ``<uz lc="1">-depth</uz>``. FEBio's contact traction is ``penalty * gap`` [Pa] integrated
-      over the surface, so difftissue's per-node ``kappa_i = p E sqrt(A_i)`` [N/m] (force
-      ``kappa_i g``) becomes the per-area ``penalty = p E / h`` [Pa/m], ``h`` the interior
-      top-node length ``sqrt(A)``.
-    * flat punch: ``prescribed displacement`` (``dof`` z, ``-depth``) of the node set ``punch``
-      (plus ``zero displacement`` x, y for a bonded punch).
-    * cone: refused (FEBio offers analytical rigid sphere and rigid wall contact only).
+    The punch is the ``prescribed displacement`` (``dof`` z, ``-depth`` ramped by load
+    controller 1 over ``spec.steps`` static steps) of the node set ``punch`` (top nodes within
+    the radius), plus ``zero displacement`` x, y of the same set for a bonded punch; the base
+    ``z = 0`` is ``zero displacement`` x, y, z (bonded) or z only plus the two pinned nodes
+    ``base_anchor`` (x, y) and ``base_other`` (y) (sliding). The punch force is the sum of the
+    ``reaction forces`` (plot variable) over ``punch``.
+
+    Sphere and cone are refused: FEBio 4.0 has no analytical rigid sphere or cone contact
+    (``rigid_wall`` is its only analytical rigid surface; see docs/export.md).
     """
     from .export_indentation import indentation_sets
 
-    _ind_check(spec, "FEBio", cone=False)
+    _ind_check(spec, "FEBio", cone=False, sphere=False)
     mesh = spec.mesh()
     s = indentation_sets(spec, mesh, card)
     root = ET.Element("febio_spec", {"version": "4.0"})
@@ -1193,12 +1204,7 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
     if spec.base == "sliding":
         ET.SubElement(meshel, "NodeSet", {"name": "base_anchor"}).text = ids(s["anchor"])
         ET.SubElement(meshel, "NodeSet", {"name": "base_other"}).text = ids(s["other"])
-    if spec.indenter == "flat_punch":
-        ET.SubElement(meshel, "NodeSet", {"name": "punch"}).text = ids(s["punch"])
-    else:
-        surf = ET.SubElement(meshel, "Surface", {"name": "contact"})
-        for i, f in enumerate(s["top_faces"], start=1):
-            ET.SubElement(surf, "tri3", {"id": str(i)}).text = ids(f)
+    ET.SubElement(meshel, "NodeSet", {"name": "punch"}).text = ids(s["punch"])
     doms = ET.SubElement(root, "MeshDomains")
     ET.SubElement(doms, "SolidDomain", {"name": "tissue", "mat": card.name})
     bnd = ET.SubElement(root, "Boundary")
@@ -1214,29 +1220,12 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
         zero("sliding_base", "base", "z")
         zero("base_anchor", "base_anchor", "xy")
         zero("base_other", "base_other", "y")
-    if spec.indenter == "flat_punch":
-        pre = ET.SubElement(bnd, "bc", {"name": "punch_displacement", "node_set": "punch", "type": "prescribed displacement"})
-        ET.SubElement(pre, "dof").text = "z"
-        ET.SubElement(pre, "value", {"lc": "1"}).text = _fmt(-spec.depth)
-        ET.SubElement(pre, "relative").text = "0"
-        if spec.bonded_punch:
-            zero("punch_bonded", "punch", "xy")
-    else:
-        eps = spec.penalty * card.youngs_modulus / s["h"]
-        H = s["H"]
-        root.append(_xml_comment(
-            f"rigid sphere penalty = p E / h = {spec.penalty:g} * {card.youngs_modulus:.10g} Pa / {s['h']:.10g} m = {eps:.10g} Pa/m "
-            "(FEBio traction penalty*gap per area; difftissue force kappa_i*gap per node with kappa_i = p E sqrt(A_i))"))
-        con = ET.SubElement(root, "Contact")
-        c = ET.SubElement(con, "contact", {"name": "indenter", "type": "rigid sphere", "surface": "contact"})
-        ET.SubElement(c, "laugon").text = "0"
-        ET.SubElement(c, "tolerance").text = "0.2"
-        ET.SubElement(c, "penalty").text = _fmt(eps)
-        ET.SubElement(c, "radius").text = _fmt(spec.radius)
-        ET.SubElement(c, "center").text = ",".join(_fmt(v) for v in (0.0, 0.0, H + spec.radius))
-        ET.SubElement(c, "ux").text = "0"
-        ET.SubElement(c, "uy").text = "0"
-        ET.SubElement(c, "uz", {"lc": "1"}).text = _fmt(-spec.depth)
+    pre = ET.SubElement(bnd, "bc", {"name": "punch_displacement", "node_set": "punch", "type": "prescribed displacement"})
+    ET.SubElement(pre, "dof").text = "z"
+    ET.SubElement(pre, "value", {"lc": "1"}).text = _fmt(-spec.depth)
+    ET.SubElement(pre, "relative").text = "0"
+    if spec.bonded_punch:
+        zero("punch_bonded", "punch", "xy")
     ld = ET.SubElement(root, "LoadData")
     lc = ET.SubElement(ld, "load_controller", {"id": "1", "name": "ramp", "type": "loadcurve"})
     ET.SubElement(lc, "interpolate").text = "LINEAR"
