@@ -1299,7 +1299,9 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
             rmax = 0.5 * math.hypot(spec.size[0], spec.size[1])
             lines += [_abaqus_comment(f"cone: local origin at the tip (0, 0, H), half-angle {spec.half_angle:.10g} rad, profile from r = {rmax:.10g} m to the tip"),
                       f"START, {_fmt(rmax)}, {_fmt(rmax / math.tan(spec.half_angle))}", "LINE, 0.0, 0.0"]
-        lines += ["*RIGID BODY, ANALYTICAL SURFACE=INDENTER, REF NODE=RP",
+        lines += [_abaqus_comment("contact: Abaqus's default hard (Lagrange) normal contact, frictionless: the penalty -> infinity "
+                                  "limit of difftissue's penalty contact (docs/export.md, Indentation specimens)"),
+                  "*RIGID BODY, ANALYTICAL SURFACE=INDENTER, REF NODE=RP",
                   "*SURFACE INTERACTION, NAME=FRICTIONLESS", "*FRICTION", "0.0",
                   "*CONTACT PAIR, INTERACTION=FRICTIONLESS", "TOP_SURF, INDENTER"]
     lines += [f"*STEP, NLGEOM={'YES' if (law == 'neo_hookean' or contact) else 'NO'}", "*STATIC",

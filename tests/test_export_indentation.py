@@ -227,28 +227,27 @@ def test_refusals_one_clear_line(tmp_path):
     spec = _punch(card)
     from difftissue.mesh import block
 
-    with pytest.raises(ExportError, match="not both"):
-        export(card, "febio", tmp_path / "a.feb", mesh=block((0.01,) * 3, (2, 2, 2)), indentation=spec)
-    with pytest.raises(ExportError, match="takes its depth"):
-        export(card, "abaqus", tmp_path / "a.inp", displacement=-1e-4, indentation=spec)
-    with pytest.raises(ExportError, match="a sphere indenter needs frictionless contact"):
-        export(card, "pbd", tmp_path / "a.json", indentation=indentation_specimen(card, indenter="sphere", radius=1e-3,
-                                                                              depth=1e-4, size=SIZE, cells=(4, 4, 2)))
-    with pytest.raises(ExportError, match="bonded flat punch"):
-        export(card, "pbd", tmp_path / "a.json", indentation=_punch(card, bonded_punch=False))
-    with pytest.raises(ExportError, match="records no indentation scenario"):
-        indentation_specimen(card)
-    with pytest.raises(ExportError, match="not below the block height"):
-        indentation_specimen(card, indenter="sphere", radius=1e-3, depth=0.01, size=SIZE)
-    with pytest.raises(ExportError, match="half_angle in"):
-        IndentationSpecimen(indenter="cone", depth=1e-4, size=SIZE, cells=(2, 2, 2), half_angle=2.0)
-    with pytest.raises(ExportError, match="positive finite"):
-        IndentationSpecimen(indenter="sphere", depth=-1e-4, size=SIZE, cells=(2, 2, 2), radius=1e-3)
-    with pytest.raises(ExportError, match="no contact constraint"):
-        run_xpbd_indentation(xpbd_parameters(card, dt=1e-3, iterations=10, indentation=indentation_specimen(
-            card, indenter="sphere", radius=1e-3, depth=1e-4, size=SIZE, cells=(2, 2, 2))))
-    for line in [str(e) for e in ()]:
-        assert "\n" not in line
+    sphere = indentation_specimen(card, indenter="sphere", radius=1e-3, depth=1e-4, size=SIZE, cells=(2, 2, 2))
+    cases = [
+        ("not both", lambda: export(card, "febio", tmp_path / "a.feb", mesh=block((0.01,) * 3, (2, 2, 2)), indentation=spec)),
+        ("takes its depth", lambda: export(card, "abaqus", tmp_path / "a.inp", displacement=-1e-4, indentation=spec)),
+        ("a sphere indenter needs frictionless contact", lambda: export(card, "pbd", tmp_path / "a.json", indentation=sphere)),
+        ("bonded flat punch", lambda: export(card, "pbd", tmp_path / "a.json", indentation=_punch(card, bonded_punch=False))),
+        ("records no indentation scenario", lambda: indentation_specimen(card)),
+        ("no indentation scenario named 'x'", lambda: indentation_specimen(card, scenario="x")),
+        ("not below the block height", lambda: indentation_specimen(card, indenter="sphere", radius=1e-3, depth=0.01, size=SIZE)),
+        ("half_angle in", lambda: IndentationSpecimen(indenter="cone", depth=1e-4, size=SIZE, cells=(2, 2, 2), half_angle=2.0)),
+        ("positive finite", lambda: IndentationSpecimen(indenter="sphere", depth=-1e-4, size=SIZE, cells=(2, 2, 2), radius=1e-3)),
+        ("positive radius", lambda: IndentationSpecimen(indenter="flat_punch", depth=1e-4, size=SIZE, cells=(2, 2, 2))),
+        ("expected one of", lambda: IndentationSpecimen(indenter="wedge", depth=1e-4, size=SIZE, cells=(2, 2, 2), radius=1e-3)),
+        ("law='springs'", lambda: export(card, "sofa", tmp_path / "a.scn", law="springs", indentation=spec)),
+        ("no contact constraint", lambda: run_xpbd_indentation(xpbd_parameters(card, dt=1e-3, iterations=10, indentation=sphere))),
+    ]
+    for match, call in cases:
+        with pytest.raises(ExportError, match=match) as err:
+            call()
+        assert "\n" not in str(err.value), match
+    assert not any(tmp_path.glob("a.*"))  # nothing written by a refused export
 
 
 def test_card_scenario_records_from_fit_outputs(tmp_path):
