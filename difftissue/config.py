@@ -44,7 +44,7 @@ from .errors import ConfigError, DifftissueError
 __all__ = ["FitConfig", "Experiment", "load_config", "parse_config", "SCENARIOS", "FIELDS"]
 
 #: Scenario kinds understood in ``experiment[i].scenario``.
-SCENARIOS = ("analytic_indentation", "indentation", "compression", "fem_field")
+SCENARIOS = ("analytic_indentation", "indentation", "compression", "fem_field", "incision")
 #: Material fields (``[material]`` keys, ``fit.parameters`` entries) and their SI units.
 FIELDS = {
     "youngs_modulus": "Pa",
@@ -68,12 +68,14 @@ _EXPERIMENT_KEYS = {
     "indentation": _COMMON_EXPERIMENT_KEYS + ("model", "indenter", "specimen", "base", "max_depth", "penalty", "solver"),
     "compression": _COMMON_EXPERIMENT_KEYS + ("model", "specimen", "platens", "measure", "max_strain", "solver"),
     "fem_field": ("name", "scenario", "data", "model", "prescribed", "observe", "reaction", "displacement_sigma", "force_sigma", "solver"),
+    "incision": ("name", "scenario", "data", "sigma", "length_unit", "model", "specimen", "cut", "boundary", "scalpel_steps", "solver"),
 }
 _DATA_FORMATS = {
     "analytic_indentation": ("chiaro", "table"),
     "indentation": ("chiaro", "table"),
     "compression": ("instron", "table"),
     "fem_field": ("fem",),
+    "incision": ("inline", "table"),
 }
 _SOLVER_KEYS = ("rtol", "xtol", "max_steps", "linear_solver")
 
@@ -472,7 +474,7 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
         if name in names:
             _fail(_join(p, "name"), f"{name!r} is used by experiment[{names.index(name)}] too; names must be unique")
         names.append(name)
-    built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir) for i, e in enumerate(exps))
+    built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir, material=material) for i, e in enumerate(exps))
     _check_model_ranges(built, material, param)
     return FitConfig(
         path=None if path is None else Path(path),
@@ -659,8 +661,10 @@ def _load_data(e: Mapping, path: str, kind: str, base_dir: Path):
     return dataset, file, notes
 
 
-def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path) -> Experiment:
+def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path, *, material=None) -> Experiment:
     kind = e["scenario"]
+    if kind == "incision":
+        return _incision(e, path, name, base_dir, material)
     builder = {"analytic_indentation": _analytic, "indentation": _indentation, "compression": _compression, "fem_field": _fem_field}[kind]
     return builder(e, path, name, base_dir)
 
@@ -923,3 +927,158 @@ def _fem_field(e, path, name, base_dir) -> Experiment:
     except DifftissueError as err:
         _reraise(path, err)
     return Experiment(name, "fem_field", model, sc, (file,), notes)
+
+
+# ============================================================================ incision
+_INCISION_QUANTITIES = ("surface_width", "max_width", "width_over_length")
+_LAYER_KEYS = ("name", "thickness", "cells", "fitted") + tuple(FIELDS)
+
+
+def _incision_data(e: Mapping, path: str, base_dir: Path, unit: tuple[str, float]):
+    """``data`` of an incision: ``{ quantity, value }``, ``{ quantity = "surface_width",
+    positions, widths }`` (inline, lengths in ``length_unit``) or ``{ format = "table", path }``
+    (CSV with header ``position,width``)."""
+    p = _join(path, "data")
+    d = e["data"]
+    if not isinstance(d, Mapping):
+        _fail(p, f"must be a table such as {{ quantity = \"max_width\", value = 0.8 }}, got {_show(d)}")
+    fmt = _choice(d.get("format", "inline"), _join(p, "format"), _DATA_FORMATS["incision"])
+    files: tuple[Path, ...] = ()
+    if fmt == "table":
+        t = _table(d, p, ("format", "path", "quantity"), ("path",))
+        q = _choice(t.get("quantity", "surface_width"), _join(p, "quantity"), ("surface_width",))
+        file = _resolve(base_dir, t["path"], _join(p, "path"))
+        try:
+            arr = np.genfromtxt(file, delimiter=",", names=True)
+        except (ValueError, OSError) as err:
+            _fail(_join(p, "path"), f"cannot read {file.name} as CSV with a header line 'position,width': {err}")
+        names = arr.dtype.names or ()
+        if "position" not in names or "width" not in names:
+            _fail(_join(p, "path"), f"{file.name} needs the columns 'position' and 'width' (in {unit[0]}), found {list(names)}")
+        pos, w = np.atleast_1d(arr["position"]) * unit[1], np.atleast_1d(arr["width"]) * unit[1]
+        if pos.size < 1 or not (np.all(np.isfinite(pos)) and np.all(np.isfinite(w))):
+            _fail(_join(p, "path"), f"{file.name}: positions and widths must be finite numbers")
+        return q, pos, w, (file,)
+    q = _choice(d.get("quantity"), _join(p, "quantity"), _INCISION_QUANTITIES) if "quantity" in d else _fail(_join(p, "quantity"), f"missing (required); one of {', '.join(_INCISION_QUANTITIES)}")
+    if q == "surface_width":
+        t = _table(d, p, ("format", "quantity", "positions", "widths"), ("positions", "widths"))
+        pos, w = t["positions"], t["widths"]
+        if not isinstance(pos, list) or not isinstance(w, list) or not pos or len(pos) != len(w):
+            _fail(_join(p, "widths"), f"positions and widths must be two lists of the same non-zero length (in {unit[0]})")
+        pos = np.array([_number(v, _join(_join(p, "positions"), i), what=f"a length in {unit[0]}") for i, v in enumerate(pos)]) * unit[1]
+        w = np.array([_number(v, _join(_join(p, "widths"), i), what=f"a width in {unit[0]}", check=lambda x: x >= 0, rule=f"a width >= 0 in {unit[0]}") for i, v in enumerate(w)]) * unit[1]
+        return q, pos, w, files
+    t = _table(d, p, ("format", "quantity", "value"), ("value",))
+    if q == "max_width":
+        v = _length(t["value"], _join(p, "value"), unit)
+    else:
+        v = _number(t["value"], _join(p, "value"), what="a positive ratio w/l", check=lambda x: x > 0)
+    return q, None, np.array([v]), files
+
+
+def _incision(e, path, name, base_dir, material) -> Experiment:
+    from .cutting import ScalpelPath, cut_specimen
+    from .incision import Incision, IncisionOptions
+    from .materials import Material
+    from .mesh import Specimen, layered_skin
+
+    unit = _unit_of(e, path)
+    model = _model(e, path, "stable_neo_hookean")
+    quantity, positions, observed, files = _incision_data(e, path, base_dir, unit)
+    unit_y = "1" if quantity == "width_over_length" else "m"
+    sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), observed, unit_y)
+    # specimen: layers (the fitted ones take [material]) or a mesh file (every region fitted)
+    p = _join(path, "specimen")
+    if "specimen" not in e:
+        _fail(p, "missing (required): e.g. { size = [12, 12], cells = [12, 12], layers = [{ name = \"dermis\", thickness = 2, cells = 2, fitted = true }, ...] }")
+    spec = _table(e["specimen"], p, ("size", "cells", "layers", "mesh", "length_unit", "reorient"))
+    files = list(files)
+    fitted = None
+    if "mesh" in spec:
+        for k in ("size", "cells", "layers"):
+            if k in spec:
+                _fail(_join(p, k), "not used with 'mesh' (every region of a mesh file takes [material])")
+        mesh, mfile = _mesh_file(spec, p, base_dir)
+        files.append(mfile)
+        specimen = Specimen(mesh, (material,) * len(mesh.region_names))
+    else:
+        sunit = _unit_of(spec, p) if "length_unit" in spec else unit
+        for k in ("size", "layers"):
+            if k not in spec:
+                _fail(_join(p, k), "missing (required)")
+        size = _lengths(spec["size"], _join(p, "size"), sunit, n=2)
+        cells = _counts(spec.get("cells", [12, 12]), _join(p, "cells"), n=2)
+        lp = _join(p, "layers")
+        if not isinstance(spec["layers"], list) or not spec["layers"]:
+            _fail(lp, "must be a non-empty list of tables { name, thickness, cells, fitted | material fields }")
+        layers, fitted = [], []
+        for i, lay in enumerate(spec["layers"]):
+            q = _join(lp, i)
+            t = _table(lay, q, _LAYER_KEYS, ("name", "thickness"))
+            lname = _string(t["name"], _join(q, "name"))
+            thick = _length(t["thickness"], _join(q, "thickness"), sunit)
+            nc = _integer(t.get("cells", 1), _join(q, "cells"), minimum=1)
+            is_fitted = _bool(t.get("fitted", False), _join(q, "fitted"))
+            fields = {k: t[k] for k in FIELDS if k in t}
+            if is_fitted:
+                if fields:
+                    _fail(_join(q, sorted(fields)[0]), "a fitted layer takes its material from [material]; remove the field or set fitted = false")
+                mat = material
+                fitted.append(lname)
+            else:
+                for k in ("youngs_modulus", "poisson_ratio"):
+                    if k not in t:
+                        _fail(_join(q, k), "missing (required for a layer that is not fitted)")
+                vals = {}
+                for k, v in fields.items():
+                    kp = _join(q, k)
+                    if k in _POSITIVE_FIELDS:
+                        vals[k] = _positive(v, kp, FIELDS[k] if FIELDS[k] != "1" else "")
+                    elif k == "poisson_ratio":
+                        vals[k] = _number(v, kp, check=lambda x: -1.0 < x < 0.5, rule="a number in (-1, 0.5)")
+                    else:
+                        vals[k] = _number(v, kp, what="a finite number")
+                mat = Material(**vals)
+            layers.append((lname, thick, mat, nc))
+        if not fitted:
+            _fail(lp, "no layer has fitted = true: the [material] must apply to at least one layer")
+        try:
+            specimen = layered_skin(layers, size=size, resolution=cells)
+        except DifftissueError as err:
+            _reraise(p, err)
+    # the cut
+    cp = _join(path, "cut")
+    if "cut" not in e:
+        _fail(cp, "missing (required): e.g. { path = [[3, 6], [9, 6]], depth = 2 } (lengths in length_unit)")
+    c = _table(e["cut"], cp, ("path", "depth", "through", "tilt_deg", "method"), ("path",))
+    pts = c["path"]
+    if not isinstance(pts, list) or len(pts) < 2 or not all(isinstance(q, list) and len(q) in (2, 3) for q in pts):
+        _fail(_join(cp, "path"), f"must be a list of >= 2 points [x, y] on the top surface in {unit[0]}, got {_show(pts)}")
+    pts = [[_number(v, _join(_join(cp, "path"), i), what=f"a coordinate in {unit[0]}") * unit[1] for v in q] for i, q in enumerate(pts)]
+    depth = _length(c["depth"], _join(cp, "depth"), unit) if "depth" in c else None
+    through = _bool(c.get("through", False), _join(cp, "through"))
+    tilt = math.radians(_number(c.get("tilt_deg", 0.0), _join(cp, "tilt_deg"), what="an angle in degrees"))
+    method = _choice(c.get("method", "snap"), _join(cp, "method"), ("snap", "remove"))
+    try:
+        scalpel = ScalpelPath(pts, depth=depth, through=through, tilt=tilt)
+    except DifftissueError as err:
+        _reraise(cp, err)
+    try:
+        cut = cut_specimen(specimen, scalpel, method=method)
+    except DifftissueError as err:
+        _reraise(cp, err)
+    bp = _join(path, "boundary")
+    b = _table(e.get("boundary", {}), bp, ("lateral", "base"))
+    lateral = _choice(b.get("lateral", "held"), _join(bp, "lateral"), ("held", "free"))
+    base = _choice(b.get("base", "clamped"), _join(bp, "base"), ("clamped", "sliding"))
+    steps = _integer(e.get("scalpel_steps", 4), _join(path, "scalpel_steps"), minimum=1)
+    so = _solver_options(e, path)
+    options = IncisionOptions(scalpel_steps=steps, rtol=so.rtol, xtol=so.xtol, max_steps=so.max_steps, linear_solver=so.linear_solver, failure=so.failure)
+    if model == "springs_volume" and getattr(cut.mesh, "lattice", None) is None:
+        _fail(_join(path, "model"), "an imported mesh has no cube lattice: use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean'")
+    try:
+        sc = Incision(cut, model=model, quantity=quantity, positions=positions, observed=observed, sigma=sigma, fitted_regions=fitted, lateral=lateral, base=base, options=options, name=name)
+    except DifftissueError as err:
+        _reraise(path, err)
+    notes = (f"{path}: {cut.quality}",)
+    return Experiment(name, "incision", model, sc, tuple(files), notes)
