@@ -206,6 +206,91 @@ class FitProblem:
         self.sizes = tuple(o.size for o in observed)
         self.n_residuals = int(sum(self.sizes))
         self.n_parameters = len(self.fields)
+        # Each scenario as a pytree: its measured-data leaves (``observed``, ``sigma`` of an
+        # equinox-Module scenario) are passed to the compiled functions as ARGUMENTS, with the
+        # problem's observed and sigma, so that one compilation serves every specimen of the
+        # same structure (see :meth:`data`, :meth:`with_data`, :meth:`structure_key`).
+        self._treedefs, self._leaves, dynamic = [], [], []
+        for sc in scenarios:
+            leaves, treedef = jax.tree_util.tree_flatten(sc)
+            self._treedefs.append(treedef)
+            self._leaves.append(leaves)
+            data_attrs = [getattr(sc, a, None) for a in ("observed", "sigma")]
+            dynamic.append(tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf) and any(leaf is d for d in data_attrs)))
+        self._dynamic = tuple(dynamic)
+
+    # -------------------------------------------------------------- data as arguments
+    def data(self) -> dict:
+        """The problem's measured data as a pytree of arrays: ``observed`` and ``sigma`` per
+        scenario (SI) and each scenario's dynamic leaves. The compiled step and evaluation take
+        it as an argument (:meth:`with_data` rebuilds the problem from it inside the trace)."""
+        return {
+            "observed": tuple(np.asarray(o) for o in self._observed),
+            "sigma": tuple(np.asarray(s) for s in self._sigma),
+            "leaves": tuple(tuple(np.asarray(leaves[i]) for i in dyn) for leaves, dyn in zip(self._leaves, self._dynamic)),
+        }
+
+    def with_data(self, data) -> "FitProblem":
+        """A shallow copy whose observed data, sigma and scenario data leaves are ``data``
+        (arrays or tracers with the structure of :meth:`data`)."""
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new._observed = tuple(data["observed"])
+        new._sigma = tuple(data["sigma"])
+        scenarios = []
+        for sc, treedef, leaves, dyn, values in zip(self.scenarios, self._treedefs, self._leaves, self._dynamic, data["leaves"]):
+            if not dyn:
+                scenarios.append(sc)
+                continue
+            leaves = list(leaves)
+            for i, v in zip(dyn, values):
+                leaves[i] = v
+            scenarios.append(jax.tree_util.tree_unflatten(treedef, leaves))
+        new.scenarios = tuple(scenarios)
+        return new
+
+    def _with_dynamic(self, dynamic) -> "FitProblem":
+        """A shallow copy passing the scenario leaves ``dynamic`` (per scenario, leaf indices
+        of ``jax.tree_util.tree_flatten(scenario)``) as data instead of compiling them in."""
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new._dynamic = tuple(tuple(sorted(d)) for d in dynamic)
+        return new
+
+    def structure_key(self) -> tuple:
+        """What the compiled step depends on besides :meth:`data`: fields, transforms, fixed
+        material fields, loss, scenario names, types and pytree structures, data shapes, and a
+        hash of every scenario leaf that is compiled in (arrays by content; other objects, e.g.
+        a scenario that is not a pytree, by identity). Two problems with equal keys can share
+        one compiled step with their own data."""
+        digest, comps = self.fingerprint("", 0)
+        parts = [comps[k] for k in ("fields", "transforms", "fixed material fields", "scenarios", "loss")]
+        parts.append(self.sizes)
+        h = hashlib.sha256()
+        objects = []
+        for treedef, leaves, dyn in zip(self._treedefs, self._leaves, self._dynamic):
+            try:
+                hash(treedef)
+                parts.append(treedef)
+            except TypeError:  # a static field that cannot be hashed: key by the scenario itself
+                objects.append(id(leaves))
+            parts.append(dyn)
+            for i, leaf in enumerate(leaves):
+                if i in dyn:
+                    a = np.asarray(leaf)
+                    h.update(f"dyn{a.shape}{a.dtype}".encode())
+                elif eqx.is_array(leaf) or isinstance(leaf, np.generic):
+                    a = np.ascontiguousarray(leaf)
+                    h.update(f"{a.shape}{a.dtype}".encode())
+                    h.update(a.tobytes())
+                elif leaf is None or isinstance(leaf, (bool, int, float, complex, str)):
+                    h.update(repr((type(leaf).__name__, leaf)).encode())
+                else:
+                    objects.append(id(leaf))
+                h.update(b"|")
+        parts.append(h.hexdigest())
+        parts.append(tuple(objects))
+        return tuple(parts)
 
     # -------------------------------------------------------------- pure functions
     def material(self, u) -> Material:
@@ -595,7 +680,7 @@ class _Engine:
             self._optx = optx
             cls = optx.LevenbergMarquardt if method == "levenberg_marquardt" else optx.GaussNewton
             self.solver = cls(rtol=self.rtol, atol=self.atol)
-            self._fn = lambda y, args: (problem.residuals(y), None)
+            self._fn = lambda y, data: (problem.with_data(data).residuals(y), None)
             self._options = {"jac": jac}
             self._tags = frozenset()
         else:
@@ -608,34 +693,65 @@ class _Engine:
                 self.solver = optax.lbfgs()
 
     # -- optimistix ------------------------------------------------------------------
-    def _optx_init_single(self, u):
-        f_struct = jax.eval_shape(self.problem.residuals, u)
-        return self.solver.init(self._fn, u, None, self._options, f_struct, None, self._tags)
+    def _optx_init_single(self, u, data):
+        f_struct = jax.eval_shape(lambda v: self._fn(v, data)[0], u)
+        return self.solver.init(self._fn, u, data, self._options, f_struct, None, self._tags)
 
-    def init(self, U):
-        """Batched dynamic state for starts ``U`` (shape ``(S, p)``)."""
+    def init(self, U, data):
+        """Batched dynamic state for starts ``U`` (shape ``(S, p)``) of the problem with ``data``."""
         if hasattr(self, "_optx"):
             if not hasattr(self, "_static"):  # keep the first one: the compiled step closes over it
-                template = self._optx_init_single(U[0])
+                template = self._optx_init_single(U[0], data)
                 self._static = eqx.partition(template, eqx.is_array)[1]
-            return _strong(jax.vmap(lambda u: eqx.partition(self._optx_init_single(u), eqx.is_array)[0])(U))
+            return _strong(jax.vmap(lambda u: eqx.partition(self._optx_init_single(u, data), eqx.is_array)[0])(U))
         return _strong(jax.vmap(self.solver.init)(U))
 
+    def evaluate(self, U, data):
+        """``(values (S, p), loss (S,), J (S, n, p), predictions)`` of every start ``U`` (S, p):
+        the physical values, the loss, the Jacobian of the robustified scaled residuals w.r.t.
+        the physical values and each scenario's predictions (not jitted; see :meth:`make_evaluate`)."""
+        problem = self.problem.with_data(data)
+        fields = problem.fields
+        values = jax.vmap(lambda u: jnp.stack([problem.values(u)[f] for f in fields]))(U)
+        loss, J, preds = jax.vmap(lambda v: problem.evaluate_values(v, self.jac))(values)
+        return values, loss, J, preds
+
+    def make_evaluate(self):
+        """:meth:`evaluate` jitted once per engine (at the start and the end of every fit)."""
+        if getattr(self, "_evaluate", None) is None:
+            self._evaluate = jax.jit(self.evaluate)
+        return self._evaluate
+
     def make_step(self):
-        """The ONE jitted step: ``(U, dyn, done) -> (U, dyn, done, status, loss)``, vmapped over starts.
+        """The ONE jitted step: ``(U, dyn, done, data) -> (U, dyn, done, status, loss)``,
+        vmapped over starts (``data`` is shared by the starts: :meth:`FitProblem.data`).
 
         ``status``: 0 running or converged, >0 failure code (optimistix RESULTS index, or -1 for a
         non-finite loss in optax)."""
-        problem = self.problem
+        if getattr(self, "_step", None) is None:
+            one = self.single_step()
+
+            def step(U, dyn, done, data):
+                self.traces += 1  # Python side effect: runs once per trace (compilation)
+                return _strong(jax.vmap(one, in_axes=(0, 0, 0, None))(U, dyn, done, data))
+
+            self._step = jax.jit(step)
+        return self._step
+
+    def single_step(self):
+        """The step of ONE start, not jitted nor vmapped: ``(u, dyn, done, data) -> (u, dyn,
+        done, status, loss)``; :meth:`make_step` and :func:`difftissue.batch.fit_batch` build
+        their compiled programs from it."""
+        template = self.problem
         rtol, atol = self.rtol, self.atol
 
         if hasattr(self, "_optx"):
             solver, fn, options, tags, static = self.solver, self._fn, self._options, self._tags, self._static
 
-            def one(u, dyn, done):
+            def one(u, dyn, done, data):
                 state = eqx.combine(dyn, static)
-                u_new, state_new, _ = solver.step(fn, u, None, options, state, tags)
-                term, result = solver.terminate(fn, u_new, None, options, state_new, tags)
+                u_new, state_new, _ = solver.step(fn, u, data, options, state, tags)
+                term, result = solver.terminate(fn, u_new, data, options, state_new, tags)
                 dyn_new = eqx.partition(state_new, eqx.is_array)[0]
                 status = jnp.asarray(result._value)
                 r = state_new.f_info.residual
@@ -649,9 +765,9 @@ class _Engine:
             optax = self._optax
             solver = self.solver
             lbfgs = self.method == "lbfgs"
-            loss_fn = problem.loss
 
-            def one(u, state, done):
+            def one(u, state, done, data):
+                loss_fn = template.with_data(data).loss
                 if lbfgs:
                     value, grad = optax.value_and_grad_from_state(loss_fn)(u, state=state)
                     updates, state_new = solver.update(grad, state, u, value=value, grad=grad, value_fn=loss_fn)
@@ -674,13 +790,7 @@ class _Engine:
                 loss_out = jnp.where(done, value, loss_new)  # a stopped start stays at u, whose loss is value
                 return u_out, state_out, done | finished, jnp.where(done, 0, status), loss_out
 
-        def step(U, dyn, done):
-            self.traces += 1  # Python side effect: runs once per trace (compilation)
-            return _strong(jax.vmap(one)(U, dyn, done))
-
-        if getattr(self, "_step", None) is None:
-            self._step = jax.jit(step)
-        return self._step
+        return one
 
     def status_message(self, code: int) -> str:
         if code == -1:
@@ -691,18 +801,19 @@ class _Engine:
         return f"status {code}"
 
 
-#: Recently used engines (compiled step functions), so that fitting the same problem again in a
-#: session -- a resume, a re-run with more steps -- does not compile again. The key holds the
-#: identity of the scenario objects (their predict code), a hash of everything else that enters
-#: the traced step (fields, transforms, fixed fields, data, loss) and the solver options; the
-#: entry keeps the scenarios alive, so their ids cannot be reused while cached.
+#: Recently used engines (compiled step and evaluation), so that fitting the same problem
+#: again in a session -- a resume, a re-run with more steps, or ANOTHER SPECIMEN of the same
+#: structure with its own data -- does not compile again. The key is
+#: :meth:`FitProblem.structure_key` (fields, transforms, fixed fields, loss, scenario types and
+#: pytree structures, a hash of the compiled-in scenario leaves; objects that are not arrays by
+#: identity) and the solver options; the measured data are arguments, not part of the key. The
+#: entry keeps its problem alive, so the ids in a key cannot be reused while cached.
 _ENGINE_CACHE: dict = {}
 _ENGINE_CACHE_SIZE = 8
 
 
 def _cached_engine(problem: FitProblem, method: str, **options) -> _Engine:
-    digest, _ = problem.fingerprint(method, 0)
-    key = (tuple(id(s) for s in problem.scenarios), digest, tuple(sorted(options.items())))
+    key = (problem.structure_key(), method, tuple(sorted(options.items())))
     engine = _ENGINE_CACHE.pop(key, None)
     if engine is None:
         engine = _Engine(problem, method, **options)
@@ -890,7 +1001,8 @@ def fit(
 
     engine = _cached_engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
     traces_before = engine.traces
-    dyn = engine.init(U)
+    data = problem.data()
+    dyn = engine.init(U, data)
     step_fn = engine.make_step()
     done = jnp.zeros(n_starts, dtype=bool)
     status = jnp.zeros(n_starts, dtype=jnp.int32)
@@ -909,14 +1021,13 @@ def fit(
             U, dyn, done, status, history, step = _load_checkpoint(ckpt, fingerprint=fingerprint, components=components, dyn_template=dyn)
             status = status.astype(jnp.int32)
             resumed_from = step
-    # Loss, Jacobian and predictions of every start in ONE compiled program, used at the start
-    # (the initial losses) and at the end (covariance, predictions): fewer compilations than
-    # separate loss / Jacobian / predict programs (each one compiles the whole forward model).
-    fields = problem.fields
-    values_of = jax.jit(jax.vmap(lambda u: jnp.stack([problem.values(u)[f] for f in fields])))
-    batch_evaluate = jax.jit(jax.vmap(lambda v: problem.evaluate_values(v, jac)))
+    # Values, loss, Jacobian and predictions of every start in ONE compiled program (kept with
+    # the engine), used at the start (the initial losses) and at the end (covariance,
+    # predictions): fewer compilations than separate loss / Jacobian / predict programs (each
+    # one compiles the whole forward model).
+    evaluate = engine.make_evaluate()
     if not history:
-        history.append(np.asarray(batch_evaluate(values_of(U))[0]))
+        history.append(np.asarray(evaluate(U, data)[1]))
 
     def save():
         if ckpt is not None:
@@ -930,7 +1041,7 @@ def fit(
         task = bar.add_task("fit", total=max_steps, completed=step, loss=f"{np.nanmin(history[-1]):.6g}")
     try:
         while step < max_steps and not bool(np.all(np.asarray(done))):
-            U, dyn, done, new_status, losses = step_fn(U, dyn, done)
+            U, dyn, done, new_status, losses = step_fn(U, dyn, done, data)
             status = jnp.where(new_status != 0, new_status, status).astype(jnp.int32)
             step += 1
             losses = np.asarray(losses)
@@ -953,15 +1064,33 @@ def fit(
             bar.stop()
     save()
 
-    # ------------------------------------------------------------ the best start
-    all_values = values_of(U)
-    final, all_J, all_preds = batch_evaluate(all_values)
+    all_values, final, all_J, all_preds = evaluate(U, data)
+    if stopped_by_callback:
+        stop_reason = "stopped by callback"
+    else:
+        stop_reason = f"max_steps ({max_steps}) reached"
+    return _fit_result(
+        problem, engine, U, all_values, final, all_J, all_preds, done, status, history, step,
+        stop_reason=stop_reason, absolute_sigma=absolute_sigma, method=method, loss=loss, f_scale=f_scale,
+        compilations=engine.traces - traces_before, resumed_from=resumed_from, stacklevel=3,
+    )
+
+
+def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_J, all_preds, done, status, history, step, *,
+                stop_reason: str, absolute_sigma: bool, method: str, loss: str, f_scale: float, compilations: int,
+                resumed_from: int = 0, warning_prefix: str = "", stacklevel: int = 2) -> FitResult:
+    """The :class:`FitResult` of one problem from the final state of its starts: best start,
+    covariance, identifiability diagnostics (emitted as warnings, prefixed by
+    ``warning_prefix``) and per-scenario outputs. ``history`` is a list of ``(S,)`` loss rows."""
+    fields = problem.fields
+    U = jnp.asarray(U)
+    history = list(history)
     final = np.asarray(final)
     history[-1] = final
     finite = np.where(np.isfinite(final), final, np.inf)
     best = int(np.argmin(finite))
     if not np.isfinite(finite[best]):
-        raise FitError("every start ended with a non-finite loss; check the initial material, the transforms and the scenarios' predictions")
+        raise FitError(f"{warning_prefix}every start ended with a non-finite loss; check the initial material, the transforms and the scenarios' predictions")
     done_np = np.asarray(done)
     status_np = np.asarray(status)
     start_converged = done_np & (status_np == 0)
@@ -969,10 +1098,8 @@ def fit(
         reason = "step and residual change below rtol/atol"
     elif status_np[best] != 0:
         reason = f"failed: {engine.status_message(int(status_np[best]))}"
-    elif stopped_by_callback:
-        reason = "stopped by callback"
     else:
-        reason = f"max_steps ({max_steps}) reached"
+        reason = stop_reason
     u_best = U[best]
     material = problem.material(u_best)
     values_vec = np.asarray(all_values[best])
@@ -982,7 +1109,7 @@ def fit(
     if not start_converged[best]:
         diag = [(f, f"{msg} (evaluated where the fit stopped without converging: {reason})") for f, msg in diag]
     for _, msg in diag:
-        warnings.warn(msg, IdentifiabilityWarning, stacklevel=2)
+        warnings.warn(warning_prefix + msg, IdentifiabilityWarning, stacklevel=stacklevel)
 
     # ------------------------------------------------------------ per-scenario outputs
     scen_fits = []
@@ -1027,7 +1154,7 @@ def fit(
         loss_function=loss,
         f_scale=float(f_scale),
         unconstrained=np.asarray(u_best),
-        compilations=engine.traces - traces_before,
+        compilations=int(compilations),
         resumed_from=resumed_from,
     )
 
