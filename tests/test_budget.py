@@ -95,3 +95,19 @@ def test_saturated_budget_warns(problem):
         cal = calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, s, max_steps=3)
     assert not cal.converged
     assert cal.naive_error > 0.5 and cal.calibrated_error > 0.5
+
+
+def test_calibration_of_a_flat_punch_indentation_against_fem_linear():
+    """Issue 6: a 10-iteration, 1-substep XPBD indentation (bonded flat punch) is calibrated so
+    its punch force matches the linear FEM; the naive error is tens of percent (table in
+    docs/budget.md, experiments/budget_indentation.py)."""
+    mesh = block((0.01, 0.01, 0.005), (4, 4, 2))
+    p = np.asarray(mesh.points)
+    punch = np.flatnonzero((np.abs(p[:, 2] - 0.005) < 1e-12) & (np.hypot(p[:, 0] - 0.005, p[:, 1] - 0.005) <= 3e-3))
+    assert punch.size == 5
+    bc = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"}).fix(mesh, punch, "xyz", (0.0, 0.0, -1e-4))
+    cal = calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS, reference="fem_linear")
+    print(f"punch vs fem_linear: naive {cal.naive_error:.4f} -> {cal.calibrated_error:.2e}, E ratio {cal.ratio():.3f}")
+    assert cal.naive_error > 0.1  # the budgeted lattice is far too soft under the punch
+    assert cal.calibrated_error < 0.02 and cal.converged
+    assert cal.ratio() > 1.0
