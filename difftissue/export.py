@@ -46,6 +46,7 @@ __all__ = [
     "write_card",
     "abaqus_name",
     "febio_material",
+    "febio_indenter_cap",
     "febio_prestrain_gradient",
     "pre_stretch_from_febio_gradient",
     "sofa_force_field",
@@ -1138,13 +1139,6 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
 
 # ===================================================================== indentation
 _WHY = {
-    ("FEBio", "sphere"): ("FEBio 4.0 has no analytical rigid sphere contact: its contact interfaces (FEBioMech module "
-                          "registration) are sliding-node-on-facet, sliding-facet-on-facet, sliding-elastic, tied-*, sticky, "
-                          "rigid_wall, contact potential and mortar; the old 'rigid sphere' contact of FEBio 1.x/2.x is not "
-                          "registered. Mesh the sphere as a rigid body with sliding-elastic contact in FEBio Studio, or export "
-                          "the sphere to Abaqus, SOFA or the XPBD JSON"),
-    ("FEBio", "cone"): ("FEBio 4.0 has no analytical rigid cone (its only analytical rigid surface is rigid_wall, a plane); "
-                        "export the cone to Abaqus or the XPBD JSON"),
     ("SOFA", "cone"): ("the SOFA scene has no cone: SOFA's ConicalForceField (Sofa.Component.MechanicalLoad) was not "
                        "checked against difftissue's cone penetration; export the cone to Abaqus or the XPBD JSON"),
 }
@@ -1164,24 +1158,124 @@ def _ind_check(spec, target: str, *, cone: bool = True, sphere: bool = True, sli
                           f"written: {target} prescribes all three components of moved nodes; use bonded_punch=True (--bonded-punch)")
 
 
+FEBIO_INDENTER_MATERIAL = "rigid_indenter"
+
+
+def febio_indenter_cap(spec, height: float, spacing: float, *, max_rings: int = 48):
+    """Triangulated cap of a sphere or cone indenter for the FEBio specimen (SI units).
+
+    The indenter's tip touches the top face ``z = height`` on the axis ``x = y = 0``; the
+    sphere's centre is ``(0, 0, height + R)``, the cone's tip ``(0, 0, height)``. The cap
+    extends to the horizontal radius ``r_cap``: sphere ``min(3 sqrt(R d), R)`` (3x the
+    small-strain contact radius, at most the hemisphere), cone ``3 d tan(theta)`` (3x the
+    radius where the cone crosses the undeformed surface at the final depth ``d``, which
+    exceeds the contact radius ``2 d tan(theta) / pi``). Rings ``k = 0..n`` (ring ``k`` has
+    ``6 k`` nodes, the tip is ring 0) at equal polar angles (sphere) or equal radii (cone),
+    ``n = ceil(arc length / (spacing / 2))`` clipped to ``[4, max_rings]`` (``spacing`` [m]: the
+    tissue's top cell size; the rings are then at most ``spacing / 2`` apart unless clipped),
+    zipped into ``tri3`` facets whose normal ``(x1 - x0) x (x2 - x0)`` points away from the
+    indenter's interior (towards the tissue).
+
+    Returns ``(points (N, 3), tris (M, 3) 0-based, r_cap)``.
+    """
+    if not (math.isfinite(spacing) and spacing > 0):
+        raise ExportError(f"indenter cap spacing = {spacing!r} must be a positive length [m]")
+    d = spec.depth
+    if spec.indenter == "sphere":
+        R = spec.radius
+        r_cap = min(3.0 * math.sqrt(R * d), R)
+        theta_max = math.asin(r_cap / R) if r_cap < R else 0.5 * math.pi
+        arc = R * theta_max
+    elif spec.indenter == "cone":
+        r_cap = 3.0 * d * math.tan(spec.half_angle)
+        arc = r_cap / math.sin(spec.half_angle)
+    else:
+        raise ExportError(f"no indenter cap for a {spec.indenter!r} indenter (sphere and cone only)")
+    n = int(min(max(4, math.ceil(arc / (0.5 * spacing))), max_rings))
+    pts = [(0.0, 0.0, float(height))]
+    rings = [[0]]
+    for k in range(1, n + 1):
+        if spec.indenter == "sphere":
+            th = theta_max * k / n
+            r, z = R * math.sin(th), height + R - R * math.cos(th)
+        else:
+            r = r_cap * k / n
+            z = height + r / math.tan(spec.half_angle)
+        ids = []
+        for m in range(6 * k):
+            phi = 2.0 * math.pi * m / (6 * k)
+            ids.append(len(pts))
+            pts.append((r * math.cos(phi), r * math.sin(phi), z))
+        rings.append(ids)
+    tris = []
+    for k in range(1, n + 1):
+        inner, outer = rings[k - 1], rings[k]
+        ni, no = len(inner), len(outer)
+        if ni == 1:
+            tris += [(inner[0], outer[j], outer[(j + 1) % no]) for j in range(no)]
+            continue
+        i = j = 0
+        while i < ni or j < no:  # zip the two rings by angle: ni + no triangles
+            if j < no and (i >= ni or (j + 1) / no <= (i + 1) / ni):
+                tris.append((inner[i % ni], outer[j], outer[(j + 1) % no]))
+                j += 1
+            else:
+                tris.append((inner[i], outer[j % no], inner[(i + 1) % ni]))
+                i += 1
+    P = np.asarray(pts, dtype=float)
+    T = np.asarray(tris, dtype=np.int64)
+    # orient every facet away from the indenter's interior (sphere: from the centre; cone: outward and down)
+    nrm = np.cross(P[T[:, 1]] - P[T[:, 0]], P[T[:, 2]] - P[T[:, 0]])
+    c = P[T].mean(axis=1)
+    if spec.indenter == "sphere":
+        out = c - np.array([0.0, 0.0, height + spec.radius])
+    else:
+        rho = np.hypot(c[:, 0], c[:, 1])
+        out = np.stack([c[:, 0] * math.cos(spec.half_angle) / np.maximum(rho, 1e-300),
+                        c[:, 1] * math.cos(spec.half_angle) / np.maximum(rho, 1e-300),
+                        -np.full(len(c), math.sin(spec.half_angle))], axis=1)
+    flip = np.einsum("ij,ij->i", nrm, out) < 0
+    T[flip] = T[flip][:, [0, 2, 1]]
+    return P, T, float(r_cap)
+
+
 def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None, approximate: bool = False) -> ET.Element:
-    """FEBio 4.0 model of a flat-punch indentation specimen (:mod:`difftissue.export_indentation`).
+    """FEBio 4.0 model of an indentation specimen (:mod:`difftissue.export_indentation`).
 
-    The punch is the ``prescribed displacement`` (``dof`` z, ``-depth`` ramped by load
+    Tissue (all indenters): nodes ``1..N`` (``<Nodes name="specimen">``), ``tet4`` elements
+    ``1..Nt`` (``tissue``), node sets ``base``, ``top`` (and ``base_anchor``, ``base_other``
+    for a sliding base); the base ``z = 0`` is ``zero displacement`` x, y, z (bonded) or z only
+    plus ``base_anchor`` (x, y) and ``base_other`` (y) (sliding).
+
+    Flat punch: the ``prescribed displacement`` (``dof`` z, ``-depth`` ramped by load
     controller 1 over ``spec.steps`` static steps) of the node set ``punch`` (top nodes within
-    the radius), plus ``zero displacement`` x, y of the same set for a bonded punch; the base
-    ``z = 0`` is ``zero displacement`` x, y, z (bonded) or z only plus the two pinned nodes
-    ``base_anchor`` (x, y) and ``base_other`` (y) (sliding). The punch force is the sum of the
-    ``reaction forces`` (plot variable) over ``punch``.
+    the radius), plus ``zero displacement`` x, y of the same set for a bonded punch. The punch
+    force is the sum of the ``reaction forces`` (plot variable) over ``punch``.
 
-    Sphere and cone are refused: FEBio 4.0 has no analytical rigid sphere or cone contact
-    (``rigid_wall`` is its only analytical rigid surface; see docs/export.md).
+    Sphere and cone: a meshed rigid indenter, as FEBio users model one (FEBio 4.0 has no
+    analytical sphere or cone): the cap of :func:`febio_indenter_cap` (``tri3`` shells, nodes
+    ``N+1..``, elements ``Nt+1..``) in a ``ShellDomain`` of a ``<material type="rigid body">``
+    (``center_of_mass`` at the sphere centre / cone tip), ``rigid_fixed`` x, y and the three
+    rotations, ``rigid_displacement`` z = ``-depth`` (load controller 1); frictionless
+    ``sliding-elastic`` contact (``fric_coeff`` 0) on the ``SurfacePair`` with the tissue's top
+    face as ``primary`` and the indenter cap as ``secondary``, penalty method (``laugon`` 0,
+    ``auto_penalty`` 0) with ``penalty = p E / h`` [Pa/m], difftissue's per-node penalty
+    ``kappa_i = p E sqrt(A_i)`` per tributary area (``h = sqrt(A)`` of the top node on the
+    axis). The indentation force is minus the sum of the base's ``reaction forces`` along z
+    (static equilibrium, no other loads). Keyword sources: docs/export.md.
     """
     from .export_indentation import indentation_sets
 
-    _ind_check(spec, "FEBio", cone=False, sphere=False)
+    _ind_check(spec, "FEBio")
+    contact = spec.indenter in ("sphere", "cone")
+    if contact and card.name == FEBIO_INDENTER_MATERIAL:
+        raise ExportError(f"FEBio indentation specimen: the card's name {card.name!r} is the indenter's rigid material name; "
+                          "rename the card (its 'name')")
     mesh = spec.mesh()
     s = indentation_sets(spec, mesh, card)
+    pts_t = np.asarray(mesh.points, dtype=float)
+    tets = np.asarray(mesh.tets)
+    H = s["H"]
     root = ET.Element("febio_spec", {"version": "4.0"})
     for line in spec.describe():
         root.append(_xml_comment(line))
@@ -1190,23 +1284,64 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
     ET.SubElement(ctrl, "analysis").text = "STATIC"
     ET.SubElement(ctrl, "time_steps").text = str(int(spec.steps))
     ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / spec.steps)
-    root.append(febio_material(card, law=law, approximate=approximate))
+    mats = febio_material(card, law=law, approximate=approximate)
+    root.append(mats)
+    if contact:
+        cap_pts, cap_tris, r_cap = febio_indenter_cap(spec, H, spacing=s["h"])
+        centre = (0.0, 0.0, H + spec.radius) if spec.indenter == "sphere" else (0.0, 0.0, H)
+        mats.append(_xml_comment(
+            "the indenter: a rigid body (FEBio 'rigid body' material; E and v are used only by FEBio's auto-penalty, "
+            "which this file does not use); center_of_mass = " + ("the sphere centre (0, 0, H + R)" if spec.indenter == "sphere"
+                                                                  else "the cone tip (0, 0, H)")))
+        rig = ET.SubElement(mats, "material", {"id": "2", "name": FEBIO_INDENTER_MATERIAL, "type": "rigid body"})
+        ET.SubElement(rig, "density").text = _fmt(card.density)
+        ET.SubElement(rig, "E").text = _fmt(card.youngs_modulus)
+        ET.SubElement(rig, "v").text = _fmt(card.poisson_ratio)
+        ET.SubElement(rig, "center_of_mass").text = ",".join(_fmt(c) for c in centre)
     meshel = ET.SubElement(root, "Mesh")
     nodes = ET.SubElement(meshel, "Nodes", {"name": "specimen"})
-    for i, p in enumerate(np.asarray(mesh.points, dtype=float), start=1):
+    for i, p in enumerate(pts_t, start=1):
         ET.SubElement(nodes, "node", {"id": str(i)}).text = ",".join(_fmt(c) for c in p)
+    n_t = len(pts_t)
+    if contact:
+        meshel.append(_xml_comment(
+            f"indenter cap: {len(cap_pts)} nodes on the {spec.indenter} (tip at (0, 0, H)), {len(cap_tris)} tri3 facets, "
+            f"horizontal radius {r_cap:.6g} m (contact radius at the final depth {spec.contact_radius():.6g} m); "
+            "facet normals point away from the indenter, towards the tissue"))
+        cnodes = ET.SubElement(meshel, "Nodes", {"name": "indenter"})
+        for i, p in enumerate(cap_pts, start=n_t + 1):
+            ET.SubElement(cnodes, "node", {"id": str(i)}).text = ",".join(_fmt(c) for c in p)
     elems = ET.SubElement(meshel, "Elements", {"type": "tet4", "name": "tissue"})
-    for i, t in enumerate(np.asarray(mesh.tets), start=1):
+    for i, t in enumerate(tets, start=1):
         ET.SubElement(elems, "elem", {"id": str(i)}).text = ",".join(str(int(n) + 1) for n in t)
+    if contact:
+        shells = ET.SubElement(meshel, "Elements", {"type": "tri3", "name": "indenter_shell"})
+        for i, t in enumerate(cap_tris, start=len(tets) + 1):
+            ET.SubElement(shells, "elem", {"id": str(i)}).text = ",".join(str(int(n) + n_t + 1) for n in t)
     ids = lambda a: ",".join(str(int(n) + 1) for n in np.atleast_1d(a))  # noqa: E731
     ET.SubElement(meshel, "NodeSet", {"name": "base"}).text = ids(s["base"])
     ET.SubElement(meshel, "NodeSet", {"name": "top"}).text = ids(s["top"])
     if spec.base == "sliding":
         ET.SubElement(meshel, "NodeSet", {"name": "base_anchor"}).text = ids(s["anchor"])
         ET.SubElement(meshel, "NodeSet", {"name": "base_other"}).text = ids(s["other"])
-    ET.SubElement(meshel, "NodeSet", {"name": "punch"}).text = ids(s["punch"])
+    if not contact:
+        ET.SubElement(meshel, "NodeSet", {"name": "punch"}).text = ids(s["punch"])
+    else:
+        surf = ET.SubElement(meshel, "Surface", {"name": "tissue_top"})
+        for i, f in enumerate(s["top_faces"], start=1):
+            ET.SubElement(surf, "tri3", {"id": str(i)}).text = ids(f)
+        csurf = ET.SubElement(meshel, "Surface", {"name": "indenter_surface"})
+        for i, f in enumerate(cap_tris, start=1):
+            ET.SubElement(csurf, "tri3", {"id": str(i)}).text = ",".join(str(int(n) + n_t + 1) for n in f)
+        pair = ET.SubElement(meshel, "SurfacePair", {"name": "indentation_contact"})
+        ET.SubElement(pair, "primary").text = "tissue_top"
+        ET.SubElement(pair, "secondary").text = "indenter_surface"
     doms = ET.SubElement(root, "MeshDomains")
     ET.SubElement(doms, "SolidDomain", {"name": "tissue", "mat": card.name})
+    if contact:
+        sd = ET.SubElement(doms, "ShellDomain", {"name": "indenter_shell", "mat": FEBIO_INDENTER_MATERIAL})
+        # FERigidShellDomain parameter; a rigid body's thickness only sets its mass (irrelevant here: static, all dofs prescribed)
+        ET.SubElement(sd, "shell_thickness").text = _fmt(0.01 * (spec.radius if spec.indenter == "sphere" else r_cap))
     bnd = ET.SubElement(root, "Boundary")
 
     def zero(name, nset, dofs):
@@ -1220,12 +1355,38 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
         zero("sliding_base", "base", "z")
         zero("base_anchor", "base_anchor", "xy")
         zero("base_other", "base_other", "y")
-    pre = ET.SubElement(bnd, "bc", {"name": "punch_displacement", "node_set": "punch", "type": "prescribed displacement"})
-    ET.SubElement(pre, "dof").text = "z"
-    ET.SubElement(pre, "value", {"lc": "1"}).text = _fmt(-spec.depth)
-    ET.SubElement(pre, "relative").text = "0"
-    if spec.bonded_punch:
-        zero("punch_bonded", "punch", "xy")
+    if not contact:
+        pre = ET.SubElement(bnd, "bc", {"name": "punch_displacement", "node_set": "punch", "type": "prescribed displacement"})
+        ET.SubElement(pre, "dof").text = "z"
+        ET.SubElement(pre, "value", {"lc": "1"}).text = _fmt(-spec.depth)
+        ET.SubElement(pre, "relative").text = "0"
+        if spec.bonded_punch:
+            zero("punch_bonded", "punch", "xy")
+    else:
+        rigid = ET.SubElement(root, "Rigid")
+        rigid.append(_xml_comment("rb: the rigid material's name, as in the FEBio 4 documentation (rigid_fixed, rigid_displacement); "
+                                  "NOT VERIFIED for every FEBio 4 release: GIBBON's febio_spec 4.0 demos give the material id (2) "
+                                  "instead; use 2 if this FEBio rejects the name"))
+        fx = ET.SubElement(rigid, "rigid_bc", {"name": "indenter_fixed", "type": "rigid_fixed"})
+        ET.SubElement(fx, "rb").text = FEBIO_INDENTER_MATERIAL
+        for dof, v in (("Rx_dof", "1"), ("Ry_dof", "1"), ("Rz_dof", "0"), ("Ru_dof", "1"), ("Rv_dof", "1"), ("Rw_dof", "1")):
+            ET.SubElement(fx, dof).text = v
+        mv = ET.SubElement(rigid, "rigid_bc", {"name": "indenter_depth", "type": "rigid_displacement"})
+        ET.SubElement(mv, "rb").text = FEBIO_INDENTER_MATERIAL
+        ET.SubElement(mv, "dof").text = "z"
+        ET.SubElement(mv, "value", {"lc": "1"}).text = _fmt(-spec.depth)
+        ET.SubElement(mv, "relative").text = "0"
+        eps = spec.penalty * card.youngs_modulus / s["h"]
+        cont = ET.SubElement(root, "Contact")
+        cont.append(_xml_comment(
+            f"frictionless penalty contact: traction = penalty x penetration, penalty = p E / h = {spec.penalty:g} x "
+            f"{card.youngs_modulus:.6g} Pa / {s['h']:.6g} m = {eps:.6g} Pa/m, difftissue's per-node kappa_i = p E sqrt(A_i) "
+            "per tributary area A_i (h = sqrt(A) of the top node on the axis); set auto_penalty 1 (penalty then a scale "
+            "factor) or laugon 1 (augmented Lagrangian) for FEBio's own choices"))
+        c = ET.SubElement(cont, "contact", {"name": "indentation", "type": "sliding-elastic", "surface_pair": "indentation_contact"})
+        for tag, val in (("laugon", "0"), ("penalty", _fmt(eps)), ("auto_penalty", "0"), ("two_pass", "0"),
+                         ("fric_coeff", "0.0"), ("tension", "0"), ("search_radius", _fmt(max(spec.depth, r_cap)))):
+            ET.SubElement(c, tag).text = val
     ld = ET.SubElement(root, "LoadData")
     lc = ET.SubElement(ld, "load_controller", {"id": "1", "name": "ramp", "type": "loadcurve"})
     ET.SubElement(lc, "interpolate").text = "LINEAR"

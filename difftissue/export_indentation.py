@@ -17,8 +17,9 @@ into its card. The writers (``difftissue.export`` and ``difftissue.pbd``) call
 What each target gets (conversions and citations in docs/export.md):
 
 * FEBio: flat punch -> prescribed displacement of the nodes under the punch; sphere and cone
-  -> refused (FEBio 4.0 has no analytical rigid sphere or cone contact; ``rigid_wall`` is its
-  only analytical rigid surface).
+  -> a meshed rigid indenter (FEBio 4.0 has no analytical sphere or cone): a ``tri3`` shell cap
+  of a ``rigid body`` material in frictionless ``sliding-elastic`` contact with the top face,
+  moved by ``rigid_displacement``.
 * Abaqus: sphere and cone -> ``*SURFACE, TYPE=REVOLUTION`` analytical rigid surface with
   ``*RIGID BODY, ANALYTICAL SURFACE=..., REF NODE=...``, frictionless ``*SURFACE
   INTERACTION`` / ``*FRICTION`` 0, ``*CONTACT PAIR`` with the top node surface, ``*BOUNDARY``

@@ -146,7 +146,7 @@ def test_writers_structure_node_sets_and_penalty(tmp_path):
     np.testing.assert_array_equal(cm.contact_nodes, s["contact_nodes"])
     np.testing.assert_allclose(E * cm.penalty_factors, s["kappa"], rtol=1e-14)
 
-    # FEBio: flat punch written; sphere and cone refused (FEBio 4.0 has no analytical sphere / cone contact)
+    # FEBio: flat punch written; sphere and cone as a meshed rigid indenter (tests/test_export_febio_sphere.py)
     root = ET.parse(export(card, "febio", tmp_path / "p.feb", indentation=punch)).getroot()
     assert root.find("Material/material").get("name") == card.name  # escaped by the XML writer, read back intact
     assert root.find("Material/material").get("type") == "neo-Hookean"
@@ -154,9 +154,9 @@ def test_writers_structure_node_sets_and_penalty(tmp_path):
     assert root.find("MeshDomains/SolidDomain").get("mat") == card.name
     assert {bc.get("type") for bc in root.find("Boundary")} == {"zero displacement", "prescribed displacement"}
     for spec, shape in ((sphere, "sphere"), (cone, "cone")):
-        with pytest.raises(ExportError, match=f"FEBio indentation specimen: a {shape} indenter cannot be written"):
-            export(card, "febio", tmp_path / f"{shape}.feb", indentation=spec)
-        assert not (tmp_path / f"{shape}.feb").exists()
+        froot = ET.parse(export(card, "febio", tmp_path / f"{shape}.feb", indentation=spec)).getroot()
+        assert froot.find("Material/material[@type='rigid body']") is not None
+        assert froot.find("Contact/contact").get("type") == "sliding-elastic"
 
     # Abaqus: analytical rigid revolution surface for sphere and cone, *BOUNDARY for the punch
     for spec, shape in ((sphere, "sphere"), (cone, "cone"), (punch, "punch")):
@@ -309,15 +309,21 @@ def test_cli_export_indentation(tmp_path, capsys):
     assert "*SURFACE, TYPE=REVOLUTION, NAME=INDENTER" in text and "** radius: card scenario record 'afm'" in text
     assert f"RP, 3, 3, {-2e-4!r}" in text
     capsys.readouterr()
+    # the same record to FEBio: a meshed rigid sphere (tests/test_export_febio_sphere.py)
+    assert main(["export", str(cpath), "--to", "febio", "--specimen", "indentation", "--cells", "4,4,2",
+                 "--out", str(tmp_path / "s.feb")]) == 0
+    froot = ET.parse(tmp_path / "s.feb").getroot()
+    assert float(froot.find("Rigid/rigid_bc[@type='rigid_displacement']/value").text) == -2e-4
+    capsys.readouterr()
     # refusals are one line, exit 1 (export) / 2 (usage)
-    assert main(["export", str(cpath), "--to", "febio", "--specimen", "indentation", "--out", str(tmp_path / "s.feb")]) == 1
+    assert main(["export", str(cpath), "--to", "pbd", "--specimen", "indentation", "--out", str(tmp_path / "p.json")]) == 1
     err = capsys.readouterr().err.strip()
-    assert "FEBio indentation specimen: a sphere indenter cannot be written" in err and "\n" not in err
+    assert "pypbd: a sphere indenter needs frictionless contact" in err and "\n" not in err
     assert main(["export", str(cpath), "--to", "febio", "--specimen", "indentation", "--displacement", "-0.1",
                  "--out", str(tmp_path / "d.feb")]) == 2
     assert main(["export", str(cpath), "--to", "febio", "--specimen", "block:1,1,1:1,1,1", "--radius", "1",
                  "--out", str(tmp_path / "r.feb")]) == 2
-    assert not (tmp_path / "s.feb").exists() and not (tmp_path / "d.feb").exists()
+    assert not (tmp_path / "p.json").exists() and not (tmp_path / "d.feb").exists()
 
 
 _RUNNER = """
