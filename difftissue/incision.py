@@ -42,7 +42,7 @@ from .cutting import Cut, CutClosureModel, Opening, closed_mask, opening_width
 from .errors import ConfigError, CutError, DataError
 from .materials import Material, surface_tension_from_pre_stretch
 from .mesh import Specimen, write_mesh
-from .models import ElasticModel, make_model, stack_materials
+from .models import make_model, stack_materials
 from .solvers.static import solve_static
 
 __all__ = [

@@ -8,20 +8,18 @@ incision is compiled once. Slow: the whole file took 31 min on the loaded 2-core
 steps); the config and refusal tests alone (`-k "config or bad_input"`) take ~30 s.
 """
 
-import math
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.optimize import brentq
 
+from difftissue.config import SeparatelyCompiled
 from difftissue.cutting import ScalpelPath, cut_specimen
 from difftissue.errors import ConfigError, CutError, DataError
-from difftissue.config import SeparatelyCompiled
 from difftissue.fit import fit
 from difftissue.incision import Incision, IncisionOptions, _jitted, depth_profile, incision_boundary, plot_incision, write_incision_series
-from difftissue.materials import Material, MaterialParameterization, ScaledLogit, lame_parameters, surface_tension_from_pre_stretch
+from difftissue.materials import Material, MaterialParameterization, lame_parameters, surface_tension_from_pre_stretch
 from difftissue.mesh import layered_skin
 from difftissue.scenarios import AnalyticIndentation
 
