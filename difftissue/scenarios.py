@@ -42,7 +42,7 @@ from .materials import Material
 from .mesh import TetMesh, structured_grid
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
-from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns
+from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
 from .solvers.static import solve_static
 
 __all__ = [
@@ -386,25 +386,26 @@ class _Condensation(eqx.Module):
         S = jnp.zeros((3 * k, 3 * k), dtype=G.dtype).at[idx[:, None], idx[None, :]].set(S_free)
         E = jnp.max(self.base.region_values(material)["youngs_modulus"])
         params = CondensedParameters(S, E * jnp.asarray(self.penalty_factors))
-        bc = BoundaryConditions(self.contact_fixed, jnp.zeros((k, 3)), jnp.zeros((k, 3)))
+        free_c = ~self.contact_fixed
         X = jnp.asarray(self.base.rest_points)
         XC = jnp.asarray(self.contact.rest_points)
         indenter = self.contact.indenter
-        small = dataclasses.replace(options, linear_solver="dense")
 
         def step(carry, depth):
             u, previous = carry
             model = self.contact.with_depth(depth)
-            sol = _solve(model, params, bc, _extrapolate(u, previous, depth), small)
-            uc = sol.displacement
+            uc, converged = solve_condensed_contact(model, params, free_c, _extrapolate(u, previous, depth), rtol=options.rtol, xtol=options.xtol, max_steps=options.max_steps)
             force = model.reaction_force(XC + uc, params)
             full = (Z.T @ (S @ uc.reshape(-1))[idx]).reshape(X.shape)
             outside = jnp.max(indenter.penetration(X[self.others] + full[self.others], depth)) if self.others.size else jnp.asarray(-1.0)
             bad = outside > 0
             if options.failure == "raise":
+                force = eqx.error_if(force, ~converged, "condensed indentation: the contact solve on the candidate nodes did not converge")
                 force = eqx.error_if(force, bad, "condensed indentation: a top-surface node outside the candidate set touches the indenter; use solver='full'")
             else:
-                force = jnp.where(bad, jnp.nan, force)
+                force = jnp.where(bad | ~converged, jnp.nan, force)
+                uc = jnp.where(converged, uc, jnp.nan)
+                full = jnp.where(converged, full, jnp.nan)
             return (uc, depth), (force, full)
 
         u0 = jnp.zeros((k, 3), dtype=G.dtype)

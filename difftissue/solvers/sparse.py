@@ -112,9 +112,26 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> np
     A = sps.csc_matrix(sps.csr_matrix((data, pattern.indices, pattern.indptr), shape=(pattern.n, pattern.n)))
     try:
         lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
-        return lu.solve(b)
     except RuntimeError:  # exactly singular: NaN, the Newton loop falls back / flags it
         return np.full(b.shape, np.nan)
+    if b.ndim == 1 or b.shape[1] < 4:
+        return lu.solve(b)
+    return _solve_many(lu, b)
+
+
+def _solve_many(lu, b: np.ndarray) -> np.ndarray:
+    """``A^{-1} b`` for many right-hand sides ``b (n, k)`` with SuperLU's factors ``Pr A Pc = L U``.
+
+    SciPy's ``SuperLU.solve`` with a matrix right-hand side is several times slower than the
+    two sparse triangular solves done here (measured: 31 columns of a 3,267-unknown stiffness,
+    0.76 s against 0.13 s), which dominated a condensed indentation's forward solve.
+    """
+    L, U = lu.L.tocsr(), lu.U.tocsr()
+    pb = np.empty_like(b)
+    pb[lu.perm_r] = b
+    y = spla.spsolve_triangular(L, pb, lower=True, unit_diagonal=True)
+    w = spla.spsolve_triangular(U, y, lower=False)
+    return w[lu.perm_c]
 
 
 def _host_solve(pattern: SparsePattern, data, b):
