@@ -1,0 +1,265 @@
+"""Batched and sharded fits (difftissue.batch.fit_batch) against the serial loop of fit calls.
+
+The sharded runs need several devices, i.e. XLA_FLAGS=--xla_force_host_platform_device_count=4
+set before jax is imported: they run in a child process (a script written to tmp_path).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import textwrap
+import warnings
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+
+from difftissue import Material
+from difftissue.analytic import hertz_force
+from difftissue.batch import fit_batch, specimen_mesh
+from difftissue.errors import FitError, IdentifiabilityWarning
+from difftissue.fit import fit
+from difftissue.materials import MaterialParameterization
+from difftissue.mesh import block
+from difftissue.scenarios import AnalyticIndentation, Compression, SolverOptions
+
+NAN = SolverOptions(failure="nan")  # a failed solve gives NaN predictions (what fits use)
+
+P_E = MaterialParameterization(("youngs_modulus",))
+DEPTHS = np.linspace(20e-6, 200e-6, 15)
+
+
+def hertz_specimens(n, seed=0, radius=1e-3):
+    """``n`` Hertz curves, each with its own E (2-9 kPa), noise and start (0.5 E)."""
+    rng = np.random.default_rng(seed)
+    specs, starts = [], []
+    for b in range(n):
+        E = 2e3 + 7e3 * rng.random()
+        f = np.asarray(hertz_force(DEPTHS, E, 0.45, radius))
+        noise = 0.01 * f.max()
+        specs.append(AnalyticIndentation(DEPTHS, f + noise * rng.normal(size=f.size), radius=radius, sigma=noise, name="hertz"))
+        starts.append(Material(0.5 * E, 0.45))
+    return specs, starts
+
+
+def small_block():
+    return block((0.01, 0.01, 0.0075), (4, 4, 3))  # 288 tets, 2.5 mm cubes (topology test)
+
+
+@pytest.fixture(scope="module")
+def cube():
+    return small_block()
+
+
+def indentation_specimens(n, seed=0):
+    """``n`` simulated sphere indentations (quarter block of 384 tets, fem_linear, condensed
+    penalty contact, nu = 0.45 known), each with its own E (5-15 kPa), noise and start (0.6 E)."""
+    from difftissue.scenarios import Indentation, indentation_block
+
+    mesh = indentation_block((4e-3, 4e-3, 1.6e-3), (4, 4, 4), symmetry="quarter")
+    depths = np.linspace(0.04, 0.2, 4) * 1e-3
+    kw = dict(model="fem_linear", indenter="sphere", radius=1e-3, symmetry="quarter", options=NAN, name="sphere")
+    probe = Indentation(mesh, depths, **kw)
+    rng = np.random.default_rng(seed)
+    specs, starts = [], []
+    for b in range(n):
+        E = 5e3 + 1e4 * rng.random()
+        f = np.asarray(probe.predict(Material(E, 0.45)))
+        noise = 0.01 * f.max()
+        specs.append(Indentation(mesh, depths, f + noise * rng.normal(size=f.size), sigma=noise, **kw))
+        starts.append(Material(0.6 * E, 0.45))
+    return specs, starts
+
+
+def assert_same_fits(batch, serial, rtol=1e-7, steps_tol=0):
+    """Same values, standard errors, losses and convergence; steps equal within ``steps_tol``
+    (the last steps of a simulated fit change the loss at round-off level, where batched and
+    single linear algebra may round differently)."""
+    assert len(batch) == len(serial)
+    for b, (a, s) in enumerate(zip(batch.fits, serial)):
+        for f in s.fields:
+            assert a.values[f] == pytest.approx(s.values[f], rel=rtol), (b, f)
+            assert a.standard_errors[f] == pytest.approx(s.standard_errors[f], rel=1e-5), (b, f)
+        assert a.loss == pytest.approx(s.loss, rel=1e-6, abs=1e-12)
+        assert a.converged == s.converged and abs(a.steps - s.steps) <= steps_tol and a.best_start == s.best_start, b
+        np.testing.assert_allclose(a.start_losses, s.start_losses, rtol=1e-6)
+        np.testing.assert_allclose(a.covariance, s.covariance, rtol=1e-5)
+        assert a.loss_history.shape == (a.steps + 1, s.loss_history.shape[1])
+
+
+# ------------------------------------------------------------------ batched == serial
+@pytest.mark.parametrize("method", ["levenberg_marquardt", "gauss_newton"])
+def test_batched_hertz_fits_equal_the_serial_loop(method):
+    specs, starts = hertz_specimens(5, seed=1)
+    batch = fit_batch(specs, P_E, starts, method=method, starts=2, seed=3)
+    serial = [fit(s, P_E, m, method=method, starts=2, seed=3) for s, m in zip(specs, starts)]
+    assert_same_fits(batch, serial)
+    assert all(batch.converged) and batch.batch_steps == batch.steps.max()
+    assert batch.values.shape == (5, 1) and batch.fields == ("youngs_modulus",)
+    # the fits recover each specimen's own modulus (within 3 standard errors of the noise)
+    true_E = np.array([2.0 * m.youngs_modulus for m in starts])
+    assert np.all(np.abs(batch.value("youngs_modulus") - true_E) < 4 * batch.standard_errors[:, 0])
+    assert "| specimen | youngs_modulus |" in batch.table()
+
+
+def test_batched_indentation_fits_equal_the_serial_loop_and_compile_once(caplog):
+    specs, starts = indentation_specimens(3, seed=2)
+    batch = fit_batch(specs, P_E, starts)
+    assert batch.compilations == 1  # one trace of the batched step for all specimens and steps
+    serial = [fit(s, P_E, m) for s, m in zip(specs, starts)]
+    assert_same_fits(batch, serial, rtol=1e-6, steps_tol=2)
+    assert all(batch.converged)
+    # the serial loop compiled once for the first specimen only: the data are arguments
+    assert [r.compilations for r in serial][1:] == [0, 0]
+    # new specimens of the same structure (other data, other starts): nothing is compiled again
+    specs2, starts2 = indentation_specimens(3, seed=7)
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        caplog.clear()
+        again = fit_batch(specs2, P_E, starts2)
+    big = [r.getMessage() for r in caplog.records if "ompiling" in r.getMessage() and ("step" in r.getMessage() or "evaluate" in r.getMessage())]
+    assert again.compilations == 0 and big == [], big
+    assert not np.allclose(again.values, batch.values)
+
+
+def test_a_differing_float_leaf_is_batched_and_an_identifiability_warning_names_the_specimen():
+    """Specimens with other depth protocols (a float leaf that is not data) are batched too;
+    E and nu from one Hertz curve each: nu is not determined, said per specimen."""
+    specs, starts = hertz_specimens(2, seed=4)
+    other = np.linspace(10e-6, 150e-6, 15)
+    f = np.asarray(hertz_force(other, 4e3, 0.45, 1e-3))
+    specs[1] = AnalyticIndentation(other, f * (1 + 0.01 * np.random.default_rng(0).normal(size=15)), radius=1e-3, sigma=0.01 * f.max(), name="hertz")
+    P_E_NU = MaterialParameterization(("youngs_modulus", "poisson_ratio"))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        batch = fit_batch(specs, P_E_NU, starts, labels=["left", "right"], max_steps=30)
+    msgs = [str(w.message) for w in caught if issubclass(w.category, IdentifiabilityWarning)]
+    assert any(m.startswith("specimen left: poisson_ratio") for m in msgs) and any(m.startswith("specimen right:") for m in msgs)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        serial = [fit(s, P_E_NU, m, max_steps=30) for s, m in zip(specs, starts)]
+    for a, s in zip(batch.fits, serial):
+        assert a.values["youngs_modulus"] == pytest.approx(s.values["youngs_modulus"], rel=1e-6)
+        assert a.steps == s.steps and "poisson_ratio" in a.unidentified
+
+
+# ------------------------------------------------------------------ bad input
+def test_bad_batches_are_refused_with_clear_errors():
+    specs, starts = hertz_specimens(3)
+    with pytest.raises(FitError, match="3 materials for 2 specimens"):
+        fit_batch(specs[:2], P_E, starts)
+    short = AnalyticIndentation(DEPTHS[:10], specs[0].observed[:10], radius=1e-3, name="hertz")
+    with pytest.raises(FitError, match="specimen 1: scenario 'hertz' has 10 points, specimen 0 has 15"):
+        fit_batch([specs[0], short], P_E, starts[0])
+    other_radius = AnalyticIndentation(DEPTHS, specs[1].observed, radius=2e-3, name="hertz")
+    with pytest.raises(FitError, match="specimen 1: scenario 'hertz' differs .* in size"):
+        fit_batch([specs[0], other_radius], P_E, starts[0])
+    renamed = AnalyticIndentation(DEPTHS, specs[1].observed, radius=1e-3, name="hertz-2")
+    with pytest.raises(FitError, match="scenario names"):
+        fit_batch([specs[0], renamed], P_E, starts[0])
+    nan = eqx.tree_at(lambda s: s.observed, specs[2], np.where(np.arange(15) == 4, np.nan, specs[2].observed))
+    with pytest.raises(FitError, match="specimen 2: scenario 'hertz': observed holds 1 non-finite"):
+        fit_batch([specs[0], specs[1], nan], P_E, starts[0])
+    with pytest.raises(FitError, match="non-fitted fields"):
+        fit_batch(specs[:2], P_E, [starts[0], Material(3e3, 0.3)])
+    with pytest.raises(FitError, match="non-empty sequence"):
+        fit_batch([], P_E, starts[0])
+    with pytest.raises(FitError, match="distinct"):
+        fit_batch(specs[:2], P_E, starts[0], labels=["a", "a"])
+    with pytest.raises(FitError, match="device_count"):
+        specimen_mesh(len(jax.devices()) + 1)
+
+
+def test_differing_topology_is_refused(cube):
+    strains = np.array([0.01, 0.03])
+    base = Compression(cube, strains, np.array([100.0, 300.0]), model="fem_linear", bonded=True, options=NAN, name="compression")
+    other = small_block()
+    # same shapes, other connectivity: the tets' nodes in another (even) order
+    tets = np.asarray(other.tets)[:, [1, 2, 0, 3]]
+    from difftissue.mesh import TetMesh
+
+    renumbered = TetMesh(other.points, tets, other.region_ids, other.region_names)
+    sc = Compression(renumbered, strains, np.array([100.0, 300.0]), model="fem_linear", bonded=True, options=NAN, name="compression")
+    with pytest.raises(FitError, match="topology"):
+        fit_batch([base, sc], P_E, Material(1e4, 0.45))
+
+
+# ------------------------------------------------------------------ sharded (child process)
+CHILD = textwrap.dedent(
+    """
+    import os, sys, json, warnings
+    os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=4"
+    import jax
+    jax.config.update("jax_enable_x64", True)
+    import numpy as np
+    sys.path.insert(0, {here!r})
+    import test_batch as tb
+    from difftissue.batch import fit_batch
+    from difftissue.fit import fit
+    out = {{"devices": len(jax.devices())}}
+    specs, starts = tb.hertz_specimens(6, seed=5)           # 6 specimens on 4 devices: 2 padded
+    sharded = fit_batch(specs, tb.P_E, starts, starts=2, devices=4)
+    serial = [fit(s, tb.P_E, m, starts=2) for s, m in zip(specs, starts)]
+    tb.assert_same_fits(sharded, serial)
+    out["hertz"] = {{"padding": sharded.padding, "devices": list(sharded.devices), "compilations": sharded.compilations}}
+    print("RESULT " + json.dumps(out))
+    """
+)
+
+
+def test_sharded_fits_on_four_simulated_devices_equal_the_serial_loop(tmp_path):
+    script = tmp_path / "sharded.py"
+    script.write_text(CHILD.format(here=os.path.dirname(os.path.abspath(__file__))))
+    env = dict(os.environ)
+    env.pop("XLA_FLAGS", None)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-4000:]
+    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
+    out = json.loads(line[len("RESULT "):])
+    assert out["devices"] == 4
+    assert out["hertz"]["padding"] == 2 and out["hertz"]["devices"] == ["cpu:0", "cpu:1", "cpu:2", "cpu:3"]
+    assert out["hertz"]["compilations"] == 1
+
+
+def test_a_scenario_that_is_not_a_pytree_is_refused_by_name():
+    import dataclasses
+
+    @dataclasses.dataclass(frozen=True, eq=False)
+    class Plain:
+        name: str
+        abscissa: np.ndarray
+        observed: np.ndarray
+        sigma: np.ndarray
+        x_label: str = "depth [m]"
+        y_label: str = "force [N]"
+
+        def predict(self, m):
+            return hertz_force(self.abscissa, m.youngs_modulus, m.poisson_ratio, 1e-3)
+
+    specs, starts = hertz_specimens(2)
+    plain = [Plain("hertz", DEPTHS, s.observed, s.sigma) for s in specs]
+    with pytest.raises(FitError, match="not a pytree"):
+        fit_batch(plain, P_E, starts)
+
+
+def test_the_scale_page_example_runs_and_prints_its_table():
+    """docs/scale.md's first example (5 Hertz specimens) runs and prints what the page shows."""
+    import re
+    from contextlib import redirect_stdout
+    from io import StringIO
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[1] / "docs" / "scale.md").read_text()
+    code = re.findall(r"```python\n(.*?)```", text, flags=re.S)[0]
+    shown = re.findall(r"prints one row per specimen.*?```\n(.*?)```", text, flags=re.S)[0]
+    buf = StringIO()
+    with redirect_stdout(buf):
+        exec(compile(code, "docs/scale.md", "exec"), {"__name__": "scale_example"})
+    printed = buf.getvalue().splitlines()
+    for line in shown.splitlines():
+        if line.strip() != "...":
+            assert line in printed, (line, printed)
