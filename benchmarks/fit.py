@@ -6,16 +6,21 @@ Run by hand (not in CI)::
     python benchmarks/fit.py            # default: springs_volume and fem_linear, ~5k tets
 
 Synthetic data: the simulated spherical indentation (R = 1 mm, depths 0.01-0.2 mm) of a
-bonded 4 x 4 x 1.6 mm block (quarter model, 4,800 tets, 0.2 mm cubes) at a known material, 20 depths. The fit starts from E x 1.6, nu = 0.3 and runs Levenberg-Marquardt
-on E and nu (a single curve on a finite-thickness layer determines nu only weakly: expect
-an identifiability warning or a large standard error). Printed: wall time of the whole fit
-(compilation included), of its steps, of one forward protocol solve (the baseline, measured
-in the same run), and the ratio fit / forward.
+bonded 4 x 4 x 1.6 mm block (quarter model, 4,800 tets, 0.2 mm cubes) at a known material, 20
+depths. The fit starts from E x 1.6, nu = 0.3 and runs Levenberg-Marquardt on E and nu (a
+single curve on a finite-thickness layer determines nu only weakly: expect an identifiability
+warning or a large standard error). Printed per model: one forward protocol solve (first call
+with compilation, then a second call), the whole fit run twice in the same process -- cold
+(compilation included) and warm (the same fit again: the compiled programs are reused) --
+with wall time, the process's CPU time (user + system, both cores; a load-independent
+measure on a shared machine) and the XLA backend compile time (jax.monitoring), and the
+load average around each fit.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import platform
 import time
@@ -26,6 +31,8 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
+
+import jax.monitoring  # noqa: E402
 
 from difftissue.fit import fit  # noqa: E402
 from difftissue.materials import Material, MaterialParameterization, ScaledLogit  # noqa: E402
@@ -49,19 +56,24 @@ def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fi
         return dict(model=model, solver=solver, tets=mesh.n_tets, nodes=mesh.n_nodes, first_forward_s=t_first, forward_s=t_forward)
     sc = make(data)
     param = MaterialParameterization(("youngs_modulus", "poisson_ratio"), transforms={"poisson_ratio": ScaledLogit(0.25 if model == "springs_volume" else 0.0, 0.499)})
-    t0 = time.perf_counter()
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        res = fit([sc], param, Material(1.6 * 12e3, 0.3), max_steps=max_steps)
-    t_fit = time.perf_counter() - t0
+    timed = []
+    for _ in range(2):  # cold (compiles), then warm (the same fit again)
+        load0 = os.getloadavg()[0]
+        with _compile_seconds() as compile_s, warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            t0, c0 = time.perf_counter(), time.process_time()
+            res = fit([sc], param, Material(1.6 * 12e3, 0.3), max_steps=max_steps)
+            t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
+        timed.append(dict(wall_s=t_fit, cpu_s=c_fit, compile_s=compile_s[0], load=(load0, os.getloadavg()[0])))
     return dict(
+        cold=timed[0],
+        warm=timed[1],
         model=model,
         solver="condensed" if sc.condensation is not None else "full",
         tets=mesh.n_tets,
         nodes=mesh.n_nodes,
         first_forward_s=t_first,
         forward_s=t_forward,
-        fit_s=t_fit,
         steps=int(res.steps),
         E=float(res.values["youngs_modulus"]),
         nu=float(res.values["poisson_ratio"]),
@@ -70,6 +82,22 @@ def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fi
         converged=bool(res.converged),
         warnings=len(caught),
     )
+
+
+@contextlib.contextmanager
+def _compile_seconds():
+    """Sum of XLA backend compile durations [s] while the block runs (``out[0]``)."""
+    out = [0.0]
+
+    def listener(event, duration, **_):
+        if event == "/jax/core/compile/backend_compile_duration":
+            out[0] += duration
+
+    jax.monitoring.register_event_duration_secs_listener(listener)
+    try:
+        yield out
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listener)
 
 
 def main() -> None:
@@ -83,16 +111,20 @@ def main() -> None:
     cells = tuple(int(c) for c in args.cells.split(","))
     print(f"# fit benchmark: jax {jax.__version__}, {platform.processor() or platform.machine()}, {os.cpu_count()} cores, load {os.getloadavg()[0]:.2f}")
     print()
-    print("| model | solver | tets | first forward (s, incl. compile) | forward (s) | fit (s, incl. compile) | steps | fit / forward | E (truth 12000 Pa) | nu (truth 0.42) | converged |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    print("| model | solver | tets | first forward (s, incl. compile) | forward (s) | fit cold: wall (s) / CPU (s) / XLA compile (s) / load | fit warm: wall (s) / CPU (s) / load | steps | warm fit / forward | E (truth 12000 Pa) | nu (truth 0.42) | converged |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
     for model in [m for m in args.baseline.split(",") if m]:
         r = run(model, cells, args.points, args.max_steps, solver="full", fit_too=False)
-        print(f"| {r['model']} | full (baseline) | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | - | - | - | - | - | - |")
-    for model in args.models.split(","):
+        print(f"| {r['model']} | full (baseline) | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | - | - | - | - | - | - | - |")
+    for model in [m for m in args.models.split(",") if m]:
         r = run(model, cells, args.points, args.max_steps)
+        c, w = r["cold"], r["warm"]
         print(
-            f"| {r['model']} | {r['solver']} | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | {r['fit_s']:.1f} | {r['steps']} | "
-            f"{r['fit_s'] / r['forward_s']:.1f} | {r['E']:.1f} ± {r['se_E']:.2g} | {r['nu']:.4f} ± {r['se_nu']:.2g} | {r['converged']} |"
+            f"| {r['model']} | {r['solver']} | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | "
+            f"{c['wall_s']:.1f} / {c['cpu_s']:.1f} / {c['compile_s']:.1f} / {c['load'][0]:.1f}-{c['load'][1]:.1f} | "
+            f"{w['wall_s']:.1f} / {w['cpu_s']:.1f} / {w['load'][0]:.1f}-{w['load'][1]:.1f} | {r['steps']} | "
+            f"{w['wall_s'] / r['forward_s']:.1f} | {r['E']:.1f} ± {r['se_E']:.2g} | {r['nu']:.4f} ± {r['se_nu']:.2g} | {r['converged']} |",
+            flush=True,
         )
     print(f"\nload after: {os.getloadavg()[0]:.2f}")
 
