@@ -319,7 +319,16 @@ def fit_batch(
         task = bar.add_task("fit", total=max_steps, completed=0, loss=f"{np.nanmax(np.nanmin(history[-1][:B], axis=1)):.6g}")
     try:
         while step < max_steps and not finished.all():
-            U, dyn, done_d, new_status, losses = fns["step"](U, dyn, done_d, data_d)
+            try:
+                U, dyn, done_d, new_status, losses = fns["step"](U, dyn, done_d, data_d)
+            except ValueError as exc:
+                if mesh is None or "pytree structure" not in str(exc):
+                    raise
+                raise FitError(
+                    "sharded fit_batch (devices=...) does not support this scenario yet: the optimiser state does not survive the "
+                    "partitioned trace (a known limitation with simulated scenarios; see docs/scale.md). Run it without devices= "
+                    f"(one batch on one device). Underlying error: {str(exc).splitlines()[0]}"
+                ) from exc
             step += 1
             new_status = _to_host(new_status)
             status = np.where(new_status != 0, new_status, status).astype(np.int32)
