@@ -586,6 +586,13 @@ def febio_model(card: MaterialCard, mesh=None, *, law: str | None = None, approx
     ET.SubElement(pre, "dof").text = "z"
     ET.SubElement(pre, "value", {"lc": "1"}).text = _fmt(d)
     ET.SubElement(pre, "relative").text = "0"
+    _febio_ramp_and_output(root)
+    return root
+
+
+def _febio_ramp_and_output(root: ET.Element) -> None:
+    """FEBio ``LoadData`` (load controller 1: a linear ramp 0 -> 1 over the step) and ``Output``
+    (plot file with displacement, stress and reaction forces)."""
     ld = ET.SubElement(root, "LoadData")
     lc = ET.SubElement(ld, "load_controller", {"id": "1", "name": "ramp", "type": "loadcurve"})
     ET.SubElement(lc, "interpolate").text = "LINEAR"
@@ -596,7 +603,6 @@ def febio_model(card: MaterialCard, mesh=None, *, law: str | None = None, approx
     plot = ET.SubElement(out, "plotfile", {"type": "febio"})
     for var in ("displacement", "stress", "reaction forces"):
         ET.SubElement(plot, "var", {"type": var})
-    return root
 
 
 def _xml_text(root: ET.Element) -> str:
@@ -1387,16 +1393,7 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
         for tag, val in (("laugon", "0"), ("penalty", _fmt(eps)), ("auto_penalty", "0"), ("two_pass", "0"),
                          ("fric_coeff", "0.0"), ("tension", "0"), ("search_radius", _fmt(max(spec.depth, r_cap)))):
             ET.SubElement(c, tag).text = val
-    ld = ET.SubElement(root, "LoadData")
-    lc = ET.SubElement(ld, "load_controller", {"id": "1", "name": "ramp", "type": "loadcurve"})
-    ET.SubElement(lc, "interpolate").text = "LINEAR"
-    pts = ET.SubElement(lc, "points")
-    ET.SubElement(pts, "pt").text = "0,0"
-    ET.SubElement(pts, "pt").text = "1,1"
-    out = ET.SubElement(root, "Output")
-    plot = ET.SubElement(out, "plotfile", {"type": "febio"})
-    for var in ("displacement", "stress", "reaction forces"):
-        ET.SubElement(plot, "var", {"type": var})
+    _febio_ramp_and_output(root)
     return root
 
 
