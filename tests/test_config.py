@@ -381,7 +381,7 @@ def test_example_and_demo_configs_build():
         kinds |= {e.kind for e in cfg.experiments}
         for sc in cfg.scenarios:
             assert sc.observed.size >= 2 and np.all(np.isfinite(sc.sigma))
-    assert kinds == {"analytic_indentation", "indentation", "compression", "fem_field"}
+    assert kinds == {"analytic_indentation", "indentation", "compression", "fem_field", "incision"}
 
 
 def test_runtime_errors_are_reported_in_one_line():
