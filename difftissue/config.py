@@ -506,16 +506,22 @@ def _parse_material(value):
     from .materials import Material
 
     t = _table(value, "material", tuple(FIELDS), ("youngs_modulus", "poisson_ratio"))
+    return Material(**_material_values(t, "material"))
+
+
+def _material_values(fields: Mapping, path: str) -> dict:
+    """Material fields of a TOML table, each checked (positive, nu in (-1, 0.5), finite) with a
+    one-line error naming ``path.key``."""
     vals = {}
-    for k, v in t.items():
-        p = _join("material", k)
+    for k, v in fields.items():
+        p = _join(path, k)
         if k in _POSITIVE_FIELDS:
             vals[k] = _positive(v, p, FIELDS[k] if FIELDS[k] != "1" else "")
         elif k == "poisson_ratio":
             vals[k] = _number(v, p, check=lambda x: -1.0 < x < 0.5, rule="a number in (-1, 0.5) (0.5 is the incompressible limit; use e.g. 0.49 or 0.499)")
         else:
             vals[k] = _number(v, p, what="a finite number")
-    return Material(**vals)
+    return vals
 
 
 def _parse_fit(value, material):
@@ -1029,16 +1035,7 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
                 for k in ("youngs_modulus", "poisson_ratio"):
                     if k not in t:
                         _fail(_join(q, k), "missing (required for a layer that is not fitted)")
-                vals = {}
-                for k, v in fields.items():
-                    kp = _join(q, k)
-                    if k in _POSITIVE_FIELDS:
-                        vals[k] = _positive(v, kp, FIELDS[k] if FIELDS[k] != "1" else "")
-                    elif k == "poisson_ratio":
-                        vals[k] = _number(v, kp, check=lambda x: -1.0 < x < 0.5, rule="a number in (-1, 0.5)")
-                    else:
-                        vals[k] = _number(v, kp, what="a finite number")
-                mat = Material(**vals)
+                mat = Material(**_material_values(fields, q))
             layers.append((lname, thick, mat, nc))
         if not fitted:
             _fail(lp, "no layer has fitted = true: the [material] must apply to at least one layer")
