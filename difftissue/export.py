@@ -750,18 +750,11 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
         node.append(_xml_comment("add a tetrahedral topology and a MechanicalObject here"))
         node.append(sofa_force_field(card, law=law, approximate=True))
         return root
-    for p in ("Sofa.Component.ODESolver.Backward", "Sofa.Component.LinearSolver.Direct", "Sofa.Component.Mass",
-              "Sofa.Component.StateContainer", "Sofa.Component.Topology.Container.Constant", "Sofa.Component.Constraint.Projective"):
+    for p in _SOFA_SPECIMEN_PLUGINS:
         ET.SubElement(root, "RequiredPlugin", {"name": p})
     base, top, height = _specimen_sets(mesh)
     d = _default_displacement(height, displacement)
-    ET.SubElement(node, "StaticSolver")
-    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
-    pts = np.asarray(mesh.points, dtype=float)
-    ET.SubElement(node, "MeshTopology", {"name": "topology", "position": " ".join(_fmt(c) for c in pts.reshape(-1)),
-                                         "tetrahedra": " ".join(str(int(n)) for n in np.asarray(mesh.tets).reshape(-1))})
-    ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "src": "@topology"})
-    ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
+    _sofa_specimen_node(node, card, mesh)
     if law == "springs":
         from .models import SpringVolumeModel
 
@@ -787,6 +780,24 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
         "name": "top_displacement", "template": "Vec3d", "indices": " ".join(str(int(i)) for i in top),
         "keyTimes": "0 1", "movements": f"0 0 0  0 0 {_fmt(d)}", "relativeMovements": "1"})
     return root
+
+
+#: SOFA plugins of a static specimen scene (solver, direct linear solver, mass, state, topology, projective constraints).
+_SOFA_SPECIMEN_PLUGINS = ("Sofa.Component.ODESolver.Backward", "Sofa.Component.LinearSolver.Direct", "Sofa.Component.Mass",
+                          "Sofa.Component.StateContainer", "Sofa.Component.Topology.Container.Constant",
+                          "Sofa.Component.Constraint.Projective")
+
+
+def _sofa_specimen_node(node: ET.Element, card: MaterialCard, mesh) -> None:
+    """The static solver, sparse LDL solver, tet topology of ``mesh`` [m], its ``MechanicalObject``
+    and a ``MeshMatrixMass`` of the card's density [kg/m^3] inside the tissue node."""
+    ET.SubElement(node, "StaticSolver")
+    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
+    pts = np.asarray(mesh.points, dtype=float)
+    ET.SubElement(node, "MeshTopology", {"name": "topology", "position": " ".join(_fmt(c) for c in pts.reshape(-1)),
+                                         "tetrahedra": " ".join(str(int(n)) for n in np.asarray(mesh.tets).reshape(-1))})
+    ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "src": "@topology"})
+    ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
 
 
 def write_sofa(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
@@ -1505,20 +1516,13 @@ def sofa_indentation_scene(card: MaterialCard, spec, *, law: str | None = None, 
     for line in _header_lines(card, "SOFA", law) + notes + spec.describe():
         root.append(_xml_comment(line))
     plugins = ["Sofa.Component.SolidMechanics.FEM.Elastic" if law == "linear" else "Sofa.Component.SolidMechanics.FEM.HyperElastic",
-               "Sofa.Component.ODESolver.Backward", "Sofa.Component.LinearSolver.Direct", "Sofa.Component.Mass",
-               "Sofa.Component.StateContainer", "Sofa.Component.Topology.Container.Constant", "Sofa.Component.Constraint.Projective"]
+               *_SOFA_SPECIMEN_PLUGINS]
     if spec.indenter == "sphere":
         plugins.append("Sofa.Component.MechanicalLoad")
     for p in plugins:
         ET.SubElement(root, "RequiredPlugin", {"name": p})
     node = ET.SubElement(root, "Node", {"name": "tissue"})
-    ET.SubElement(node, "StaticSolver")
-    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
-    pts = np.asarray(mesh.points, dtype=float)
-    ET.SubElement(node, "MeshTopology", {"name": "topology", "position": " ".join(_fmt(c) for c in pts.reshape(-1)),
-                                         "tetrahedra": " ".join(str(int(n)) for n in np.asarray(mesh.tets).reshape(-1))})
-    ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "src": "@topology"})
-    ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
+    _sofa_specimen_node(node, card, mesh)
     node.append(sofa_force_field(card, law=law, approximate=True))
     join = lambda a: " ".join(str(int(i)) for i in np.atleast_1d(a))  # noqa: E731
     if spec.indenter == "sphere":
