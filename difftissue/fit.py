@@ -693,18 +693,41 @@ class _Engine:
                 self.solver = optax.lbfgs()
 
     # -- optimistix ------------------------------------------------------------------
+    def _residual_struct(self, u) -> jax.ShapeDtypeStruct:
+        """Shape and dtype of the residual vector, without tracing the forward model: the
+        residuals ``(predict - observed) / sigma`` carry the promoted dtype of ``u`` and the
+        float64 data (float32 when x64 is off)."""
+        dtype = jax.dtypes.canonicalize_dtype(np.result_type(u.dtype, np.float64))
+        return jax.ShapeDtypeStruct((self.problem.n_residuals,), dtype)
+
     def _optx_init_single(self, u, data):
-        f_struct = jax.eval_shape(lambda v: self._fn(v, data)[0], u)
-        return self.solver.init(self._fn, u, data, self._options, f_struct, None, self._tags)
+        return self.solver.init(self._fn, u, data, self._options, self._residual_struct(u), None, self._tags)
 
     def init(self, U, data):
-        """Batched dynamic state for starts ``U`` (shape ``(S, p)``) of the problem with ``data``."""
-        if hasattr(self, "_optx"):
-            if not hasattr(self, "_static"):  # keep the first one: the compiled step closes over it
-                template = self._optx_init_single(U[0], data)
-                self._static = eqx.partition(template, eqx.is_array)[1]
-            return _strong(jax.vmap(lambda u: eqx.partition(self._optx_init_single(u, data), eqx.is_array)[0])(U))
-        return _strong(jax.vmap(self.solver.init)(U))
+        """Batched dynamic state for starts ``U`` (shape ``(S, p)``) of the problem with ``data``.
+
+        One jitted program per engine (retraced only for a new number of starts): the optimiser's
+        initial state is built from shapes (optimistix traces the model abstractly), so running
+        it eagerly would dispatch and compile every small zero-filled array separately."""
+        if getattr(self, "_init", None) is None:
+            if hasattr(self, "_optx"):
+
+                def batched(U, data):
+                    def one(u):
+                        dyn, static = eqx.partition(self._optx_init_single(u, data), eqx.is_array)
+                        if not hasattr(self, "_static"):  # keep the first one: the compiled step closes over it
+                            self._static = static
+                        return dyn
+
+                    return _strong(jax.vmap(one)(U))
+
+            else:
+
+                def batched(U, data):
+                    return _strong(jax.vmap(self.solver.init)(U))
+
+            self._init = jax.jit(batched)
+        return self._init(U, data)
 
     def evaluate(self, U, data):
         """``(values (S, p), loss (S,), J (S, n, p), predictions)`` of every start ``U`` (S, p):
