@@ -196,22 +196,34 @@ def _cmd_export(args) -> int:
     indentation = None
     ind_opts = {k: getattr(args, k) for k in ("indenter", "radius", "half_angle", "depth", "block", "cells", "base", "scenario")
                 if getattr(args, k) is not None}
-    if args.specimen == "indentation":
+    fitted = None
+    if args.specimen == "fitted":
+        from .export_fitted import fitted_specimen_from_card
+
+        extra = {k: v for k, v in ind_opts.items() if k != "scenario"}
+        if extra or args.bonded_punch:
+            raise _UsageError(f"--{sorted(extra)[0].replace('_', '-') if extra else 'bonded-punch'} belongs to --specimen indentation")
+        if args.displacement is not None:
+            raise _UsageError("--displacement is the compression block's; a fitted specimen carries its prescribed displacements")
+        fitted = fitted_specimen_from_card(card, args.card, scenario=args.scenario)
+        mesh = None
+    elif args.specimen == "indentation":
         indentation = _indentation_from_args(card, args, f)
         mesh = None
     else:
         if ind_opts or args.bonded_punch:
             raise _UsageError(f"--{sorted(ind_opts)[0].replace('_', '-') if ind_opts else 'bonded-punch'} belongs to --specimen indentation")
         mesh = _parse_specimen(args.specimen, f) if args.specimen else None
-    if args.to == "vtu" and mesh is None and indentation is None:
-        raise _UsageError("--to vtu needs --specimen block:LX,LY,LZ:NX,NY,NZ")
+    if args.to == "vtu" and mesh is None and indentation is None and fitted is None:
+        raise _UsageError("--to vtu needs --specimen block:LX,LY,LZ:NX,NY,NZ, indentation or fitted")
     if args.to == "xpbd" and (args.dt is None or args.iterations is None):
         raise _UsageError("--to xpbd needs --dt SECONDS and --iterations N")
     disp = None if args.displacement is None else args.displacement * f
     path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
                   dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp,
-                  constraints=args.constraints, indentation=indentation)
+                  constraints=args.constraints, indentation=indentation, fitted=fitted)
     what = ("complete specimen model" if mesh is not None else
+            f"fitted {fitted.experiment} specimen of scenario {fitted.scenario!r}" if fitted is not None else
             f"{indentation.indenter} indentation specimen, depth {indentation.depth:.6g} m" if indentation is not None else "material")
     print(f"wrote {path}: {card.model} card as {args.to} ({what})")
     return 0
@@ -290,6 +302,9 @@ def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
         for name in (*OUTPUT_FILES, "config.toml"):
             if (out / name).exists():
                 raise OutputExistsError(f"{out / name} exists; refusing to overwrite it (choose another --out, pass --force, or --resume to continue that fit)")
+        old_specimens = sorted(out.glob("specimen-*.vtu")) if out.is_dir() else []
+        if old_specimens:  # fitted specimen files of an earlier fit (difftissue.export_fitted)
+            raise OutputExistsError(f"{old_specimens[0]} exists; refusing to overwrite it (choose another --out, pass --force, or --resume to continue that fit)")
         if ckpt.exists():
             raise OutputExistsError(f"{ckpt} exists (an interrupted fit); pass --resume to continue it or --force to start afresh")
     if force and not resume and ckpt.exists():
@@ -334,7 +349,8 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
     from .export_indentation import scenario_record
 
     paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name,
-                              force=force or resume, scenario_records=[scenario_record(s) for s in cfg.scenarios])
+                              force=force or resume, scenario_records=[scenario_record(s) for s in cfg.scenarios],
+                              scenarios=cfg.scenarios)
     if cfg.path is not None:
         with atomic_output(out / "config.toml", overwrite=True) as tmp:
             tmp.write_bytes(Path(cfg.path).read_bytes())
@@ -538,10 +554,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="drop what the target cannot represent (cubic stiffening, pre-stretch) and record the approximation in the file")
     x.add_argument("--law", choices=("linear", "neo_hookean", "springs"), default=None,
                    help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
-    x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|indentation",
-                   help="write a complete specimen model: a compression block (fixed base, prescribed top displacement), or "
+    x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|indentation|fitted",
+                   help="write a complete specimen model: a compression block (fixed base, prescribed top displacement), "
                         "'indentation' (the fitted indentation experiment from the card's scenario record, completed by the "
-                        "options below); required for vtu")
+                        "options below), or 'fitted' (the fem_field / incision experiment from the specimen file the fit wrote "
+                        "beside the card); required for vtu")
     x.add_argument("--indenter", choices=("sphere", "cone", "flat_punch"), default=None, help="indentation: indenter (default: the card's record)")
     x.add_argument("--radius", type=float, default=None, help="indentation: sphere / punch radius in --unit (default: the card's record)")
     x.add_argument("--half-angle", type=float, default=None, help="indentation: cone half-angle in degrees (default: the card's record)")
@@ -552,7 +569,7 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--bonded-punch", action="store_true", help="indentation: flat punch face bonded (x, y held) instead of frictionless (default: the record's, else frictionless)")
     x.add_argument("--penalty", type=float, default=100.0, help="indentation: difftissue's contact penalty factor (default 100)")
     x.add_argument("--steps", type=int, default=10, help="indentation: load increments (default 10)")
-    x.add_argument("--scenario", default=None, help="indentation: the card's scenario record to use (default: the first indentation record)")
+    x.add_argument("--scenario", default=None, help="indentation / fitted: the card's scenario record to use (default: the first indentation record; fitted: the only specimen)")
     x.add_argument("--displacement", type=float, default=None, help="top displacement along z in --unit (default: -10%% of the height)")
     x.add_argument("--unit", choices=_UNITS, default="mm", help="length unit of --specimen and --displacement (default mm); files are in metres")
     x.add_argument("--dt", type=float, default=None, help="time step [s] (xpbd: required; pbd: default 1/60)")

@@ -1121,12 +1121,22 @@ def _write_text(path, text: str, force: bool) -> Path:
 
 def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
            law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int = 1,
-           displacement: float | None = None, constraints: str = "xpbd", indentation=None) -> Path:
+           displacement: float | None = None, constraints: str = "xpbd", indentation=None, fitted=None) -> Path:
     """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``.
 
     ``to="pbd"``: a pypbd scene (:func:`difftissue.pbd.write_pbd`; ``constraints`` ``"xpbd"`` or
     ``"fem"``, ``dt`` default 1/60 s, ``iterations`` default 10). ``indentation``: an
-    :class:`~difftissue.export_indentation.IndentationSpecimen` (instead of ``mesh``)."""
+    :class:`~difftissue.export_indentation.IndentationSpecimen` (instead of ``mesh``).
+    ``fitted``: a :class:`~difftissue.export_fitted.FittedSpecimen` (the experiment of a
+    fem_field / incision fit, :func:`~difftissue.export_fitted.fitted_specimen_from_card`),
+    written by :func:`~difftissue.export_fitted.write_fitted`."""
+    if fitted is not None:
+        if mesh is not None or indentation is not None or displacement is not None:
+            raise ExportError("a fitted specimen carries its own mesh and prescribed displacements: give no mesh, indentation or displacement")
+        from .export_fitted import write_fitted
+
+        return write_fitted(card, to, path, fitted, law=law, approximate=approximate, force=force, dt=dt,
+                            iterations=iterations, substeps=substeps)
     if indentation is not None and displacement is not None:
         raise ExportError("displacement is the compression block's top displacement; an indentation specimen takes its depth")
     if to == "febio":

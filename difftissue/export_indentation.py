@@ -150,7 +150,11 @@ def scenario_record(scenario) -> dict | None:
     Indentation scenarios (:class:`~difftissue.scenarios.AnalyticIndentation`,
     :class:`~difftissue.scenarios.Indentation`) record the indenter, its size, the largest
     depth and the number of points (and for the analytic ones the layer thickness and base);
-    other scenarios record their name and type only. Returns ``None`` for an object without a name.
+    :class:`~difftissue.scenarios.FEMField` and :class:`~difftissue.incision.Incision` record
+    ``experiment`` (``"fem_field"`` / ``"incision"``), difftissue's ``model`` (and the incision's
+    quantity, cut length and depth); their mesh and boundary conditions go into a specimen file
+    (:mod:`difftissue.export_fitted`, written by ``write_fit_outputs``); other scenarios record
+    their name and type only. Returns ``None`` for an object without a name.
     """
     name = getattr(scenario, "name", None)
     if name is None:
@@ -196,6 +200,15 @@ def scenario_record(scenario) -> dict | None:
             mult = float(getattr(scenario, "force_multiplier", 1.0))
             span = hi - lo
             rec["block_size"] = [float(span[0] * (2 if mult == 4.0 else 1)), float(span[1] * (2 if mult == 4.0 else 1)), float(span[2])]
+    elif tname in ("FEMField", "Incision"):
+        # the experiment itself goes into a specimen file beside the card (difftissue.export_fitted)
+        rec["experiment"] = "fem_field" if tname == "FEMField" else "incision"
+        model = getattr(scenario, "model", None)
+        rec["model"] = str(getattr(getattr(model, "base", model), "kind", "")) if model is not None else None
+        if tname == "Incision":
+            rec["quantity"] = scenario.quantity
+            rec["cut_length"] = float(scenario.cut.length)
+            rec["cut_depth"] = float(scenario.cut.depth)
     if x is not None and np.size(x) and rec.get("experiment") == "indentation":
         rec["max_depth"] = float(np.max(x))
         rec["points"] = int(np.size(x))

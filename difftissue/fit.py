@@ -1394,8 +1394,11 @@ def write_fit_outputs(
     scenario_names: Sequence[str] | None = None,
     force: bool = False,
     scenario_records: Sequence[dict] | None = None,
+    scenarios: Sequence | None = None,
 ) -> dict[str, Path]:
-    """Write ``fit.json``, ``material.json``, ``fit.png``, ``loss.png`` and ``report.md`` into ``out_dir``.
+    """Write ``fit.json``, ``material.json``, ``fit.png``, ``loss.png`` and ``report.md`` into
+    ``out_dir``, and ``specimen-<name>.vtu`` for each simulated ``fem_field`` / ``incision``
+    scenario among ``scenarios``.
 
     ``material.json`` is the versioned material card (:class:`~difftissue.export.MaterialCard`)
     that ``difftissue export`` reads: model, energy, parameters with units and standard
@@ -1411,9 +1414,16 @@ def write_fit_outputs(
         scenario_names: names to record instead of the result's scenarios.
         scenario_records: per-scenario experiment records for the card
             (:func:`difftissue.export_indentation.scenario_record`: indenter, radius, depths, ...),
-            used by ``difftissue export --specimen indentation``.
+            used by ``difftissue export --specimen indentation``; default (with ``scenarios``)
+            ``scenario_record(s)`` of each scenario.
+        scenarios: the fitted scenarios: each :class:`~difftissue.scenarios.FEMField` and
+            :class:`~difftissue.incision.Incision` gets its specimen file
+            (:func:`difftissue.export_fitted.write_specimen`: mesh, fixed masks, prescribed
+            displacements, regions, cut pairs), recorded with its sha256 in its scenario record
+            (``specimen_file``), which ``difftissue export --specimen fitted`` reads.
         force: overwrite existing output files. Without it, an existing file among the five
-            raises :class:`~difftissue.errors.OutputExistsError` naming it, before anything is written.
+            (or a specimen file to be written) raises :class:`~difftissue.errors.OutputExistsError`
+            naming it, before anything is written.
 
     Every file is written atomically (temporary file beside it, then ``os.replace``).
 
@@ -1424,6 +1434,22 @@ def write_fit_outputs(
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out} exists and is not a directory")
     paths = {name: out / name for name in OUTPUT_FILES}
+    specimens = {}
+    if scenarios is not None:
+        from .export_fitted import fitted_specimen, specimen_file_name
+        from .export_indentation import scenario_record
+
+        if scenario_records is None:
+            scenario_records = [scenario_record(s) for s in scenarios]
+        for s in scenarios:
+            sp = fitted_specimen(s)
+            if sp is None:
+                continue
+            fname = specimen_file_name(sp.scenario)
+            if fname in specimens:
+                raise OutputError(f"scenarios {specimens[fname].scenario!r} and {sp.scenario!r} would share the specimen file {fname}: give them distinct names")
+            specimens[fname] = sp
+        paths.update({fname: out / fname for fname in specimens})
     if not force:
         for p in paths.values():
             if p.exists():
@@ -1438,6 +1464,18 @@ def write_fit_outputs(
         tmp.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n", encoding="utf-8")
     from .export import card_from_fit
 
+    if specimens:
+        from .export_fitted import specimen_record, write_specimen
+
+        scenario_records = [dict(r) if r else r for r in scenario_records]
+        for fname, sp in specimens.items():
+            write_specimen(sp, paths[fname], force=force)
+            matched = [r for r in scenario_records if r and r.get("name") == sp.scenario]
+            if not matched:
+                scenario_records.append({"name": sp.scenario, "experiment": sp.experiment, "model": sp.model})
+                matched = scenario_records[-1:]
+            for r in matched:
+                r["specimen_file"] = specimen_record(sp, paths[fname])
     model_name = None if model is None else (model if isinstance(model, str) else getattr(model, "name", None) or type(model).__name__)
     card = card_from_fit(result, model=model_name or "unspecified", scenario_names=names, data_files=data_files,
                          scenario_records=scenario_records)

@@ -1,0 +1,660 @@
+"""Fitted specimens: the experiment of a ``fem_field`` or ``incision`` fit, written with the fit
+outputs and exported as a complete model (docs/export.md, "Fitted specimens: fem_field and incision").
+
+A :class:`~difftissue.scenarios.FEMField` or :class:`~difftissue.incision.Incision` experiment
+cannot be rebuilt from a few numbers (the reference mesh, node sets and per-node prescribed
+displacements; the cut mesh with its duplicated nodes and per-region materials), so
+:func:`difftissue.fit.write_fit_outputs` writes it beside ``material.json`` as
+``specimen-<scenario name>.vtu`` (:func:`specimen_file_name`, :func:`write_specimen`) and records
+the file's name and sha256 in the card's scenario record (``provenance.scenario_records[i]
+["specimen_file"]``). ``difftissue export CARD --specimen fitted [--scenario NAME]`` reads it back
+(:func:`fitted_specimen_from_card`: a missing or altered file is refused) and writes the complete
+model for the target (:func:`write_fitted`).
+
+The specimen file (VTU, SI units, format :data:`SPECIMEN_FORMAT`) holds exactly the model's mesh
+(points [m], tets, ``region_id`` with the region names) and:
+
+* point data ``fixed`` ``(N, 3)`` (1 where a displacement component is prescribed),
+  ``prescribed_displacement`` ``(N, 3)`` [m] (0 where free), ``reaction_set`` ``(N, 3)``
+  (fem_field with a reaction: 1 on the summed components), and for an incision
+  ``cut_pair`` (index of the node's duplicated pair, -1 if none), ``cut_side`` (+1 the pair's
+  original node, -1 its duplicate), ``cut_pair_s`` / ``cut_pair_depth`` [m] (arc length along
+  the cut and depth of the node's pair, NaN if none), ``cut_surface_rank`` (rank of the pair
+  in the surface profile, -1 if not on the surface);
+* cell data ``fitted_material`` (1: the card's material; 0: a fixed material given by the cell
+  fields ``youngs_modulus`` [Pa], ``poisson_ratio``, ``cubic_coefficient``, ``density``
+  [kg/m^3], ``pre_stretch``, which are NaN on fitted cells).
+
+What each target gets (:func:`write_fitted`): FEBio 4.0 (nodes, ``tet4`` elements per region,
+node sets, ``zero displacement`` and ``prescribed displacement`` with per-node ``<NodeData>``
+maps, ``prestrain elastic`` materials for pre-stretched regions, a static step), Abaqus
+(``*NSET``, ``*BOUNDARY`` with per-node magnitudes in a ``*STATIC`` step; a pre-stretched
+incision is refused), the XPBD JSON and VTU (our own formats: everything). SOFA and pypbd are
+refused with the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+import xml.etree.ElementTree as ET
+from pathlib import Path
+from typing import Any, Mapping
+
+import numpy as np
+
+from .errors import ExportError
+
+__all__ = [
+    "SPECIMEN_FORMAT",
+    "FITTED_EXPERIMENTS",
+    "FittedSpecimen",
+    "fitted_specimen",
+    "specimen_file_name",
+    "write_specimen",
+    "read_specimen",
+    "fitted_specimen_from_card",
+    "febio_fitted_model",
+    "abaqus_fitted_model",
+    "xpbd_fitted_parameters",
+    "write_fitted",
+]
+
+#: Format tag of the specimen file (recorded in the card next to its sha256).
+SPECIMEN_FORMAT = "difftissue-specimen/1"
+#: Experiments written as a specimen file by the fit outputs.
+FITTED_EXPERIMENTS = ("fem_field", "incision")
+_FIELDS = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class FittedSpecimen:
+    """The experiment of a fitted ``fem_field`` or ``incision`` scenario (SI units, 0-based ids).
+
+    Attributes:
+        scenario: the scenario's name; experiment: ``"fem_field"`` or ``"incision"``;
+        model: difftissue's elastic model of the scenario (``fem_linear``, ``stable_neo_hookean``, ...).
+        points: ``(N, 3)`` reference (model) positions [m]; tets: ``(M, 4)``; region_ids: ``(M,)``;
+        region_names: one name per region.
+        fitted_regions: names of the regions that take the card's material.
+        region_materials: ``{region name: {field: value}}`` of the other (fixed) regions.
+        fixed: ``(N, 3)`` bool, prescribed components; prescribed: ``(N, 3)`` prescribed
+            displacement [m] (0 where free).
+        reaction: ``(N, 3)`` bool, the components whose reactions the fit summed, or None.
+        pairs: ``(P, 2)`` duplicated node pairs ``(original, duplicate)`` of an incision, else None;
+        pair_s, pair_depth: ``(P,)`` [m]; surface_pairs: indices into ``pairs`` of the top-surface
+        pairs, in the order of the surface profile.
+    """
+
+    scenario: str
+    experiment: str
+    model: str
+    points: np.ndarray
+    tets: np.ndarray
+    region_ids: np.ndarray
+    region_names: tuple[str, ...]
+    fitted_regions: tuple[str, ...]
+    region_materials: Mapping[str, Mapping[str, float]]
+    fixed: np.ndarray
+    prescribed: np.ndarray
+    reaction: np.ndarray | None = None
+    pairs: np.ndarray | None = None
+    pair_s: np.ndarray | None = None
+    pair_depth: np.ndarray | None = None
+    surface_pairs: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.experiment not in FITTED_EXPERIMENTS:
+            raise ExportError(f"fitted specimen experiment {self.experiment!r}: expected one of {list(FITTED_EXPERIMENTS)}")
+        n = len(self.points)
+        if self.fixed.shape != (n, 3) or self.prescribed.shape != (n, 3):
+            raise ExportError(f"fitted specimen {self.scenario!r}: fixed / prescribed must have shape ({n}, 3)")
+        if not np.all(np.isfinite(self.prescribed)):
+            raise ExportError(f"fitted specimen {self.scenario!r}: the prescribed displacement is not finite")
+        unknown = set(self.fitted_regions) - set(self.region_names)
+        if unknown:
+            raise ExportError(f"fitted specimen {self.scenario!r}: fitted region(s) {sorted(unknown)} are not regions {list(self.region_names)}")
+        for r in self.region_names:
+            if r not in self.fitted_regions and r not in self.region_materials:
+                raise ExportError(f"fitted specimen {self.scenario!r}: region {r!r} is neither fitted nor given a material")
+        if self.experiment == "incision" and (self.pairs is None or self.surface_pairs is None):
+            raise ExportError(f"fitted specimen {self.scenario!r}: an incision needs its duplicated node pairs")
+
+    # ------------------------------------------------------------------ materials
+    def region_cards(self, card):
+        """One :class:`~difftissue.export.MaterialCard` per region: ``card`` on the fitted
+        regions, a card of the fixed values (named ``<card name>_<region>``) elsewhere."""
+        from .export import MaterialCard
+
+        out = []
+        for r in self.region_names:
+            if r in self.fitted_regions:
+                out.append(card)
+            else:
+                vals = self.region_materials[r]
+                out.append(MaterialCard(model=card.model, name=f"{card.name}_{r}", provenance={"fixed_region": r},
+                                        parameters={k: {"value": float(vals[k])} for k in _FIELDS}))
+        return out
+
+    def material(self, card):
+        """The per-region :class:`~difftissue.materials.Material` (fields ``(n_regions,)``) for
+        difftissue's solvers, with ``card``'s values on the fitted regions."""
+        from .models import stack_materials
+
+        return stack_materials([c.material() for c in self.region_cards(card)])
+
+    def pre_stretches(self, card) -> np.ndarray:
+        """``(n_regions,)`` pre-stretch ``lambda0`` of each region."""
+        return np.array([c.pre_stretch for c in self.region_cards(card)])
+
+    def mesh(self):
+        """The specimen as a :class:`~difftissue.mesh.TetMesh` (no fields)."""
+        from .mesh import TetMesh
+
+        return TetMesh(self.points, self.tets, self.region_ids, self.region_names)
+
+    def describe(self) -> list[str]:
+        """Comment lines for the written models."""
+        n_fix = int(self.fixed.sum())
+        n_nz = int((self.fixed & (self.prescribed != 0.0)).sum())
+        lines = [f"fitted specimen of scenario {self.scenario!r} ({self.experiment}, difftissue model {self.model}): "
+                 f"{len(self.points)} nodes, {len(self.tets)} tets, regions {list(self.region_names)} "
+                 f"(card material on {list(self.fitted_regions)})",
+                 f"{n_fix} prescribed displacement components, {n_nz} of them nonzero (per-node values from the fit's reference)"]
+        if self.reaction is not None:
+            comps = "".join(c for i, c in enumerate("xyz") if self.reaction[:, i].any())
+            lines.append(f"the fit compared the summed reaction force ({comps}) over node set 'reaction' ({int(self.reaction.any(axis=1).sum())} nodes)")
+        if self.pairs is not None:
+            lines.append(f"incision: {len(self.pairs)} duplicated node pairs (cut faces, untied: the opened state), "
+                         f"{len(self.surface_pairs)} on the top surface; node sets cut_plus / cut_minus list them pair by pair")
+        return lines
+
+
+# ============================================================================ from a scenario
+def fitted_specimen(scenario) -> FittedSpecimen | None:
+    """The :class:`FittedSpecimen` of a :class:`~difftissue.scenarios.FEMField` or
+    :class:`~difftissue.incision.Incision` scenario; ``None`` for other scenarios (their
+    experiments are rebuilt from the card's record or need no specimen file)."""
+    if type(scenario).__name__ == "SeparatelyCompiled":  # difftissue.config's compiled wrapper
+        scenario = scenario.scenario
+    tname = type(scenario).__name__
+    if tname not in ("FEMField", "Incision"):
+        return None
+    m = scenario.model
+    pts = np.asarray(m.rest_points, dtype=float)
+    tets = np.asarray(m.tets, dtype=np.int64)
+    regions = np.asarray(m.tet_regions, dtype=np.int64)
+    names = tuple(str(r) for r in m.region_names)
+    fixed = np.asarray(scenario.bc.fixed, dtype=bool)
+    presc = np.where(fixed, np.asarray(scenario.bc.displacement, dtype=float), 0.0)
+    if np.any(np.asarray(scenario.bc.force) != 0.0):
+        raise ExportError(f"scenario {scenario.name!r} has external nodal forces: the fitted-specimen file holds prescribed displacements only")
+    if tname == "FEMField":
+        reaction = None if scenario.reaction_mask is None else np.asarray(scenario.reaction_mask, dtype=bool)
+        return FittedSpecimen(scenario=str(scenario.name), experiment="fem_field", model=str(m.kind), points=pts, tets=tets,
+                              region_ids=regions, region_names=names, fitted_regions=names, region_materials={},
+                              fixed=fixed, prescribed=presc, reaction=reaction)
+    cut = scenario.cut
+    if scenario.fitted_regions is None:
+        fitted, mats = names, {}
+    else:
+        fitted = tuple(names[i] for i in scenario.fitted_regions)
+        base = scenario.base_materials
+        mats = {names[i]: {f: float(np.asarray(getattr(base, f))[i]) for f in _FIELDS}
+                for i in range(len(names)) if i not in scenario.fitted_regions}
+    return FittedSpecimen(scenario=str(scenario.name), experiment="incision", model=str(m.base.kind), points=pts, tets=tets,
+                          region_ids=regions, region_names=names, fitted_regions=fitted, region_materials=mats,
+                          fixed=fixed, prescribed=presc, pairs=np.asarray(cut.pairs, dtype=np.int64),
+                          pair_s=np.asarray(cut.pair_s, dtype=float), pair_depth=np.asarray(cut.pair_depth, dtype=float),
+                          surface_pairs=np.asarray(cut.surface_pairs, dtype=np.int64))
+
+
+_SAFE = re.compile(r"[^A-Za-z0-9_.-]")
+
+
+def specimen_file_name(scenario_name: str) -> str:
+    """``specimen-<name>.vtu`` with every character outside ``[A-Za-z0-9_.-]`` replaced by ``_``."""
+    s = _SAFE.sub("_", str(scenario_name)).strip(".") or "scenario"
+    return f"specimen-{s}.vtu"
+
+
+# ============================================================================ the file
+def _point_cell_fields(spec: FittedSpecimen, card=None) -> tuple[dict, dict]:
+    n, m = len(spec.points), len(spec.tets)
+    point: dict[str, np.ndarray] = {"fixed": spec.fixed.astype(np.float64), "prescribed_displacement": spec.prescribed.astype(float)}
+    if spec.reaction is not None:
+        point["reaction_set"] = spec.reaction.astype(np.float64)
+    if spec.pairs is not None:
+        flat = spec.pairs.reshape(-1)
+        if len(np.unique(flat)) != flat.size:
+            raise ExportError(f"scenario {spec.scenario!r}: a node belongs to two duplicated pairs; the specimen file holds one pair per node")
+        P = len(spec.pairs)
+        pair = np.full(n, -1, dtype=np.int64)
+        side = np.zeros(n, dtype=np.int64)
+        s = np.full(n, np.nan)
+        depth = np.full(n, np.nan)
+        rank = np.full(n, -1, dtype=np.int64)
+        for k in range(2):
+            pair[spec.pairs[:, k]] = np.arange(P)
+            side[spec.pairs[:, k]] = 1 - 2 * k
+            s[spec.pairs[:, k]] = spec.pair_s
+            depth[spec.pairs[:, k]] = spec.pair_depth
+        for r, p in enumerate(spec.surface_pairs):
+            rank[spec.pairs[p]] = r
+        point.update(cut_pair=pair.astype(np.float64), cut_side=side.astype(np.float64), cut_pair_s=s, cut_pair_depth=depth,
+                     cut_surface_rank=rank.astype(np.float64))
+    fitted = np.array([spec.region_names[r] in spec.fitted_regions for r in spec.region_ids])
+    cell: dict[str, np.ndarray] = {"fitted_material": fitted.astype(np.float64)}
+    for f in _FIELDS:
+        v = np.full(m, np.nan)
+        for i, r in enumerate(spec.region_names):
+            sel = spec.region_ids == i
+            if r in spec.region_materials:
+                v[sel] = spec.region_materials[r][f]
+            elif card is not None:
+                v[sel] = card.value(f)
+        cell[f] = v
+    if card is not None:
+        cards = spec.region_cards(card)
+        for name in ("shear_modulus", "lame_lambda", "bulk_modulus"):
+            cell[name] = np.array([getattr(cards[r], name) for r in spec.region_ids], dtype=float)
+    return point, cell
+
+
+def write_specimen(spec: FittedSpecimen, path, *, force: bool = False) -> Path:
+    """Write the specimen file (VTU, see the module docstring) atomically; an existing file is
+    refused unless ``force``."""
+    from .mesh import write_mesh
+
+    path = Path(path)
+    if path.suffix.lower() != ".vtu":
+        raise ExportError(f"{path}: a specimen file must end in .vtu")
+    point, cell = _point_cell_fields(spec)
+    return write_mesh(path, spec.mesh(), point_data=point, cell_data=cell, overwrite=force)
+
+
+def read_specimen(path, *, scenario: str, experiment: str, model: str) -> FittedSpecimen:
+    """Read a specimen file written by :func:`write_specimen` (the scalars come from the card's record)."""
+    from .mesh import read_mesh
+
+    try:
+        mesh = read_mesh(path)
+    except Exception as e:  # meshio raises many types; one line naming the file
+        raise ExportError(f"cannot read the specimen file {path}: {' '.join(str(e).split())}") from None
+    pd, cd = mesh.point_data, mesh.cell_data
+    for k in ("fixed", "prescribed_displacement"):
+        if k not in pd:
+            raise ExportError(f"{path}: point field {k!r} is missing (not a {SPECIMEN_FORMAT} file)")
+    if "fitted_material" not in cd:
+        raise ExportError(f"{path}: cell field 'fitted_material' is missing (not a {SPECIMEN_FORMAT} file)")
+    n = mesh.n_nodes
+    fixed = np.asarray(pd["fixed"]).reshape(n, 3) != 0
+    presc = np.asarray(pd["prescribed_displacement"], dtype=float).reshape(n, 3)
+    reaction = None if "reaction_set" not in pd else np.asarray(pd["reaction_set"]).reshape(n, 3) != 0
+    names = tuple(mesh.region_names)
+    rid = np.asarray(mesh.region_ids)
+    fitted_cell = np.asarray(cd["fitted_material"]).reshape(-1) != 0
+    fitted, mats = [], {}
+    for i, r in enumerate(names):
+        sel = rid == i
+        if not sel.any():
+            continue
+        flags = np.unique(fitted_cell[sel])
+        if flags.size != 1:
+            raise ExportError(f"{path}: region {r!r} mixes fitted and fixed cells")
+        if flags[0]:
+            fitted.append(r)
+            continue
+        vals = {}
+        for f in _FIELDS:
+            v = np.unique(np.asarray(cd[f], dtype=float).reshape(-1)[sel])
+            if v.size != 1 or not np.isfinite(v[0]):
+                raise ExportError(f"{path}: fixed region {r!r} has no single finite {f}")
+            vals[f] = float(v[0])
+        mats[r] = vals
+    pairs = s = depth = surf = None
+    if experiment == "incision":
+        if "cut_pair" not in pd:
+            raise ExportError(f"{path}: an incision specimen needs the point field 'cut_pair'")
+        pair = np.asarray(pd["cut_pair"]).reshape(-1).astype(np.int64)
+        side = np.asarray(pd["cut_side"]).reshape(-1).astype(np.int64)
+        P = int(pair.max()) + 1
+        pairs = np.full((P, 2), -1, dtype=np.int64)
+        for node in np.flatnonzero(pair >= 0):
+            pairs[pair[node], 0 if side[node] > 0 else 1] = node
+        if np.any(pairs < 0):
+            raise ExportError(f"{path}: a duplicated pair misses one of its nodes")
+        s = np.asarray(pd["cut_pair_s"], dtype=float)[pairs[:, 0]]
+        depth = np.asarray(pd["cut_pair_depth"], dtype=float)[pairs[:, 0]]
+        rank = np.asarray(pd["cut_surface_rank"]).reshape(-1).astype(np.int64)[pairs[:, 0]]
+        on = np.flatnonzero(rank >= 0)
+        surf = on[np.argsort(rank[on], kind="stable")]
+    return FittedSpecimen(scenario=scenario, experiment=experiment, model=model, points=np.asarray(mesh.points, dtype=float),
+                          tets=np.asarray(mesh.tets, dtype=np.int64), region_ids=rid, region_names=names,
+                          fitted_regions=tuple(fitted), region_materials=mats, fixed=fixed, prescribed=presc, reaction=reaction,
+                          pairs=pairs, pair_s=s, pair_depth=depth, surface_pairs=surf)
+
+
+def fitted_specimen_from_card(card, card_path, *, scenario: str | None = None) -> FittedSpecimen:
+    """The fitted specimen recorded in ``card`` (read from ``card_path``): its scenario record's
+    ``specimen_file`` (the one named ``scenario``, or the only one), resolved beside the card,
+    checked against the recorded sha256 and read. Every failure is one :class:`ExportError` line."""
+    from ._io import sha256_file
+
+    recs = [r for r in ((card.provenance or {}).get("scenario_records") or []) if isinstance(r, Mapping)]
+    with_file = [r for r in recs if isinstance(r.get("specimen_file"), Mapping)]
+    if not with_file:
+        raise ExportError(f"{card_path}: the card records no fitted specimen file (only fits of simulated fem_field / incision "
+                          "scenarios write one, with the fit outputs); use --specimen block:... or --specimen indentation")
+    if scenario is not None:
+        named = [r for r in with_file if r.get("name") == scenario]
+        if not named:
+            raise ExportError(f"{card_path}: no fitted specimen for scenario {scenario!r} (recorded: {[r.get('name') for r in with_file]})")
+        rec = named[0]
+    elif len(with_file) > 1:
+        raise ExportError(f"{card_path}: the card records {len(with_file)} fitted specimens {[r.get('name') for r in with_file]}: "
+                          "choose one with --scenario NAME")
+    else:
+        rec = with_file[0]
+    info = rec["specimen_file"]
+    if info.get("format") != SPECIMEN_FORMAT:
+        raise ExportError(f"{card_path}: specimen file format {info.get('format')!r} is not {SPECIMEN_FORMAT!r}")
+    name = str(info.get("path", ""))
+    if not name or Path(name).name != name:
+        raise ExportError(f"{card_path}: specimen file name {name!r} must be a plain file name beside the card")
+    path = Path(card_path).parent / name
+    if not path.is_file():
+        raise ExportError(f"fitted specimen file {path} (scenario {rec.get('name')!r}) is missing: it is written beside "
+                          "material.json by the fit and must stay there")
+    digest = sha256_file(path)
+    if digest != info.get("sha256"):
+        raise ExportError(f"fitted specimen file {path} has sha256 {digest[:12]}..., the card records "
+                          f"{str(info.get('sha256'))[:12]}...: the file was altered or replaced; refusing to export from it")
+    return read_specimen(path, scenario=str(rec.get("name")), experiment=str(rec.get("experiment")), model=str(rec.get("model")))
+
+
+def specimen_record(spec: FittedSpecimen, path) -> dict:
+    """The ``specimen_file`` entry of the card's scenario record."""
+    from ._io import sha256_file
+
+    return {"path": Path(path).name, "sha256": sha256_file(path), "format": SPECIMEN_FORMAT,
+            "nodes": int(len(spec.points)), "tets": int(len(spec.tets))}
+
+
+# ============================================================================ writers
+def _component_sets(spec: FittedSpecimen):
+    """Per component c: nodes held at zero, nodes with a nonzero prescribed value (0-based)."""
+    out = []
+    for c in range(3):
+        held = spec.fixed[:, c]
+        nz = held & (spec.prescribed[:, c] != 0.0)
+        out.append((np.flatnonzero(held & ~nz), np.flatnonzero(nz)))
+    return out
+
+
+def _check_law_for_pre_stretch(cards, target: str, approximate: bool):
+    lam = [c.pre_stretch for c in cards]
+    if any(v != 1.0 for v in lam):
+        # dropping the pre-stretch makes the incision stress-free: nothing would open
+        raise ExportError(f"{target} fitted specimen: pre_stretch {sorted(set(lam))} cannot be represented by {target}, and without it "
+                          "the cut specimen is stress-free and does not open (--approximate does not apply); export the incision "
+                          "to febio, xpbd or vtu")
+
+
+def febio_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False, steps: int = 10) -> ET.Element:
+    """FEBio 4.0 model of a fitted specimen.
+
+    Nodes ``1..N`` (the specimen's order); ``tet4`` elements grouped by region (``<Elements
+    name=<region>>``, numbered ``1..M`` region after region) in one ``SolidDomain`` per region;
+    materials: the card's (:func:`~difftissue.export.febio_material`, a ``prestrain elastic``
+    with ``F0 = diag(lambda0, lambda0, 1)`` where ``pre_stretch != 1``) on the fitted regions,
+    one per fixed region otherwise. Per component ``c``: ``<NodeSet name="fixed_c">`` (held at
+    zero: ``zero displacement`` with ``c_dof`` 1) and ``<NodeSet name="prescribed_c">`` with
+    ``<MeshData><NodeData name="prescribed_uc" node_set="prescribed_c" data_type="scalar">``
+    (``<node lid="k">``: the k-th node of the set, 1-based) and a ``prescribed displacement``
+    BC (``<dof>c</dof>``, ``<value lc="1" type="map">prescribed_uc</value>``, ``relative`` 0),
+    ramped by load controller 1 over ``steps`` static steps. fem_field: ``<NodeSet
+    name="reaction">`` (the reaction force is the sum of the ``reaction forces`` plot variable
+    over it). Incision: ``cut_plus`` / ``cut_minus`` (pair k's original and duplicate, in pair
+    order); the pairs are not tied, so the static solution is the opened state.
+    """
+    from .export import _febio_ramp_and_output, _fmt, _law, _xml_comment, febio_material
+
+    law = _law(card, law)
+    cards = spec.region_cards(card)
+    root = ET.Element("febio_spec", {"version": "4.0"})
+    for line in spec.describe():
+        root.append(_xml_comment(line))
+    ET.SubElement(root, "Module", {"type": "solid"})
+    ctrl = ET.SubElement(root, "Control")
+    ET.SubElement(ctrl, "analysis").text = "STATIC"
+    ET.SubElement(ctrl, "time_steps").text = str(int(steps))
+    ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / steps)
+    mats = ET.SubElement(root, "Material")
+    names: dict[int, str] = {}
+    mat_id = 0
+    for c in cards:
+        if id(c) in names:
+            continue
+        mat_id += 1
+        el = febio_material(c, law=law, approximate=approximate, mat_id=mat_id)
+        for child in list(el):
+            mats.append(child)
+        names[id(c)] = c.name
+    if len(set(names.values())) != len(names):
+        raise ExportError(f"FEBio fitted specimen: material names {sorted(names.values())} collide; rename the card")
+    meshel = ET.SubElement(root, "Mesh")
+    nodes = ET.SubElement(meshel, "Nodes", {"name": "specimen"})
+    for i, p in enumerate(spec.points, start=1):
+        ET.SubElement(nodes, "node", {"id": str(i)}).text = ",".join(_fmt(v) for v in p)
+    eid = 0
+    for r, rname in enumerate(spec.region_names):
+        sel = np.flatnonzero(spec.region_ids == r)
+        if sel.size == 0:
+            continue
+        elems = ET.SubElement(meshel, "Elements", {"type": "tet4", "name": rname})
+        for t in spec.tets[sel]:
+            eid += 1
+            ET.SubElement(elems, "elem", {"id": str(eid)}).text = ",".join(str(int(n) + 1) for n in t)
+    ids = lambda a: ",".join(str(int(n) + 1) for n in np.atleast_1d(a))  # noqa: E731
+    sets = _component_sets(spec)
+    for c, (zero, nz) in zip("xyz", sets):
+        if zero.size:
+            ET.SubElement(meshel, "NodeSet", {"name": f"fixed_{c}"}).text = ids(zero)
+        if nz.size:
+            ET.SubElement(meshel, "NodeSet", {"name": f"prescribed_{c}"}).text = ids(nz)
+    if spec.reaction is not None:
+        ET.SubElement(meshel, "NodeSet", {"name": "reaction"}).text = ids(np.flatnonzero(spec.reaction.any(axis=1)))
+    if spec.pairs is not None:
+        ET.SubElement(meshel, "NodeSet", {"name": "cut_plus"}).text = ids(spec.pairs[:, 0])
+        ET.SubElement(meshel, "NodeSet", {"name": "cut_minus"}).text = ids(spec.pairs[:, 1])
+    doms = ET.SubElement(root, "MeshDomains")
+    for r, rname in enumerate(spec.region_names):
+        if np.any(spec.region_ids == r):
+            ET.SubElement(doms, "SolidDomain", {"name": rname, "mat": cards[r].name})
+    if any(nz.size for _, nz in sets):
+        md = ET.SubElement(root, "MeshData")
+        for ci, (c, (_, nz)) in enumerate(zip("xyz", sets)):
+            if nz.size:
+                nd = ET.SubElement(md, "NodeData", {"name": f"prescribed_u{c}", "node_set": f"prescribed_{c}", "data_type": "scalar"})
+                for k, n in enumerate(nz, start=1):
+                    ET.SubElement(nd, "node", {"lid": str(k)}).text = _fmt(spec.prescribed[n, ci])
+    bnd = ET.SubElement(root, "Boundary")
+    for c, (zero, nz) in zip("xyz", sets):
+        if zero.size:
+            bc = ET.SubElement(bnd, "bc", {"name": f"fixed_{c}", "node_set": f"fixed_{c}", "type": "zero displacement"})
+            for d in "xyz":
+                ET.SubElement(bc, f"{d}_dof").text = "1" if d == c else "0"
+        if nz.size:
+            bc = ET.SubElement(bnd, "bc", {"name": f"prescribed_{c}", "node_set": f"prescribed_{c}", "type": "prescribed displacement"})
+            ET.SubElement(bc, "dof").text = c
+            ET.SubElement(bc, "value", {"lc": "1", "type": "map"}).text = f"prescribed_u{c}"
+            ET.SubElement(bc, "relative").text = "0"
+    _febio_ramp_and_output(root)
+    return root
+
+
+def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False) -> str:
+    """Abaqus input of a fitted specimen: ``*NODE``, ``*ELEMENT, TYPE=C3D4, ELSET=<region>``,
+    one ``*SOLID SECTION`` and material per region, ``*NSET`` per held / prescribed component
+    (``FIXED_X``, ``PRESCRIBED_X``, ...) and ``REACTION``, and one ``*STEP`` / ``*STATIC`` whose
+    ``*BOUNDARY`` gives every prescribed component its own magnitude (data lines ``node, c, c,
+    value``). A pre-stretched specimen (an incision) is refused: Abaqus has no prestrain
+    gradient here, and without it the cut does not open."""
+    from .export import _abaqus_comment, _fmt, _law, _wrap_ids, abaqus_material, abaqus_name
+
+    law = _law(card, law)
+    cards = spec.region_cards(card)
+    _check_law_for_pre_stretch(cards, "Abaqus", approximate)
+    lines = ["*HEADING", f"difftissue fitted specimen {spec.scenario} for material {abaqus_name(card.name)} (SI units: m, N, Pa, kg)"]
+    lines += [_abaqus_comment(t) for t in spec.describe()]
+    lines.append("*NODE")
+    for i, p in enumerate(spec.points, start=1):
+        lines.append(f"{i}, " + ", ".join(_fmt(v) for v in p))
+    eid = 0
+    elsets = {}
+    for r, rname in enumerate(spec.region_names):
+        sel = np.flatnonzero(spec.region_ids == r)
+        if sel.size == 0:
+            continue
+        es = abaqus_name(rname).upper()
+        if es in elsets.values():
+            raise ExportError(f"Abaqus fitted specimen: region names {list(spec.region_names)} collide once sanitised")
+        elsets[r] = es
+        lines.append(f"*ELEMENT, TYPE=C3D4, ELSET={es}")
+        for t in spec.tets[sel]:
+            eid += 1
+            lines.append(f"{eid}, " + ", ".join(str(int(n) + 1) for n in t))
+    sets = _component_sets(spec)
+    for c, (zero, nz) in zip("XYZ", sets):
+        for name, arr in ((f"FIXED_{c}", zero), (f"PRESCRIBED_{c}", nz)):
+            if arr.size:
+                lines.append(f"*NSET, NSET={name}")
+                lines += _wrap_ids(arr + 1)
+    if spec.reaction is not None:
+        lines.append("*NSET, NSET=REACTION")
+        lines += _wrap_ids(np.flatnonzero(spec.reaction.any(axis=1)) + 1)
+    done = set()
+    for r, es in elsets.items():
+        mname = abaqus_name(cards[r].name)
+        lines += [f"*SOLID SECTION, ELSET={es}, MATERIAL={mname}", ","]
+        if mname not in done:
+            lines += abaqus_material(cards[r], law=law, approximate=approximate)
+            done.add(mname)
+    lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}", "*STATIC", "0.1, 1.0, 1e-05, 0.1", "*BOUNDARY"]
+    for c, (zero, nz) in zip("XYZ", sets):
+        if zero.size:
+            d = "XYZ".index(c) + 1
+            lines.append(f"FIXED_{c}, {d}, {d}, 0.0")
+    for ci, (zero, nz) in enumerate(sets):
+        d = ci + 1
+        for n in nz:
+            lines.append(f"{int(n) + 1}, {d}, {d}, {_fmt(spec.prescribed[n, ci])}")
+    lines += ["*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
+    if spec.reaction is not None:
+        lines += ["*OUTPUT, HISTORY", "*NODE OUTPUT, NSET=REACTION", "RF1, RF2, RF3"]
+    lines.append("*END STEP")
+    return "\n".join(lines) + "\n"
+
+
+def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations: int, substeps: int = 1, approximate: bool = False) -> dict:
+    """The XPBD JSON (``difftissue-xpbd/1``) of a fitted specimen: the header of
+    :func:`~difftissue.export.xpbd_parameters` for the card, per-tet stable neo-Hookean
+    compliances of each tet's region material, and a ``specimen`` block: positions [m], tets,
+    regions (each with its material and whether it is the card's), lumped masses ``rho V / 4``,
+    ``fixed`` node ids per component, ``prescribed_displacement`` ``[[node, component, value
+    [m]], ...]``, the reaction set, and for an incision the duplicated pairs (with ``s``, depth,
+    the surface order) and per-tet ``pre_stretch``: a pre-stretched tet's stress-free shape is
+    the mesh shrunk by ``1/lambda0`` in x and y (``Dm`` of that shape; rest volume ``V/lambda0^2``)."""
+    from .export import _approximations, xpbd_parameters
+
+    base = card
+    if card.pre_stretch != 1.0:  # the header is the card's material; its pre-stretch is carried per tet below
+        from .export import MaterialCard
+
+        d = card.to_dict()
+        d["parameters"] = {k: dict(v) for k, v in d["parameters"].items()}
+        d["parameters"]["pre_stretch"] = {"value": 1.0, "unit": "1", "standard_error": None}
+        base = MaterialCard.from_dict(d)
+    doc = xpbd_parameters(base, dt=dt, iterations=iterations, substeps=substeps, approximate=approximate)
+    doc["material"] = card.name
+    cards = spec.region_cards(card)
+    for c in cards:
+        if c is not card:
+            _approximations(c, "XPBD stable neo-Hookean", approximate=approximate, pre_stretch_ok=True)
+    pts, t = spec.points, spec.tets
+    v = np.abs(np.einsum("ij,ij->i", np.cross(pts[t[:, 1]] - pts[t[:, 0]], pts[t[:, 2]] - pts[t[:, 0]]), pts[t[:, 3]] - pts[t[:, 0]])) / 6.0
+    lam0 = np.array([cards[r].pre_stretch for r in spec.region_ids])
+    v0 = v / lam0**2  # stress-free volume
+    mu = np.array([cards[r].shear_modulus for r in spec.region_ids])
+    lam_s = np.array([cards[r].lame_lambda + cards[r].shear_modulus for r in spec.region_ids])
+    rho = np.array([cards[r].density for r in spec.region_ids])
+    h = dt / substeps
+    doc["per_tet"] = {"region": spec.region_ids.tolist(), "pre_stretch": lam0.tolist(), "rest_volume": v0.tolist(),
+                      "mu": mu.tolist(), "lambda_shifted": lam_s.tolist(),
+                      "deviatoric_compliance": (1.0 / (mu * v0)).tolist(), "hydrostatic_compliance": (1.0 / (lam_s * v0)).tolist(),
+                      "deviatoric_alpha_tilde": (1.0 / (mu * v0) / h**2).tolist(), "hydrostatic_alpha_tilde": (1.0 / (lam_s * v0) / h**2).tolist(),
+                      "unit": "compliance 1/(Pa m^3); rest_volume m^3 of the stress-free tet (the mesh tet shrunk by 1/pre_stretch in x, y)"}
+    m = np.zeros(len(pts))
+    np.add.at(m, t.reshape(-1), np.repeat(rho * v / 4.0, 4))
+    presc = [[int(n), int(c), float(spec.prescribed[n, c])] for n, c in zip(*np.nonzero(spec.fixed))]
+    regions = [{"name": r, "fitted": r in spec.fitted_regions, **{f: cards[i].value(f) for f in _FIELDS}}
+               for i, r in enumerate(spec.region_names)]
+    sp: dict[str, Any] = {"experiment": spec.experiment, "scenario": spec.scenario, "difftissue_model": spec.model,
+                          "positions": pts.tolist(), "tets": t.tolist(), "regions": regions, "masses": m.tolist(),
+                          "fixed": {c: np.flatnonzero(spec.fixed[:, i]).tolist() for i, c in enumerate("xyz")},
+                          "prescribed_displacement": presc,
+                          "rest_shape": "per tet: Dm from the positions shrunk by 1/pre_stretch in x and y (stress-free state)",
+                          "assumptions": spec.describe(),
+                          "note": "SI; fixed: node ids per held component; prescribed_displacement: [node, component (0 x, 1 y, 2 z), value m]"}
+    if spec.reaction is not None:
+        sp["reaction"] = {c: np.flatnonzero(spec.reaction[:, i]).tolist() for i, c in enumerate("xyz")}
+    if spec.pairs is not None:
+        sp["cut"] = {"pairs": spec.pairs.tolist(), "pair_s": spec.pair_s.tolist(), "pair_depth": spec.pair_depth.tolist(),
+                     "surface_pairs": spec.surface_pairs.tolist(),
+                     "note": "pairs (original, duplicate) are separate, untied nodes: the opened cut; width = |x_a - x_b|"}
+    doc["specimen"] = sp
+    return doc
+
+
+_REFUSED = {
+    "sofa": ("SOFA fitted specimen: per-node prescribed displacements (and the incision's pre-stretch) are not written for SOFA: "
+             "this exporter's SOFA constraints move a whole index set by one vector, and prescribing each node through the "
+             "MechanicalObject's position vs rest_position was not verified against SOFA's force fields; export to febio, "
+             "abaqus, xpbd or vtu"),
+    "pbd": ("pypbd fitted specimen: a pypbd scene holds fixed particles and one moved set, not per-node prescribed displacements, "
+            "region materials or a pre-stretch; export to febio, abaqus, xpbd or vtu"),
+}
+
+
+def write_fitted(card, to: str, path, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False,
+                 force: bool = False, dt: float | None = None, iterations: int | None = None, substeps: int = 1) -> Path:
+    """Write the complete model of the fitted specimen ``spec`` for target ``to``."""
+    from .export import TARGETS, _write_text, _xml_text
+
+    if to in _REFUSED:
+        raise ExportError(_REFUSED[to])
+    if law == "springs":
+        raise ExportError("law='springs' is written for the SOFA compression block only, not for a fitted specimen")
+    if to == "febio":
+        return _write_text(path, _xml_text(febio_fitted_model(card, spec, law=law, approximate=approximate)), force)
+    if to == "abaqus":
+        return _write_text(path, abaqus_fitted_model(card, spec, law=law, approximate=approximate), force)
+    if to == "xpbd":
+        if dt is None or iterations is None:
+            raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")
+        doc = xpbd_fitted_parameters(card, spec, dt=dt, iterations=iterations, substeps=substeps, approximate=approximate)
+        return _write_text(path, json.dumps(doc, indent=2, allow_nan=False) + "\n", force)
+    if to == "vtu":
+        from .mesh import write_mesh
+
+        if Path(path).suffix.lower() != ".vtu":
+            raise ExportError(f"{path}: a VTU export must end in .vtu")
+        for c in spec.region_cards(card):
+            if not math.isfinite(c.youngs_modulus):
+                raise ExportError("a region material is not finite")
+        point, cell = _point_cell_fields(spec, card)
+        return write_mesh(path, spec.mesh(), point_data=point, cell_data=cell, overwrite=force)
+    raise ExportError(f"unknown export target {to!r}; choose one of {list(TARGETS)}")
