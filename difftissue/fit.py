@@ -340,6 +340,13 @@ class FitProblem:
         z = (r / self.f_scale) ** 2
         return r * _robust_weight(z, self.loss_name)
 
+    def residuals_and_predictions(self, u) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+        """``(residuals(u), predictions)``: the robustified scaled residuals and each
+        scenario's predictions (in the residuals' dtype) from one forward evaluation."""
+        preds = self.predictions_of(self.material(u))
+        r = self.robust(self._scaled(preds))
+        return r, tuple(jnp.asarray(p, dtype=r.dtype) for p in preds)
+
     def residuals(self, u) -> jax.Array:
         """Robustified scaled residuals at ``u``, shape ``(n,)`` [-] (plain ones for ``linear``)."""
         return self.robust(self.scaled_residuals_of(self.material(u)))
@@ -680,7 +687,10 @@ class _Engine:
             self._optx = optx
             cls = optx.LevenbergMarquardt if method == "levenberg_marquardt" else optx.GaussNewton
             self.solver = cls(rtol=self.rtol, atol=self.atol)
-            self._fn = lambda y, data: (problem.with_data(data).residuals(y), None)
+            # The predictions ride along as the solver's aux: with the residual and Jacobian
+            # the solver keeps at the accepted point, they give the fit's final evaluation
+            # without compiling the forward model a second time (:meth:`make_final`).
+            self._fn = lambda y, data: problem.with_data(data).residuals_and_predictions(y)
             self._options = {"jac": jac}
             self._tags = frozenset()
         else:
@@ -701,7 +711,9 @@ class _Engine:
         return jax.ShapeDtypeStruct((self.problem.n_residuals,), dtype)
 
     def _optx_init_single(self, u, data):
-        return self.solver.init(self._fn, u, data, self._options, self._residual_struct(u), None, self._tags)
+        f_struct = self._residual_struct(u)
+        aux_struct = tuple(jax.ShapeDtypeStruct((n,), f_struct.dtype) for n in self.problem.sizes)
+        return self.solver.init(self._fn, u, data, self._options, f_struct, aux_struct, self._tags)
 
     def init(self, U, data):
         """Batched dynamic state for starts ``U`` (shape ``(S, p)``) of the problem with ``data``.
@@ -744,6 +756,42 @@ class _Engine:
         if getattr(self, "_evaluate", None) is None:
             self._evaluate = jax.jit(self.evaluate)
         return self._evaluate
+
+    def make_final(self):
+        """Optimistix methods: ``(U, dyn, data) -> (values, loss, J, predictions, ok)`` from the
+        solver state alone, jitted once per engine -- the residual, the Jacobian (materialised
+        from the linearisation the solver keeps at the accepted point) and the predictions (the
+        aux) of every start, the Jacobian taken to the PHYSICAL values by the chain rule through
+        the transforms. ``ok`` is False for a start whose state holds no evaluation (no step
+        taken) or whose transform derivative is singular (a parameter saturated at a bound):
+        :func:`fit` then uses :meth:`make_evaluate`. ``None`` for optax methods."""
+        if not hasattr(self, "_optx"):
+            return None
+        if getattr(self, "_final", None) is None:
+            template, static = self.problem, self._static
+            fields = template.fields
+
+            def final(U, dyn, data):
+                problem = template.with_data(data)
+
+                def values_of(u):
+                    vals = problem.values(u)
+                    return jnp.stack([vals[f] for f in fields])
+
+                def one(u, d):
+                    state = eqx.combine(d, static)
+                    Ju = state.f_info.jac.as_matrix()
+                    dvdu = jax.jacfwd(values_of)(u)
+                    Jv = jnp.linalg.solve(dvdu.T, Ju.T).T  # Ju = Jv dv/du
+                    r = state.f_info.residual
+                    smallest = jnp.min(jnp.linalg.svd(dvdu, compute_uv=False))
+                    ok = (state.num_steps > 0) & (smallest > 1e-100) & jnp.all(jnp.isfinite(Jv))
+                    return values_of(u), 0.5 * jnp.sum(r * r), Jv, tuple(state.aux), ok
+
+                return jax.vmap(one)(U, dyn)
+
+            self._final = jax.jit(final)
+        return self._final
 
     def make_step(self):
         """The ONE jitted step: ``(U, dyn, done, data) -> (U, dyn, done, status, loss)``,
@@ -1048,12 +1096,15 @@ def fit(
     # the engine), used at the start (the initial losses) and at the end (covariance,
     # predictions): fewer compilations than separate loss / Jacobian / predict programs (each
     # one compiles the whole forward model).
-    evaluate = engine.make_evaluate()
-    if not history:
+    evaluate = engine.make_evaluate()  # compiled on its first call only
+    final_from_state = engine.make_final()
+    if not history and final_from_state is None:
         history.append(np.asarray(evaluate(U, data)[1]))
+    # Optimistix: the first step evaluates the starts and accepts them (its loss is the initial
+    # loss, recorded as history[0] below), so no separate program is compiled for the start.
 
     def save():
-        if ckpt is not None:
+        if ckpt is not None and history:
             _save_checkpoint(ckpt, U=U, dyn=dyn, done=done, status=status, history=np.stack(history), step=step, fingerprint=fingerprint, components=components, method=method)
 
     stopped_by_callback = False
@@ -1061,13 +1112,15 @@ def fit(
     task = None
     if bar is not None:
         bar.start()
-        task = bar.add_task("fit", total=max_steps, completed=step, loss=f"{np.nanmin(history[-1]):.6g}")
+        task = bar.add_task("fit", total=max_steps, completed=step, loss=f"{np.nanmin(history[-1]):.6g}" if history else "-")
     try:
         while step < max_steps and not bool(np.all(np.asarray(done))):
             U, dyn, done, new_status, losses = step_fn(U, dyn, done, data)
             status = jnp.where(new_status != 0, new_status, status).astype(jnp.int32)
             step += 1
             losses = np.asarray(losses)
+            if not history:  # optimistix: step 1 evaluated and accepted the starts
+                history.append(losses)
             history.append(losses)
             if bar is not None:
                 bar.update(task, completed=step, loss=f"{np.nanmin(losses):.6g}")
@@ -1085,9 +1138,18 @@ def fit(
     finally:
         if bar is not None:
             bar.stop()
-    save()
+    if history:
+        save()
 
-    all_values, final, all_J, all_preds = evaluate(U, data)
+    result = None
+    if final_from_state is not None:
+        *result, ok = final_from_state(U, dyn, data)
+        if not bool(np.all(np.asarray(ok))):
+            result = None
+    all_values, final, all_J, all_preds = evaluate(U, data) if result is None else result
+    if not history:  # no step taken: the loss at the start is the final one
+        history.append(np.asarray(final))
+        save()
     if stopped_by_callback:
         stop_reason = "stopped by callback"
     else:

@@ -330,6 +330,53 @@ class Interrupt:
             raise KeyboardInterrupt
 
 
+@pytest.mark.parametrize("method, loss", [("levenberg_marquardt", "linear"), ("gauss_newton", "soft_l1")])
+def test_the_final_evaluation_from_the_solver_state_equals_a_fresh_one(method, loss, monkeypatch):
+    """Optimistix fits take the final loss, Jacobian and predictions from the solver's state (no
+    second compilation of the forward model); they must equal a fresh evaluation at the result."""
+    import difftissue.fit as F
+
+    scs = [hertz_data(), compression_data()]
+    calls = []
+    original = F._Engine.evaluate
+    monkeypatch.setattr(F._Engine, "evaluate", lambda self, U, data: calls.append(1) or original(self, U, data))
+    F._ENGINE_CACHE.clear()
+    res = fit(scs, P_E_NU, START, method=method, loss=loss, starts=2)
+    assert res.converged
+    assert not calls  # the evaluation program was never traced
+    problem = FitProblem(scs, P_E_NU, START, loss=loss)
+    values, lossv, J, preds = jax.jit(lambda U: F._Engine(problem, method, rtol=1e-8, atol=1e-10, learning_rate=1e-3, jac="fwd").evaluate(U, problem.data()))(jnp.asarray(res.unconstrained)[None])
+    assert float(lossv[0]) == pytest.approx(res.loss, rel=1e-12)
+    np.testing.assert_allclose(res.jacobian, np.asarray(J[0]), rtol=1e-10, atol=1e-12 * np.abs(res.jacobian).max())
+    for name, p in zip(problem.names, preds):
+        np.testing.assert_allclose(np.asarray(res.predictions[name]), np.asarray(p[0]), rtol=1e-12)
+    assert res.loss_history[0, 0] == pytest.approx(float(problem.loss(jnp.asarray(_start_u(problem, START)))), rel=1e-12)
+
+
+def _start_u(problem, material):
+    return problem.parameterization.pack(material)
+
+
+def test_a_saturated_transform_falls_back_to_a_fresh_evaluation():
+    """At a bound where a transform's derivative is exactly 0 (nu's logistic at u = 60) the
+    Jacobian in the physical values cannot be recovered from the solver's: the state path
+    reports not ok and :func:`fit` evaluates afresh."""
+    import difftissue.fit as F
+
+    problem = FitProblem([hertz_data(), compression_data()], P_E_NU, START)
+    engine = F._Engine(problem, "levenberg_marquardt", rtol=1e-8, atol=1e-10, learning_rate=1e-3, jac="fwd")
+    data = problem.data()
+    U = jnp.stack([jnp.asarray(_start_u(problem, START)), jnp.asarray(_start_u(problem, START))])
+    dyn = engine.init(U, data)
+    U1, dyn1, *_ = engine.make_step()(U, dyn, jnp.zeros(2, dtype=bool), data)
+    *_, ok = engine.make_final()(U1, dyn1, data)
+    assert np.all(np.asarray(ok))
+    *_, ok = engine.make_final()(U1.at[1, 1].set(60.0), dyn1, data)
+    assert np.asarray(ok).tolist() == [True, False]
+    *_, ok = engine.make_final()(U, dyn, data)  # the initial state holds no evaluation
+    assert not np.any(np.asarray(ok))
+
+
 def test_interrupted_fit_resumes_to_the_same_optimum(tmp_path, joint_fit):
     scs = [hertz_data(), compression_data()]
     ref = joint_fit[0]  # the same problem (3 starts), uninterrupted
