@@ -6,8 +6,8 @@ fem_field: a 3 x 3 x 2 block (fem_linear reference: base clamped, punch nodes pu
 one lateral face given a per-node x displacement varying with height), E fitted by difftissue,
 exported to FEBio and Abaqus, parsed back (nodes, elements, sets, per-node values, E, nu) and
 solved in scikit-fem: the displacement field equals difftissue's fem_linear solution and the
-reaction force the fit compared. incision: a 4 x 4 mm two-layer skin, a 2 mm cut through the
-pre-stretched dermis (fem_neo_hookean), exported to FEBio / XPBD / VTU, parsed back and solved
+reaction force the fit compared. incision: a 4 x 4 mm two-layer skin (0.5 mm cells; 1 mm
+dermis in 2 cells on 1 mm of fat), a 2 mm cut through the pre-stretched dermis (fem_neo_hookean), exported to FEBio / XPBD / VTU, parsed back and solved
 by difftissue's static solver: the opened widths equal Incision's.
 """
 
@@ -329,7 +329,7 @@ def incision_case(tmp_path_factory):
     from difftissue.incision import Incision, IncisionOptions
     from difftissue.mesh import layered_skin
 
-    spec = layered_skin([("dermis", 1 * MM, SKIN, 1), ("fat", 1 * MM, FAT, 1)], size=(4 * MM, 4 * MM), resolution=(4, 4))
+    spec = layered_skin([("dermis", 1 * MM, SKIN, 2), ("fat", 1 * MM, FAT, 1)], size=(4 * MM, 4 * MM), resolution=(8, 8))
     cut = cut_specimen(spec, ScalpelPath([(1 * MM, 2 * MM), (3 * MM, 2 * MM)], depth=1 * MM))
     sc = Incision(cut, model="fem_neo_hookean", fitted_regions=("dermis",), quantity="surface_width",
                   options=IncisionOptions(scalpel_steps=1, rtol=1e-12), name="skin cut")
@@ -371,7 +371,7 @@ def test_incision_round_trip_febio_reproduces_the_opening(incision_case, tmp_pat
     np.testing.assert_array_equal(p["points"], X)
     plus, minus = p["sets"]["cut_plus"], p["sets"]["cut_minus"]
     np.testing.assert_array_equal(np.stack([plus, minus], axis=1), cut.pairs)
-    assert len(p["points"]) == len(np.asarray(cut.mesh.points)) and plus.size > 0
+    assert len(p["points"]) == len(np.asarray(cut.mesh.points)) and plus.size == 6  # 3 columns x 2 depths (tips not split)
     np.testing.assert_array_equal(X[plus], X[minus] + np.asarray(cut.pair_rest_offset))
     # the cut mesh's tets, grouped by region
     order = np.argsort(np.asarray(cut.mesh.region_ids), kind="stable")
@@ -418,3 +418,40 @@ def test_incision_xpbd_vtu_and_refusals(incision_case, tmp_path):
         assert "\n" not in str(e.value)
     with pytest.raises(ExportError, match="does not open"):
         export(card, "abaqus", tmp_path / "m.inp", fitted=spec, approximate=True)
+
+
+def test_cli_fit_writes_the_specimen_and_refuses_to_overwrite_it(fem_fit, tmp_path, capsys):
+    """``difftissue fit`` of a fem_field config writes specimen-<name>.vtu with the outputs;
+    ``export --specimen fitted`` reads it; a second fit into the same folder refuses an existing
+    specimen file before fitting (unless --force)."""
+    ref = fem_fit["out"].parent / "ref.vtu"
+    cfg = tmp_path / "fit.toml"
+    cfg.write_text(f'''
+[material]
+youngs_modulus = 8.0e3
+poisson_ratio = {NU}
+
+[fit]
+parameters = ["youngs_modulus"]
+
+[[experiment]]
+name = "punch"
+scenario = "fem_field"
+model = "fem_linear"
+data = {{ format = "fem", path = "{ref}", field = "displacement", length_unit = "m" }}
+prescribed = [{{ set = "bottom" }}, {{ set = "punch", components = "z" }}, {{ set = "side", components = "x" }}]
+reaction = {{ set = "punch", components = "z", field = "reaction" }}
+''')
+    out = tmp_path / "out"
+    assert main(["fit", str(cfg), "--out", str(out)]) == 0
+    capsys.readouterr()
+    assert (out / "specimen-punch.vtu").is_file()
+    card = read_card(out / "material.json")
+    assert card.youngs_modulus == pytest.approx(E, rel=1e-8)
+    assert main(["export", str(out / "material.json"), "--to", "febio", "--specimen", "fitted", "--out", str(tmp_path / "m.feb")]) == 0
+    assert "fitted fem_field specimen of scenario 'punch'" in capsys.readouterr().out
+    for f in ("fit.json", "material.json", "fit.png", "loss.png", "report.md", "config.toml"):
+        (out / f).unlink()
+    assert main(["fit", str(cfg), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert "specimen-punch.vtu exists" in err and not (out / "fit.json").exists()
