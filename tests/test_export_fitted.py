@@ -291,6 +291,15 @@ def test_fitted_specimen_errors(fem_fit, tmp_path, capsys):
                       tmp_path / "bare.json")
     assert main(["export", str(bare), "--to", "febio", "--specimen", "fitted", "--out", out]) == 1
     assert "records no fitted specimen file" in capsys.readouterr().err
+    # several specimens and no --scenario; a foreign format tag
+    two = [{"name": n, "experiment": "fem_field", "specimen_file": {"path": f"specimen-{n}.vtu", "sha256": "0" * 64,
+                                                                     "format": "difftissue-specimen/1"}} for n in ("a", "b")]
+    many = MaterialCard(model="fem_linear", parameters=card.parameters, provenance={"scenario_records": two})
+    with pytest.raises(ExportError, match="choose one with --scenario"):
+        fitted_specimen_from_card(many, tmp_path / "material.json")
+    two[0]["specimen_file"]["format"] = "other/1"
+    with pytest.raises(ExportError, match="format 'other/1'"):
+        fitted_specimen_from_card(many, tmp_path / "material.json", scenario="a")
     # no such scenario
     assert main(["export", str(card_path), "--to", "febio", "--specimen", "fitted", "--scenario", "nosuch", "--out", out]) == 1
     assert "no fitted specimen for scenario 'nosuch'" in capsys.readouterr().err
