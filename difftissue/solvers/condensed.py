@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import ModelError
 from ..models import ElasticModel, ElementTerm
 from .sparse import sparse_pattern
-from .static import _element_data, _Options, _projected_operator
+from .static import _element_data, _Options, _projected_operator, armijo_backtracking
 
 __all__ = ["linear_response_columns", "CondensedParameters", "CondensedContactModel", "solve_condensed_contact"]
 
@@ -227,16 +227,7 @@ def _condensed_newton(stiffness, kappa, depth, u_init, free, *, rest, indenter, 
         scale = 1.0 / jnp.maximum(jnp.max(jnp.abs(jnp.diagonal(H))), 1e-300)
         d = jnp.where(bad, -g * scale, d)
         gd = jnp.vdot(g, d)
-        e0 = energy(u)
-
-        def ls_body(s):
-            alpha, _, tries = s
-            e1 = energy(u + alpha * d)
-            slack = 64 * jnp.finfo(u.dtype).eps * (jnp.abs(e0) + jnp.abs(e1))
-            ok = jnp.isfinite(e1) & (e1 <= e0 + 1e-4 * alpha * gd + slack)
-            return jnp.where(ok, alpha, 0.5 * alpha), ok, tries + 1
-
-        alpha, accepted, _ = jax.lax.while_loop(lambda s: (~s[1]) & (s[2] < 40), ls_body, (jnp.asarray(1.0, u.dtype), jnp.asarray(False), 0))
+        alpha, accepted = armijo_backtracking(energy, u, d, gd)
         u_new = jnp.where(accepted, u + alpha * d, u)
         g_new = residual(u_new)
         rn = jnp.linalg.norm(g_new)

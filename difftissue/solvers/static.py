@@ -181,6 +181,30 @@ def _full_gradient(model, u, material, force):
 
 
 # ------------------------------------------------------------------------- Newton
+def armijo_backtracking(potential, u, d, gd, *, max_tries: int = 40, c: float = 1e-4):
+    """Backtracking line search along ``d`` from ``u`` (Armijo's sufficient decrease).
+
+    Halves ``alpha`` from 1 until ``potential(u + alpha d) <= potential(u) + c alpha gd`` (with a
+    round-off slack of 64 eps |e|, so that a converged point is not refused for rounding) and
+    the energy is finite; ``potential`` returns ``inf`` where the step is inadmissible (an
+    inverted element). ``gd`` is the directional derivative ``g . d`` (< 0 for a descent
+    direction). Returns ``(alpha, accepted)``; after ``max_tries`` halvings ``accepted`` is False.
+    The Newton solvers of :func:`solve_static` and
+    :func:`~difftissue.solvers.condensed.solve_condensed_contact` share it.
+    """
+    e0 = potential(u)
+
+    def body(s):
+        alpha, _, tries = s
+        e1 = potential(u + alpha * d)
+        slack = 64 * jnp.finfo(u.dtype).eps * (jnp.abs(e0) + jnp.abs(e1))
+        ok = jnp.isfinite(e1) & (e1 <= e0 + c * alpha * gd + slack)
+        return jnp.where(ok, alpha, 0.5 * alpha), ok, tries + 1
+
+    alpha, accepted, _ = jax.lax.while_loop(lambda s: (~s[1]) & (s[2] < max_tries), body, (jnp.asarray(1.0, u.dtype), jnp.asarray(False), 0))
+    return alpha, accepted
+
+
 def _newton(model: ElasticModel, material, displacement, force, free, u_init, options: _Options):
     Pf = free.astype(u_init.dtype)
     fixed_part = (1.0 - Pf) * displacement
@@ -224,20 +248,7 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         scale = jnp.linalg.norm(g) / jnp.maximum(jnp.linalg.norm(op.mv(g.reshape(-1))), 1e-300)
         d = jnp.where(bad, -g * scale, d)
         gd = jnp.vdot(g, d)
-        e0 = potential(u)
-
-        def ls_cond(s):
-            alpha, accepted, tries = s
-            return (~accepted) & (tries < 40)
-
-        def ls_body(s):
-            alpha, _, tries = s
-            e1 = potential(u + alpha * d)
-            slack = 64 * jnp.finfo(u.dtype).eps * (jnp.abs(e0) + jnp.abs(e1))
-            ok = jnp.isfinite(e1) & (e1 <= e0 + 1e-4 * alpha * gd + slack)
-            return jnp.where(ok, alpha, 0.5 * alpha), ok, tries + 1
-
-        alpha, accepted, _ = jax.lax.while_loop(ls_cond, ls_body, (jnp.asarray(1.0, u.dtype), jnp.asarray(False), 0))
+        alpha, accepted = armijo_backtracking(potential, u, d, gd)
         u_new = jnp.where(accepted, u + alpha * d, u)
         g_new = residual(u_new)
         rn = jnp.linalg.norm(g_new)
