@@ -29,8 +29,9 @@ What each target gets (:func:`write_fitted`): FEBio 4.0 (nodes, ``tet4`` element
 node sets, ``zero displacement`` and ``prescribed displacement`` with per-node ``<NodeData>``
 maps, ``prestrain elastic`` materials for pre-stretched regions, a static step), Abaqus
 (``*NSET``, ``*BOUNDARY`` with per-node magnitudes in a ``*STATIC`` step; a pre-stretched
-incision is refused), the XPBD JSON and VTU (our own formats: everything). SOFA and pypbd are
-refused with the reason.
+incision is refused), SOFA (one material, no pre-stretch: the fem_field; the prescribed values
+as initial positions held by projective constraints), the XPBD JSON and VTU (our own formats:
+everything). pypbd is refused with the reason.
 """
 
 from __future__ import annotations
@@ -57,6 +58,7 @@ __all__ = [
     "fitted_specimen_from_card",
     "febio_fitted_model",
     "abaqus_fitted_model",
+    "sofa_fitted_scene",
     "xpbd_fitted_parameters",
     "write_fitted",
 ]
@@ -618,11 +620,69 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
     return doc
 
 
+def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False) -> ET.Element:
+    """SOFA scene of a fitted specimen with one material and no pre-stretch (a fem_field fit).
+
+    The prescribed displacements are initial positions held by projective constraints: the
+    ``MechanicalObject`` gets ``rest_position`` = the reference mesh and ``position`` = the
+    reference moved by the prescribed values on the prescribed components (the free ones start
+    at rest); ``FixedProjectiveConstraint`` (all three components prescribed) and
+    ``PartialFixedProjectiveConstraint`` with ``fixedDirections`` (some) hold them: both zero
+    the Newton correction of those components (``projectResponse``) and leave the positions
+    alone (``projectPosition`` is empty), and SOFA's ``TetrahedronFEMForceField`` (``reinit``)
+    and ``TetrahedronHyperelasticityFEMForceField`` (``init``) take their rest shape from the
+    ``MechanicalObject``'s rest position (SOFA source, docs/export.md). ``StaticSolver`` +
+    ``SparseLDLSolver``; ``MeshTopology`` of the reference mesh; ``MeshMatrixMass`` of the
+    card's density. Several region materials or a pre-stretch (an incision) are refused.
+    """
+    from .export import _SOFA_SPECIMEN_PLUGINS, _approximations, _fmt, _header_lines, _law, _xml_comment, sofa_force_field
+
+    law = _law(card, law)
+    cards = spec.region_cards(card)
+    if any(c.pre_stretch != 1.0 for c in cards):
+        raise ExportError("SOFA fitted specimen: a pre-stretch (an incision) cannot be written for SOFA (no prestrain in its tetrahedral "
+                          "force fields), and without it the cut specimen does not open; export the incision to febio, xpbd or vtu")
+    used = {id(cards[r]) for r in np.unique(spec.region_ids)}
+    if len(used) > 1:
+        raise ExportError(f"SOFA fitted specimen: {len(used)} region materials; this SOFA scene holds one force field with one "
+                          "material; export to febio, abaqus, xpbd or vtu")
+    notes = _approximations(card, "SOFA " + law, approximate=approximate)
+    root = ET.Element("Node", {"name": "root", "gravity": "0 0 0", "dt": "1"})
+    for line in _header_lines(card, "SOFA", law) + notes + spec.describe():
+        root.append(_xml_comment(line))
+    root.append(_xml_comment("prescribed displacements: MechanicalObject position = rest_position + prescribed value on the held "
+                             "components, held by (Partial)FixedProjectiveConstraint; each StaticSolver step is a Newton solve from "
+                             "the current positions: run a few steps until the positions stop changing"))
+    plugins = ["Sofa.Component.SolidMechanics.FEM.Elastic" if law == "linear" else "Sofa.Component.SolidMechanics.FEM.HyperElastic",
+               *_SOFA_SPECIMEN_PLUGINS]
+    for p in plugins:
+        ET.SubElement(root, "RequiredPlugin", {"name": p})
+    node = ET.SubElement(root, "Node", {"name": "tissue"})
+    ET.SubElement(node, "StaticSolver")
+    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
+    rest = spec.points
+    pos = rest + np.where(spec.fixed, spec.prescribed, 0.0)
+    flat = lambda a: " ".join(_fmt(v) for v in np.asarray(a, dtype=float).reshape(-1))  # noqa: E731
+    ET.SubElement(node, "MeshTopology", {"name": "topology", "position": flat(rest),
+                                         "tetrahedra": " ".join(str(int(n)) for n in spec.tets.reshape(-1))})
+    ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "position": flat(pos), "rest_position": flat(rest)})
+    ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
+    node.append(sofa_force_field(card, law=law, approximate=True))
+    patterns = {}
+    for n in np.flatnonzero(spec.fixed.any(axis=1)):
+        patterns.setdefault(tuple(bool(v) for v in spec.fixed[n]), []).append(int(n))
+    for pat, nodes in sorted(patterns.items(), reverse=True):
+        tag = "".join(c for c, b in zip("xyz", pat) if b)
+        idx = " ".join(str(n) for n in nodes)
+        if all(pat):
+            ET.SubElement(node, "FixedProjectiveConstraint", {"name": f"prescribed_{tag}", "indices": idx})
+        else:
+            ET.SubElement(node, "PartialFixedProjectiveConstraint", {"name": f"prescribed_{tag}", "template": "Vec3d", "indices": idx,
+                                                                     "fixedDirections": " ".join("1" if b else "0" for b in pat)})
+    return root
+
+
 _REFUSED = {
-    "sofa": ("SOFA fitted specimen: per-node prescribed displacements (and the incision's pre-stretch) are not written for SOFA: "
-             "this exporter's SOFA constraints move a whole index set by one vector, and prescribing each node through the "
-             "MechanicalObject's position vs rest_position was not verified against SOFA's force fields; export to febio, "
-             "abaqus, xpbd or vtu"),
     "pbd": ("pypbd fitted specimen: a pypbd scene holds fixed particles and one moved set, not per-node prescribed displacements, "
             "region materials or a pre-stretch; export to febio, abaqus, xpbd or vtu"),
 }
@@ -639,6 +699,8 @@ def write_fitted(card, to: str, path, spec: FittedSpecimen, *, law: str | None =
         raise ExportError("law='springs' is written for the SOFA compression block only, not for a fitted specimen")
     if to == "febio":
         return _write_text(path, _xml_text(febio_fitted_model(card, spec, law=law, approximate=approximate)), force)
+    if to == "sofa":
+        return _write_text(path, _xml_text(sofa_fitted_scene(card, spec, law=law, approximate=approximate)), force)
     if to == "abaqus":
         return _write_text(path, abaqus_fitted_model(card, spec, law=law, approximate=approximate), force)
     if to == "xpbd":

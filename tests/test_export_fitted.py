@@ -4,7 +4,7 @@ exported as a complete model, parsed back from the written files and solved agai
 
 fem_field: a 3 x 3 x 2 block (fem_linear reference: base clamped, punch nodes pushed down,
 one lateral face given a per-node x displacement varying with height), E fitted by difftissue,
-exported to FEBio and Abaqus, parsed back (nodes, elements, sets, per-node values, E, nu) and
+exported to FEBio, Abaqus and SOFA, parsed back (nodes, elements, sets, per-node values, E, nu) and
 solved in scikit-fem: the displacement field equals difftissue's fem_linear solution and the
 reaction force the fit compared. incision: a 4 x 4 mm two-layer skin (0.5 mm cells; 1 mm
 dermis in 2 cells on 1 mm of fat), a 2 mm cut through the pre-stretched dermis (fem_neo_hookean), exported to FEBio / XPBD / VTU, parsed back and solved
@@ -149,6 +149,30 @@ def parse_abaqus(path):
             "fixed": fixed, "prescribed": presc}
 
 
+def parse_sofa(path):
+    """Rest positions, tets, force-field E and nu, the held components (Fixed / PartialFixed
+    projective constraints) and prescribed values (position - rest_position) of a .scn."""
+    root = ET.parse(path).getroot()
+    node = root.find("Node")
+    mo = node.find("MechanicalObject")
+    rest = np.array([float(v) for v in mo.get("rest_position").split()]).reshape(-1, 3)
+    pos = np.array([float(v) for v in mo.get("position").split()]).reshape(-1, 3)
+    topo = node.find("MeshTopology")
+    np.testing.assert_array_equal(np.array([float(v) for v in topo.get("position").split()]).reshape(-1, 3), rest)
+    tets = np.array([int(v) for v in topo.get("tetrahedra").split()]).reshape(-1, 4)
+    ff = node.find("TetrahedronFEMForceField")
+    fixed = np.zeros(rest.shape, dtype=bool)
+    for c in node.findall("FixedProjectiveConstraint"):
+        fixed[[int(v) for v in c.get("indices").split()]] = True
+    for c in node.findall("PartialFixedProjectiveConstraint"):
+        dirs = np.array([v == "1" for v in c.get("fixedDirections").split()])
+        idx = np.array([int(v) for v in c.get("indices").split()])
+        fixed[np.ix_(idx, np.flatnonzero(dirs))] = True
+    assert np.all(pos[~fixed] == rest[~fixed])  # free components start at rest
+    return {"points": rest, "tets": tets, "materials": [(float(ff.get("youngModulus")), float(ff.get("poissonRatio")))],
+            "fixed": fixed, "prescribed": np.where(fixed, pos - rest, 0.0), "sets": {}}
+
+
 # ============================================================================== fem_field
 @pytest.fixture(scope="module")
 def fem_fit(tmp_path_factory):
@@ -229,20 +253,27 @@ def _skfem_solve(parsed, E_, nu_, reaction_nodes):
     return u[dofs], float((K @ u)[dofs[reaction_nodes, 2]].sum())
 
 
-@pytest.mark.parametrize("target", ["febio", "abaqus"])
+@pytest.mark.parametrize("target", ["febio", "abaqus", "sofa"])
 def test_fem_field_round_trip_through_skfem(fem_fit, target, tmp_path):
-    """The written FEBio / Abaqus model, parsed back into scikit-fem, gives difftissue's
+    """The written FEBio / Abaqus / SOFA model, parsed back into scikit-fem, gives difftissue's
     fem_linear displacement field (1e-10 relative) and the fitted reaction force (1e-8; asked: 1 %)."""
     paths, sc = fem_fit["paths"], fem_fit["scenario"]
-    out = tmp_path / ("model.feb" if target == "febio" else "model.inp")
+    out = tmp_path / {"febio": "model.feb", "abaqus": "model.inp", "sofa": "model.scn"}[target]
     assert main(["export", str(paths["material.json"]), "--to", target, "--specimen", "fitted", "--out", str(out)]) == 0
     card = read_card(paths["material.json"])
-    parsed = parse_febio(out) if target == "febio" else parse_abaqus(out)
+    parsed = {"febio": parse_febio, "abaqus": parse_abaqus, "sofa": parse_sofa}[target](out)
     np.testing.assert_array_equal(parsed["points"], np.asarray(sc.model.rest_points))
     np.testing.assert_array_equal(parsed["tets"], np.asarray(sc.model.tets))
     np.testing.assert_array_equal(parsed["fixed"], np.asarray(sc.bc.fixed))
-    np.testing.assert_array_equal(parsed["prescribed"], np.where(sc.bc.fixed, np.asarray(sc.bc.displacement), 0.0))
-    if target == "febio":
+    presc = np.where(sc.bc.fixed, np.asarray(sc.bc.displacement), 0.0)
+    if target == "sofa":  # position = rest + u: the prescribed value comes back up to the rounding of the sum
+        np.testing.assert_allclose(parsed["prescribed"], presc, rtol=0, atol=1e-15)
+    else:
+        np.testing.assert_array_equal(parsed["prescribed"], presc)
+    if target == "sofa":
+        (E_, nu_), = parsed["materials"]
+        react = np.flatnonzero(np.asarray(sc.reaction_mask)[:, 2])  # SOFA has no node-set output; the record's set
+    elif target == "febio":
         (mat,) = parsed["materials"]
         assert mat["type"] == "isotropic elastic" and mat["F0"] is None
         E_, nu_ = mat["E"], mat["v"]
@@ -315,7 +346,7 @@ def test_fitted_specimen_errors(fem_fit, tmp_path, capsys):
     assert main(["export", str(moved), "--to", "febio", "--specimen", "fitted", "--out", out]) == 1
     assert "altered or replaced" in capsys.readouterr().err
     # targets that cannot represent it: one line each
-    for target, why in (("sofa", "per-node prescribed displacements"), ("pbd", "per-node prescribed displacements")):
+    for target, why in (("pbd", "per-node prescribed displacements"),):
         with pytest.raises(ExportError, match=why):
             export(card, target, tmp_path / "x.out", fitted=spec)
         assert main(["export", str(card_path), "--to", target, "--specimen", "fitted", "--out", str(tmp_path / "y.out")]) == 1
