@@ -557,7 +557,7 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|indentation|fitted",
                    help="write a complete specimen model: a compression block (fixed base, prescribed top displacement), "
                         "'indentation' (the fitted indentation experiment from the card's scenario record, completed by the "
-                        "options below), or 'fitted' (the fem_field / incision experiment from the specimen file the fit wrote "
+                        "options below), or 'fitted' (the fem_field / compression / incision experiment from the specimen file the fit wrote "
                         "beside the card); required for vtu")
     x.add_argument("--indenter", choices=("sphere", "cone", "flat_punch"), default=None, help="indentation: indenter (default: the card's record)")
     x.add_argument("--radius", type=float, default=None, help="indentation: sphere / punch radius in --unit (default: the card's record)")

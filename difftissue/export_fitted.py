@@ -1,9 +1,12 @@
-"""Fitted specimens: the experiment of a ``fem_field`` or ``incision`` fit, written with the fit
-outputs and exported as a complete model (docs/export.md, "Fitted specimens: fem_field and incision").
+"""Fitted specimens: the experiment of a ``fem_field``, ``compression`` or ``incision`` fit, written
+with the fit outputs and exported as a complete model (docs/export.md, "Fitted specimens: fem_field,
+compression and incision").
 
-A :class:`~difftissue.scenarios.FEMField` or :class:`~difftissue.incision.Incision` experiment
-cannot be rebuilt from a few numbers (the reference mesh, node sets and per-node prescribed
-displacements; the cut mesh with its duplicated nodes and per-region materials), so
+A :class:`~difftissue.scenarios.FEMField`, :class:`~difftissue.scenarios.Compression` or
+:class:`~difftissue.incision.Incision` experiment is not rebuilt from a few numbers (the
+reference mesh, node sets and per-node prescribed displacements; the model's block or cylinder
+mesh with the fitted platen condition; the cut mesh with its duplicated nodes and per-region
+materials), so
 :func:`difftissue.fit.write_fit_outputs` writes it beside ``material.json`` as
 ``specimen-<scenario name>.vtu`` (:func:`specimen_file_name`, :func:`write_specimen`) and records
 the file's name and sha256 in the card's scenario record (``provenance.scenario_records[i]
@@ -16,7 +19,7 @@ The specimen file (VTU, SI units, format :data:`SPECIMEN_FORMAT`) holds exactly 
 
 * point data ``fixed`` ``(N, 3)`` (1 where a displacement component is prescribed),
   ``prescribed_displacement`` ``(N, 3)`` [m] (0 where free), ``reaction_set`` ``(N, 3)``
-  (fem_field with a reaction: 1 on the summed components), and for an incision
+  (fem_field with a reaction, compression: 1 on the summed components), and for an incision
   ``cut_pair`` (index of the node's duplicated pair, -1 if none), ``cut_side`` (+1 the pair's
   original node, -1 its duplicate), ``cut_pair_s`` / ``cut_pair_depth`` [m] (arc length along
   the cut and depth of the node's pair, NaN if none), ``cut_surface_rank`` (rank of the pair
@@ -25,19 +28,32 @@ The specimen file (VTU, SI units, format :data:`SPECIMEN_FORMAT`) holds exactly 
   fields ``youngs_modulus`` [Pa], ``poisson_ratio``, ``cubic_coefficient``, ``density``
   [kg/m^3], ``pre_stretch``, which are NaN on fitted cells).
 
+A compression specimen is the model's mesh with the platens at the LAST (largest) strain of
+the protocol: bonded platens hold all components of both faces (top ``u = (0, 0, -e H)``),
+frictionless ones ``u_z`` of both faces plus the rigid-body pins of
+:meth:`~difftissue.contact.Platens.apply`; the reaction set is the top face (z). The protocol
+(platens, measure, strains, nominal strains, height ``H``, area ``A0``, top displacement) is in
+the card's scenario record (:func:`compression_protocol`) and comes back as
+:attr:`FittedSpecimen.protocol`. The file format is unchanged (``difftissue-specimen/1``): a
+compression file has exactly the fields of a fem_field file.
+
 What each target gets (:func:`write_fitted`): FEBio 4.0 (nodes, ``tet4`` elements per region,
 node sets, ``zero displacement`` and ``prescribed displacement`` with per-node ``<NodeData>``
 maps, ``prestrain elastic`` materials for pre-stretched regions, a static step), Abaqus
 (``*NSET``, ``*BOUNDARY`` with per-node magnitudes in a ``*STATIC`` step; a pre-stretched
-incision is refused), SOFA (one material, no pre-stretch: the fem_field; the prescribed values
-as initial positions held by projective constraints), the XPBD JSON and VTU (our own formats:
-everything). pypbd is refused with the reason.
+incision is refused), SOFA (one material, no pre-stretch: the fem_field, with the prescribed values
+as initial positions held by projective constraints; the compression, with the top platen
+ramped by a ``PartialLinearMovementProjectiveConstraint``), the XPBD JSON and VTU (our own formats:
+everything). pypbd is refused with the reason. FEBio and Abaqus ramp the prescribed values
+over the step; for a compression specimen the ramp is cut so that one increment is at most
+:data:`MAX_STRAIN_INCREMENT` of nominal strain.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import re
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -52,6 +68,7 @@ __all__ = [
     "FITTED_EXPERIMENTS",
     "FittedSpecimen",
     "fitted_specimen",
+    "compression_protocol",
     "specimen_file_name",
     "write_specimen",
     "read_specimen",
@@ -66,16 +83,19 @@ __all__ = [
 #: Format tag of the specimen file (recorded in the card next to its sha256).
 SPECIMEN_FORMAT = "difftissue-specimen/1"
 #: Experiments written as a specimen file by the fit outputs.
-FITTED_EXPERIMENTS = ("fem_field", "incision")
+FITTED_EXPERIMENTS = ("fem_field", "compression", "incision")
+#: Largest nominal-strain increment of one load step of an exported compression specimen.
+MAX_STRAIN_INCREMENT = 0.02
 _FIELDS = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class FittedSpecimen:
-    """The experiment of a fitted ``fem_field`` or ``incision`` scenario (SI units, 0-based ids).
+    """The experiment of a fitted ``fem_field``, ``compression`` or ``incision`` scenario (SI
+    units, 0-based ids).
 
     Attributes:
-        scenario: the scenario's name; experiment: ``"fem_field"`` or ``"incision"``;
+        scenario: the scenario's name; experiment: ``"fem_field"``, ``"compression"`` or ``"incision"``;
         model: difftissue's elastic model of the scenario (``fem_linear``, ``stable_neo_hookean``, ...).
         points: ``(N, 3)`` reference (model) positions [m]; tets: ``(M, 4)``; region_ids: ``(M,)``;
         region_names: one name per region.
@@ -87,6 +107,8 @@ class FittedSpecimen:
         pairs: ``(P, 2)`` duplicated node pairs ``(original, duplicate)`` of an incision, else None;
         pair_s, pair_depth: ``(P,)`` [m]; surface_pairs: indices into ``pairs`` of the top-surface
         pairs, in the order of the surface profile.
+        protocol: a compression's protocol (:func:`compression_protocol`: platens, measure,
+            strains, nominal strains, height [m], area [m^2], top displacement [m]), else None.
     """
 
     scenario: str
@@ -105,6 +127,7 @@ class FittedSpecimen:
     pair_s: np.ndarray | None = None
     pair_depth: np.ndarray | None = None
     surface_pairs: np.ndarray | None = None
+    protocol: Mapping[str, Any] | None = None
 
     def __post_init__(self):
         if self.experiment not in FITTED_EXPERIMENTS:
@@ -122,6 +145,8 @@ class FittedSpecimen:
                 raise ExportError(f"fitted specimen {self.scenario!r}: region {r!r} is neither fitted nor given a material")
         if self.experiment == "incision" and (self.pairs is None or self.surface_pairs is None):
             raise ExportError(f"fitted specimen {self.scenario!r}: an incision needs its duplicated node pairs")
+        if self.experiment == "compression":
+            _check_compression(self)
 
     # ------------------------------------------------------------------ materials
     def region_cards(self, card):
@@ -163,10 +188,20 @@ class FittedSpecimen:
         lines = [f"fitted specimen of scenario {self.scenario!r} ({self.experiment}, difftissue model {self.model}): "
                  f"{len(self.points)} nodes, {len(self.tets)} tets, regions {list(self.region_names)} "
                  f"(card material on {list(self.fitted_regions)})",
-                 f"{n_fix} prescribed displacement components, {n_nz} of them nonzero (per-node values from the fit's reference)"]
+                 f"{n_fix} prescribed displacement components, {n_nz} of them nonzero "
+                 + ("(the platens at the last strain of the protocol)" if self.experiment == "compression" else
+                    "(per-node values from the fit's reference)")]
         if self.reaction is not None:
             comps = "".join(c for i, c in enumerate("xyz") if self.reaction[:, i].any())
             lines.append(f"the fit compared the summed reaction force ({comps}) over node set 'reaction' ({int(self.reaction.any(axis=1).sum())} nodes)")
+        if self.protocol is not None:
+            pr = self.protocol
+            lines.append(f"compression between rigid {pr['platens']} platens: height H = {pr['height']:.10g} m, area A0 = "
+                         f"{pr['area']:.10g} m^2 (volume / H), top platen moved by u_z = {pr['top_displacement']:.10g} m (nominal "
+                         f"strain {pr['nominal_strains'][-1]:.10g}, the last of the {pr['measure']} protocol of {len(pr['strains'])} strains)")
+            lines.append("engineering stress = F / A0 with F = -(sum of the z reactions over node set 'reaction'); true stress = "
+                         "F h / V (current height h, current volume V); the load ramps linearly, so load fraction t is nominal strain "
+                         f"t * {pr['nominal_strains'][-1]:.10g}")
         if self.pairs is not None:
             lines.append(f"incision: {len(self.pairs)} duplicated node pairs (cut faces, untied: the opened state), "
                          f"{len(self.surface_pairs)} on the top surface; node sets cut_plus / cut_minus list them pair by pair")
@@ -174,14 +209,62 @@ class FittedSpecimen:
 
 
 # ============================================================================ from a scenario
+def compression_protocol(scenario) -> dict:
+    """The protocol of a :class:`~difftissue.scenarios.Compression` scenario, as recorded in the
+    card's scenario record: ``platens`` (``"bonded"`` / ``"frictionless"``), ``measure``
+    (``"engineering"`` / ``"true"``), ``strains`` (the fitted protocol in that measure, [-]),
+    ``nominal_strains`` (``delta / H``), ``height`` ``H`` [m], ``area`` ``A0`` [m^2] (volume /
+    H, the area of the engineering stress), ``top_displacement`` [m] (``-e H`` at the last
+    nominal strain ``e``: the specimen file's top platen) and ``reaction`` (``"z"``: the
+    component summed over the top face)."""
+    if type(scenario).__name__ == "SeparatelyCompiled":
+        scenario = scenario.scenario
+    eps = np.asarray(scenario.abscissa, dtype=float)
+    if eps.size == 0:
+        raise ExportError(f"compression scenario {scenario.name!r} has an empty strain protocol")
+    nominal = eps if scenario.measure == "engineering" else -np.expm1(-eps)
+    top = np.flatnonzero(np.asarray(scenario.top_mask))
+    bonded = bool(np.all(np.asarray(scenario.bc.fixed)[top]))
+    return {"platens": "bonded" if bonded else "frictionless", "measure": str(scenario.measure),
+            "strains": eps.tolist(), "nominal_strains": nominal.tolist(), "height": float(scenario.height),
+            "area": float(scenario.area), "top_displacement": float(-nominal[-1] * scenario.height), "reaction": "z"}
+
+
+def _check_compression(spec: FittedSpecimen) -> None:
+    """A compression specimen: a protocol, a top-face z reaction set whose nodes are prescribed
+    u_z = the protocol's top displacement."""
+    pr = spec.protocol
+    need = ("platens", "measure", "strains", "nominal_strains", "height", "area", "top_displacement")
+    if not isinstance(pr, Mapping) or any(k not in pr for k in need):
+        raise ExportError(f"fitted specimen {spec.scenario!r}: a compression specimen needs its protocol {list(need)} "
+                          "(the card's scenario record)")
+    if pr["platens"] not in ("bonded", "frictionless") or pr["measure"] not in ("engineering", "true"):
+        raise ExportError(f"fitted specimen {spec.scenario!r}: platens {pr['platens']!r} / measure {pr['measure']!r} are not "
+                          "'bonded'/'frictionless' and 'engineering'/'true'")
+    if not pr["strains"] or len(pr["strains"]) != len(pr["nominal_strains"]):
+        raise ExportError(f"fitted specimen {spec.scenario!r}: the compression protocol needs one nominal strain per strain")
+    if spec.reaction is None or spec.reaction[:, :2].any() or not spec.reaction[:, 2].any():
+        raise ExportError(f"fitted specimen {spec.scenario!r}: a compression specimen sums the z reactions of its top face")
+    top = np.flatnonzero(spec.reaction[:, 2])
+    d = float(pr["top_displacement"])
+    if not (np.all(spec.fixed[top, 2]) and np.all(spec.prescribed[top, 2] == d)):
+        raise ExportError(f"fitted specimen {spec.scenario!r}: the file's top platen is not at the recorded top displacement "
+                          f"{d:g} m (file and card record disagree)")
+    z = spec.points[:, 2]
+    H = float(np.ptp(z))
+    if not (np.isclose(float(pr["height"]), H, rtol=1e-12, atol=0.0) and np.allclose(z[top], z.max(), rtol=0.0, atol=1e-9 * H)):
+        raise ExportError(f"fitted specimen {spec.scenario!r}: the recorded height {pr['height']:g} m or top face does not match the mesh")
+
+
 def fitted_specimen(scenario) -> FittedSpecimen | None:
-    """The :class:`FittedSpecimen` of a :class:`~difftissue.scenarios.FEMField` or
-    :class:`~difftissue.incision.Incision` scenario; ``None`` for other scenarios (their
-    experiments are rebuilt from the card's record or need no specimen file)."""
+    """The :class:`FittedSpecimen` of a :class:`~difftissue.scenarios.FEMField`,
+    :class:`~difftissue.scenarios.Compression` (the platens at the last strain of the
+    protocol) or :class:`~difftissue.incision.Incision` scenario; ``None`` for other scenarios
+    (their experiments are rebuilt from the card's record or need no specimen file)."""
     if type(scenario).__name__ == "SeparatelyCompiled":  # difftissue.config's compiled wrapper
         scenario = scenario.scenario
     tname = type(scenario).__name__
-    if tname not in ("FEMField", "Incision"):
+    if tname not in ("FEMField", "Incision", "Compression"):
         return None
     m = scenario.model
     pts = np.asarray(m.rest_points, dtype=float)
@@ -192,6 +275,16 @@ def fitted_specimen(scenario) -> FittedSpecimen | None:
     presc = np.where(fixed, np.asarray(scenario.bc.displacement, dtype=float), 0.0)
     if np.any(np.asarray(scenario.bc.force) != 0.0):
         raise ExportError(f"scenario {scenario.name!r} has external nodal forces: the fitted-specimen file holds prescribed displacements only")
+    if tname == "Compression":
+        # the platens at the last strain, as Compression._solve_protocol prescribes them
+        protocol = compression_protocol(scenario)
+        top = np.asarray(scenario.top_mask, dtype=bool)
+        presc[top, 2] = protocol["top_displacement"]
+        reaction = np.zeros_like(fixed)
+        reaction[top, 2] = True
+        return FittedSpecimen(scenario=str(scenario.name), experiment="compression", model=str(m.kind), points=pts, tets=tets,
+                              region_ids=regions, region_names=names, fitted_regions=names, region_materials={},
+                              fixed=fixed, prescribed=presc, reaction=reaction, protocol=protocol)
     if tname == "FEMField":
         reaction = None if scenario.reaction_mask is None else np.asarray(scenario.reaction_mask, dtype=bool)
         return FittedSpecimen(scenario=str(scenario.name), experiment="fem_field", model=str(m.kind), points=pts, tets=tets,
@@ -276,8 +369,9 @@ def write_specimen(spec: FittedSpecimen, path, *, force: bool = False) -> Path:
     return write_mesh(path, spec.mesh(), point_data=point, cell_data=cell, overwrite=force)
 
 
-def read_specimen(path, *, scenario: str, experiment: str, model: str) -> FittedSpecimen:
-    """Read a specimen file written by :func:`write_specimen` (the scalars come from the card's record)."""
+def read_specimen(path, *, scenario: str, experiment: str, model: str, protocol: Mapping | None = None) -> FittedSpecimen:
+    """Read a specimen file written by :func:`write_specimen` (the scalars, and a compression's
+    ``protocol``, come from the card's record)."""
     from .mesh import read_mesh
 
     try:
@@ -335,7 +429,8 @@ def read_specimen(path, *, scenario: str, experiment: str, model: str) -> Fitted
     return FittedSpecimen(scenario=scenario, experiment=experiment, model=model, points=np.asarray(mesh.points, dtype=float),
                           tets=np.asarray(mesh.tets, dtype=np.int64), region_ids=rid, region_names=names,
                           fitted_regions=tuple(fitted), region_materials=mats, fixed=fixed, prescribed=presc, reaction=reaction,
-                          pairs=pairs, pair_s=s, pair_depth=depth, surface_pairs=surf)
+                          pairs=pairs, pair_s=s, pair_depth=depth, surface_pairs=surf,
+                          protocol=dict(protocol) if experiment == "compression" and isinstance(protocol, Mapping) else None)
 
 
 def fitted_specimen_from_card(card, card_path, *, scenario: str | None = None) -> FittedSpecimen:
@@ -347,7 +442,7 @@ def fitted_specimen_from_card(card, card_path, *, scenario: str | None = None) -
     recs = [r for r in ((card.provenance or {}).get("scenario_records") or []) if isinstance(r, Mapping)]
     with_file = [r for r in recs if isinstance(r.get("specimen_file"), Mapping)]
     if not with_file:
-        raise ExportError(f"{card_path}: the card records no fitted specimen file (only fits of simulated fem_field / incision "
+        raise ExportError(f"{card_path}: the card records no fitted specimen file (only fits of simulated fem_field / compression / incision "
                           "scenarios write one, with the fit outputs); use --specimen block:... or --specimen indentation")
     if scenario is not None:
         named = [r for r in with_file if r.get("name") == scenario]
@@ -373,7 +468,12 @@ def fitted_specimen_from_card(card, card_path, *, scenario: str | None = None) -
     if digest != info.get("sha256"):
         raise ExportError(f"fitted specimen file {path} has sha256 {digest[:12]}..., the card records "
                           f"{str(info.get('sha256'))[:12]}...: the file was altered or replaced; refusing to export from it")
-    return read_specimen(path, scenario=str(rec.get("name")), experiment=str(rec.get("experiment")), model=str(rec.get("model")))
+    protocol = None
+    if rec.get("experiment") == "compression":
+        protocol = {k: rec.get(k) for k in ("platens", "measure", "strains", "nominal_strains", "height", "area", "top_displacement", "reaction")
+                    if k in rec}
+    return read_specimen(path, scenario=str(rec.get("name")), experiment=str(rec.get("experiment")), model=str(rec.get("model")),
+                         protocol=protocol)
 
 
 def specimen_record(spec: FittedSpecimen, path) -> dict:
@@ -385,6 +485,16 @@ def specimen_record(spec: FittedSpecimen, path) -> dict:
 
 
 # ============================================================================ writers
+def load_steps(spec: FittedSpecimen, default: int = 10) -> int:
+    """Load increments of the exported ramp: ``default`` (10), and for a compression specimen
+    enough that one increment is at most :data:`MAX_STRAIN_INCREMENT` of nominal strain
+    (40 % -> 20 increments)."""
+    if spec.protocol is None:
+        return int(default)
+    e = abs(float(spec.protocol["nominal_strains"][-1]))
+    return max(int(default), int(math.ceil(e / MAX_STRAIN_INCREMENT - 1e-9)))
+
+
 def _component_sets(spec: FittedSpecimen):
     """Per component c: nodes held at zero, nodes with a nonzero prescribed value (0-based)."""
     out = []
@@ -404,7 +514,7 @@ def _refuse_pre_stretch(cards, target: str):
                           "to febio, xpbd or vtu")
 
 
-def febio_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False, steps: int = 10) -> ET.Element:
+def febio_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False, steps: int | None = None) -> ET.Element:
     """FEBio 4.0 model of a fitted specimen.
 
     Nodes ``1..N`` (the specimen's order); ``tet4`` elements grouped by region (``<Elements
@@ -416,15 +526,17 @@ def febio_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, ap
     ``<MeshData><NodeData name="prescribed_uc" node_set="prescribed_c" data_type="scalar">``
     (``<node lid="k">``: the k-th node of the set, 1-based) and a ``prescribed displacement``
     BC (``<dof>c</dof>``, ``<value lc="1" type="map">prescribed_uc</value>``, ``relative`` 0),
-    ramped by load controller 1 over ``steps`` static steps. fem_field: ``<NodeSet
-    name="reaction">`` (the reaction force is the sum of the ``reaction forces`` plot variable
-    over it). Incision: ``cut_plus`` / ``cut_minus`` (pair k's original and duplicate, in pair
+    ramped by load controller 1 over ``steps`` static steps (default :func:`load_steps`: 10, a
+    compression at most :data:`MAX_STRAIN_INCREMENT` nominal strain per step). fem_field and
+    compression: ``<NodeSet name="reaction">`` (the reaction force is the sum of the ``reaction
+    forces`` plot variable over it; a compression's top platen). Incision: ``cut_plus`` / ``cut_minus`` (pair k's original and duplicate, in pair
     order); the pairs are not tied, so the static solution is the opened state.
     """
     from .export import _febio_ramp_and_output, _fmt, _law, _xml_comment, febio_material
 
     law = _law(card, law)
     cards = spec.region_cards(card)
+    steps = load_steps(spec) if steps is None else int(steps)
     root = ET.Element("febio_spec", {"version": "4.0"})
     for line in spec.describe():
         root.append(_xml_comment(line))
@@ -502,7 +614,8 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     one ``*SOLID SECTION`` and material per region, ``*NSET`` per held / prescribed component
     (``FIXED_X``, ``PRESCRIBED_X``, ...) and ``REACTION``, and one ``*STEP`` / ``*STATIC`` whose
     ``*BOUNDARY`` gives every prescribed component its own magnitude (data lines ``node, c, c,
-    value``). A pre-stretched specimen (an incision) is refused: Abaqus has no prestrain
+    value``), ramped over the step (the default amplitude of a ``*STATIC`` step), with initial and
+    largest increment ``1 /`` :func:`load_steps` of the step. A pre-stretched specimen (an incision) is refused: Abaqus has no prestrain
     gradient here, and without it the cut does not open."""
     from .export import _abaqus_comment, _fmt, _law, _wrap_ids, abaqus_material, abaqus_name
 
@@ -544,7 +657,8 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
         if mname not in done:
             lines += abaqus_material(cards[r], law=law, approximate=approximate)
             done.add(mname)
-    lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}", "*STATIC", "0.1, 1.0, 1e-05, 0.1", "*BOUNDARY"]
+    inc = _fmt(1.0 / load_steps(spec))
+    lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}", "*STATIC", f"{inc}, 1.0, 1e-05, {inc}", "*BOUNDARY"]
     for c, (zero, nz) in zip("XYZ", sets):
         if zero.size:
             d = "XYZ".index(c) + 1
@@ -567,7 +681,7 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
     regions (each with its material and whether it is the card's), lumped masses ``rho V / 4``,
     ``fixed`` node ids per component, ``prescribed_displacement`` ``[[node, component, value
     [m]], ...]``, the reaction set, and for an incision the duplicated pairs (with ``s``, depth,
-    the surface order) and per-tet ``pre_stretch``: a pre-stretched tet's stress-free shape is
+    the surface order), for a compression the ``protocol`` and ``load_steps`` of the ramp, and per-tet ``pre_stretch``: a pre-stretched tet's stress-free shape is
     the mesh shrunk by ``1/lambda0`` in x and y (``Dm`` of that shape; rest volume ``V/lambda0^2``)."""
     from .export import _approximations, xpbd_parameters
 
@@ -612,6 +726,12 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
                           "note": "SI; fixed: node ids per held component; prescribed_displacement: [node, component (0 x, 1 y, 2 z), value m]"}
     if spec.reaction is not None:
         sp["reaction"] = {c: np.flatnonzero(spec.reaction[:, i]).tolist() for i, c in enumerate("xyz")}
+    if spec.protocol is not None:
+        sp["protocol"] = dict(spec.protocol)
+        sp["load_steps"] = load_steps(spec)
+        sp["load_note"] = ("compression: ramp the prescribed displacements linearly from 0 over load_steps quasi-static steps "
+                           "(load fraction t <-> nominal strain t * protocol.nominal_strains[-1]); engineering stress = "
+                           "-(sum of the z reactions over reaction.z) / protocol.area")
     if spec.pairs is not None:
         sp["cut"] = {"pairs": spec.pairs.tolist(), "pair_s": spec.pair_s.tolist(), "pair_depth": spec.pair_depth.tolist(),
                      "surface_pairs": spec.surface_pairs.tolist(),
@@ -621,9 +741,10 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
 
 
 def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False) -> ET.Element:
-    """SOFA scene of a fitted specimen with one material and no pre-stretch (a fem_field fit).
+    """SOFA scene of a fitted specimen with one material and no pre-stretch (a fem_field or
+    compression fit).
 
-    The prescribed displacements are initial positions held by projective constraints: the
+    fem_field: the prescribed displacements are initial positions held by projective constraints: the
     ``MechanicalObject`` gets ``rest_position`` = the reference mesh and ``position`` = the
     reference moved by the prescribed values on the prescribed components (the free ones start
     at rest); ``FixedProjectiveConstraint`` (all three components prescribed) and
@@ -634,6 +755,21 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
     ``MechanicalObject``'s rest position (SOFA source, docs/export.md). ``StaticSolver`` +
     ``SparseLDLSolver``; ``MeshTopology`` of the reference mesh; ``MeshMatrixMass`` of the
     card's density. Several region materials or a pre-stretch (an incision) are refused.
+
+    compression (finite strain: the platen displacement is ramped, not imposed at once, which
+    would invert the top layer of tets): ``position`` = ``rest_position`` = the mesh; the nodes
+    with a nonzero prescribed value (the top platen) are moved by one
+    ``PartialLinearMovementProjectiveConstraint`` per (held components, value) group with
+    ``movedDirections`` = the held components (bonded ``1 1 1``, frictionless ``0 0 1``),
+    ``keyTimes="0 1 1000000"`` and ``movements`` ``0``, the prescribed value, the prescribed
+    value: in SOFA's source it sets ``x = x0 + m(t)`` on the moved directions (``x0`` the
+    positions when it first projects) and zeroes their Newton correction only while a later key
+    time exists, so the value is held after ``t = 1`` (a key time of 1 alone would free the top
+    at ``t = 1``). The root ``dt`` is ``1 /`` :func:`load_steps`, so the ramp takes that many
+    steps; run a few more for the Newton iterations to settle. The held-at-zero components
+    (bottom platen, rigid-body pins) are Fixed / PartialFixed as above. ``StaticSolver`` gets
+    ``newton_iterations="25"`` and tight correction / residual thresholds (its defaults are 1
+    iteration and 1e-5 absolute, too coarse for a millimetre specimen).
     """
     from .export import _SOFA_SPECIMEN_PLUGINS, _approximations, _fmt, _header_lines, _law, _xml_comment, sofa_force_field
 
@@ -647,21 +783,37 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
         raise ExportError(f"SOFA fitted specimen: {len(used)} region materials; this SOFA scene holds one force field with one "
                           "material; export to febio, abaqus, xpbd or vtu")
     notes = _approximations(card, "SOFA " + law, approximate=approximate)
-    root = ET.Element("Node", {"name": "root", "gravity": "0 0 0", "dt": "1"})
+    ramp = spec.experiment == "compression"
+    steps = load_steps(spec)
+    root = ET.Element("Node", {"name": "root", "gravity": "0 0 0", "dt": _fmt(1.0 / steps) if ramp else "1"})
     for line in _header_lines(card, "SOFA", law) + notes + spec.describe():
         root.append(_xml_comment(line))
-    root.append(_xml_comment("prescribed displacements: MechanicalObject position = rest_position + prescribed value on the held "
-                             "components, held by (Partial)FixedProjectiveConstraint; each StaticSolver step is a Newton solve from "
-                             "the current positions: run a few steps until the positions stop changing"))
+    if ramp:
+        root.append(_xml_comment(f"prescribed displacements: the top platen is moved by PartialLinearMovementProjectiveConstraint from 0 "
+                                 f"at t = 0 to its prescribed value at t = 1 ({steps} steps of dt = 1/{steps}) and held there after; "
+                                 "run a few more steps for the Newton iterations to settle; zero components held by "
+                                 "(Partial)FixedProjectiveConstraint"))
+    else:
+        root.append(_xml_comment("prescribed displacements: MechanicalObject position = rest_position + prescribed value on the held "
+                                 "components, held by (Partial)FixedProjectiveConstraint; each StaticSolver step is a Newton solve from "
+                                 "the current positions: run a few steps until the positions stop changing"))
     plugins = ["Sofa.Component.SolidMechanics.FEM.Elastic" if law == "linear" else "Sofa.Component.SolidMechanics.FEM.HyperElastic",
                *_SOFA_SPECIMEN_PLUGINS]
     for p in plugins:
         ET.SubElement(root, "RequiredPlugin", {"name": p})
     node = ET.SubElement(root, "Node", {"name": "tissue"})
-    ET.SubElement(node, "StaticSolver")
-    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
     rest = spec.points
-    pos = rest + np.where(spec.fixed, spec.prescribed, 0.0)
+    if ramp:
+        size = float(np.linalg.norm(np.ptp(rest, axis=0)))
+        ET.SubElement(node, "StaticSolver", {"newton_iterations": "25", "absolute_correction_tolerance_threshold": _fmt(1e-12 * size),
+                                             "relative_correction_tolerance_threshold": "1e-10",
+                                             "absolute_residual_tolerance_threshold": "-1",
+                                             "relative_residual_tolerance_threshold": "1e-10"})
+    else:
+        ET.SubElement(node, "StaticSolver")
+    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
+    moving = (spec.fixed & (spec.prescribed != 0.0)).any(axis=1) if ramp else np.zeros(len(rest), dtype=bool)
+    pos = rest + np.where(spec.fixed & ~moving[:, None], spec.prescribed, 0.0)
     flat = lambda a: " ".join(_fmt(v) for v in np.asarray(a, dtype=float).reshape(-1))  # noqa: E731
     ET.SubElement(node, "MeshTopology", {"name": "topology", "position": flat(rest),
                                          "tetrahedra": " ".join(str(int(n)) for n in spec.tets.reshape(-1))})
@@ -669,7 +821,7 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
     ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
     node.append(sofa_force_field(card, law=law, approximate=True))
     patterns = {}
-    for n in np.flatnonzero(spec.fixed.any(axis=1)):
+    for n in np.flatnonzero(spec.fixed.any(axis=1) & ~moving):
         patterns.setdefault(tuple(bool(v) for v in spec.fixed[n]), []).append(int(n))
     for pat, nodes in sorted(patterns.items(), reverse=True):
         tag = "".join(c for c, b in zip("xyz", pat) if b)
@@ -679,6 +831,16 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
         else:
             ET.SubElement(node, "PartialFixedProjectiveConstraint", {"name": f"prescribed_{tag}", "template": "Vec3d", "indices": idx,
                                                                      "fixedDirections": " ".join("1" if b else "0" for b in pat)})
+    groups: dict[tuple, list[int]] = {}
+    for n in np.flatnonzero(moving):
+        pat = tuple(bool(v) for v in spec.fixed[n])
+        groups.setdefault((pat, tuple(float(v) if b else 0.0 for v, b in zip(spec.prescribed[n], pat))), []).append(int(n))
+    for k, ((pat, value), nodes) in enumerate(sorted(groups.items())):
+        m = " ".join(_fmt(v) for v in value)
+        ET.SubElement(node, "PartialLinearMovementProjectiveConstraint", {
+            "name": f"moved_{''.join(c for c, b in zip('xyz', pat) if b)}_{k}", "template": "Vec3d",
+            "indices": " ".join(str(n) for n in nodes), "movedDirections": " ".join("1" if b else "0" for b in pat),
+            "keyTimes": "0 1 1000000", "movements": f"0 0 0  {m}  {m}"})
     return root
 
 

@@ -152,9 +152,12 @@ def scenario_record(scenario) -> dict | None:
     depth and the number of points (and for the analytic ones the layer thickness and base);
     :class:`~difftissue.scenarios.FEMField` and :class:`~difftissue.incision.Incision` record
     ``experiment`` (``"fem_field"`` / ``"incision"``), difftissue's ``model`` (and the incision's
-    quantity, cut length and depth); their mesh and boundary conditions go into a specimen file
-    (:mod:`difftissue.export_fitted`, written by ``write_fit_outputs``); other scenarios record
-    their name and type only. Returns ``None`` for an object without a name.
+    quantity, cut length and depth); :class:`~difftissue.scenarios.Compression` records
+    ``experiment = "compression"``, ``model`` and its protocol
+    (:func:`difftissue.export_fitted.compression_protocol`: platens, measure, strains, nominal
+    strains, height, area, top displacement); their mesh and boundary conditions go into a
+    specimen file (:mod:`difftissue.export_fitted`, written by ``write_fit_outputs``); other
+    scenarios record their name and type only. Returns ``None`` for an object without a name.
     """
     name = getattr(scenario, "name", None)
     if name is None:
@@ -209,6 +212,12 @@ def scenario_record(scenario) -> dict | None:
             rec["quantity"] = scenario.quantity
             rec["cut_length"] = float(scenario.cut.length)
             rec["cut_depth"] = float(scenario.cut.depth)
+    elif tname == "Compression":
+        from .export_fitted import compression_protocol
+
+        rec["experiment"] = "compression"
+        rec["model"] = str(scenario.model.kind)
+        rec.update(compression_protocol(scenario))
     if x is not None and np.size(x) and rec.get("experiment") == "indentation":
         rec["max_depth"] = float(np.max(x))
         rec["points"] = int(np.size(x))
