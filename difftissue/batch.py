@@ -325,9 +325,8 @@ def fit_batch(
                 if mesh is None or "pytree structure" not in str(exc):
                     raise
                 raise FitError(
-                    "sharded fit_batch (devices=...) does not support this scenario yet: the optimiser state does not survive the "
-                    "partitioned trace (a known limitation with simulated scenarios; see docs/scale.md). Run it without devices= "
-                    f"(one batch on one device). Underlying error: {str(exc).splitlines()[0]}"
+                    "sharded fit_batch (devices=...): the optimiser state changed its structure in the partitioned trace; run it "
+                    f"without devices= (one batch on one device). Underlying error: {str(exc).splitlines()[0]}"
                 ) from exc
             step += 1
             new_status = _to_host(new_status)

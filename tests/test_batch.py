@@ -206,6 +206,12 @@ CHILD = textwrap.dedent(
     serial = [fit(s, tb.P_E, m, starts=2) for s, m in zip(specs, starts)]
     tb.assert_same_fits(sharded, serial)
     out["hertz"] = {{"padding": sharded.padding, "devices": list(sharded.devices), "compilations": sharded.compilations}}
+    # simulated specimens (384-tet fem_linear sphere indentations): 3 on 4 devices, 1 padded
+    specs, starts = tb.indentation_specimens(3, seed=2)
+    sharded = fit_batch(specs, tb.P_E, starts, devices=4)
+    serial = [fit(s, tb.P_E, m) for s, m in zip(specs, starts)]
+    tb.assert_same_fits(sharded, serial, rtol=1e-6, steps_tol=2)
+    out["indentation"] = {{"padding": sharded.padding, "converged": bool(all(sharded.converged))}}
     print("RESULT " + json.dumps(out))
     """
 )
@@ -223,6 +229,7 @@ def test_sharded_fits_on_four_simulated_devices_equal_the_serial_loop(tmp_path):
     assert out["devices"] == 4
     assert out["hertz"]["padding"] == 2 and out["hertz"]["devices"] == ["cpu:0", "cpu:1", "cpu:2", "cpu:3"]
     assert out["hertz"]["compilations"] == 1
+    assert out["indentation"] == {"padding": 1, "converged": True}
 
 
 def test_a_scenario_that_is_not_a_pytree_is_refused_by_name():
