@@ -715,7 +715,8 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
     (``massDensity``), ``StaticSolver`` + ``SparseLDLSolver``, the force field(s), a
     ``FixedProjectiveConstraint`` on the base (min z) and a ``LinearMovementProjectiveConstraint``
     moving the top (max z) by ``displacement`` [m] along z over ``steps`` steps of ``dt = 1/steps``
-    (``keyTimes="0 1"``; it prescribes all three components of the top nodes).
+    (:func:`_sofa_ramp`: ``keyTimes="0 1 1000000"``, held after t = 1; it prescribes all three
+    components of the top nodes).
 
     ``law="springs"`` (needs ``mesh``, a structured block): difftissue's spring lattice as one
     ``PolynomialSpringsForceField`` (``object1 = object2 = @dofs``, degree-3 strain polynomials
@@ -778,7 +779,7 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
     ET.SubElement(node, "FixedProjectiveConstraint", {"name": "fixed_base", "indices": " ".join(str(int(i)) for i in base)})
     ET.SubElement(node, "LinearMovementProjectiveConstraint", {
         "name": "top_displacement", "template": "Vec3d", "indices": " ".join(str(int(i)) for i in top),
-        "keyTimes": "0 1", "movements": f"0 0 0  0 0 {_fmt(d)}", "relativeMovements": "1"})
+        **_sofa_ramp(d)})
     return root
 
 
@@ -786,6 +787,16 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
 _SOFA_SPECIMEN_PLUGINS = ("Sofa.Component.ODESolver.Backward", "Sofa.Component.LinearSolver.Direct", "Sofa.Component.Mass",
                           "Sofa.Component.StateContainer", "Sofa.Component.Topology.Container.Constant",
                           "Sofa.Component.Constraint.Projective")
+
+
+def _sofa_ramp(dz: float) -> dict:
+    """Attributes of a ``LinearMovementProjectiveConstraint`` moving its nodes by ``(0, 0, dz)``
+    [m] from t = 0 to t = 1 and HOLDING them there: SOFA's constraint acts only while a later
+    key time exists (``findKeyTimes`` in LinearMovementProjectiveConstraint.inl sets
+    ``finished`` only for ``t <`` a key time), so with ``keyTimes="0 1"`` alone the nodes would be
+    free at t = 1, the last step; a third key time far later with the same movement holds them."""
+    m = f"0 0 {_fmt(dz)}"
+    return {"keyTimes": "0 1 1000000", "movements": f"0 0 0  {m}  {m}", "relativeMovements": "1"}
 
 
 def _sofa_specimen_node(node: ET.Element, card: MaterialCard, mesh) -> None:
@@ -1546,12 +1557,12 @@ def sofa_indentation_scene(card: MaterialCard, spec, *, law: str | None = None, 
                                                  "stiffness": _fmt(k), "damping": "0"})
         ET.SubElement(node, "LinearMovementProjectiveConstraint", {
             "name": "base_displacement", "template": "Vec3d", "indices": join(s["base"]),
-            "keyTimes": "0 1", "movements": f"0 0 0  0 0 {_fmt(spec.depth)}", "relativeMovements": "1"})
+            **_sofa_ramp(spec.depth)})
     else:
         ET.SubElement(node, "FixedProjectiveConstraint", {"name": "fixed_base", "indices": join(s["base"])})
         ET.SubElement(node, "LinearMovementProjectiveConstraint", {
             "name": "punch_displacement", "template": "Vec3d", "indices": join(s["punch"]),
-            "keyTimes": "0 1", "movements": f"0 0 0  0 0 {_fmt(-spec.depth)}", "relativeMovements": "1"})
+            **_sofa_ramp(-spec.depth)})
     return root
 
 
