@@ -10,6 +10,10 @@ Units are SI everywhere (m, N, Pa, s, kg).
 """
 
 from ._version import __version__
+from . import _xla
+
+_xla.configure()  # before JAX's CPU backend starts (see difftissue/_xla.py)
+
 from . import errors, materials, mesh, selectors
 from .materials import Material
 from .mesh import Specimen, TetMesh, block, layered_skin, read_mesh, write_mesh

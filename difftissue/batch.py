@@ -36,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import _xla
 from .errors import FitError
 from .fit import METHODS, FitProblem, FitResult, _cached_engine, _fit_result, _initial_starts, _progress_bar, _strong
 from .materials import Material, MaterialParameterization
@@ -250,6 +251,12 @@ def fit_batch(
         linear solver runs on the host and factorises the batch's matrices one after the
         other; the dense Cholesky and CG solvers are batched by XLA.
     """
+    if jax.default_backend() == "cpu" and not _xla.active():
+        import warnings
+
+        warnings.warn(f"XLA_FLAGS lacks {_xla.FLAG}=false (JAX started before difftissue was imported?): batched fits of "
+                      "simulated scenarios can deadlock on CPU without it (difftissue/_xla.py); set it in XLA_FLAGS before "
+                      "the first JAX computation", RuntimeWarning, stacklevel=2)
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}; choose one of {METHODS}")
     if jac not in ("fwd", "bwd"):

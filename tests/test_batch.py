@@ -126,6 +126,23 @@ def test_batched_indentation_fits_equal_the_serial_loop_and_compile_once(caplog)
     assert not np.allclose(again.values, batch.values)
 
 
+def test_batched_compression_fits_equal_the_serial_loop():
+    """Bonded fem_linear compressions of a 288-tet block (this batch hung in earlier versions,
+    while the optimiser state held the model's whole linearisation)."""
+    cube = small_block()
+    strains = np.array([0.02, 0.05, 0.1])
+    probe = Compression(cube, strains, None, model="fem_linear", bonded=True, options=NAN, name="compression")
+    specs, starts = [], []
+    for E in (5e3, 9e3, 14e3):
+        f = np.asarray(probe.predict(Material(E, 0.45)))
+        specs.append(Compression(cube, strains, f * (1 + 0.01 * np.sin(np.arange(3) + E)), model="fem_linear", bonded=True, options=NAN, name="compression"))
+        starts.append(Material(0.6 * E, 0.45))
+    batch = fit_batch(specs, P_E, starts)
+    serial = [fit(s, P_E, m) for s, m in zip(specs, starts)]
+    assert_same_fits(batch, serial, rtol=1e-7, steps_tol=2)
+    assert all(batch.converged)
+
+
 def test_a_differing_float_leaf_is_batched_and_an_identifiability_warning_names_the_specimen():
     """Specimens with other depth protocols (a float leaf that is not data) are batched too;
     E and nu from one Hertz curve each: nu is not determined, said per specimen."""
