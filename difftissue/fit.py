@@ -1503,8 +1503,8 @@ def write_fit_outputs(
     scenarios: Sequence | None = None,
 ) -> dict[str, Path]:
     """Write ``fit.json``, ``material.json``, ``fit.png``, ``loss.png`` and ``report.md`` into
-    ``out_dir``, and ``specimen-<name>.vtu`` for each simulated ``fem_field`` / ``incision``
-    scenario among ``scenarios``.
+    ``out_dir``, and ``specimen-<name>.vtu`` for each simulated ``fem_field``, ``compression``
+    or ``incision`` scenario among ``scenarios``.
 
     ``material.json`` is the versioned material card (:class:`~difftissue.export.MaterialCard`)
     that ``difftissue export`` reads: model, energy, parameters with units and standard
@@ -1522,8 +1522,9 @@ def write_fit_outputs(
             (:func:`difftissue.export_indentation.scenario_record`: indenter, radius, depths, ...),
             used by ``difftissue export --specimen indentation``; default (with ``scenarios``)
             ``scenario_record(s)`` of each scenario.
-        scenarios: the fitted scenarios: each :class:`~difftissue.scenarios.FEMField` and
-            :class:`~difftissue.incision.Incision` gets its specimen file
+        scenarios: the fitted scenarios: each :class:`~difftissue.scenarios.FEMField`,
+            :class:`~difftissue.scenarios.Compression` and :class:`~difftissue.incision.Incision`
+            gets its specimen file
             (:func:`difftissue.export_fitted.write_specimen`: mesh, fixed masks, prescribed
             displacements, regions, cut pairs), recorded with its sha256 in its scenario record
             (``specimen_file``), which ``difftissue export --specimen fitted`` reads.
