@@ -314,7 +314,10 @@ def fit_batch(
     traces_before = fns["traces"][0]
     U, dyn, done_d, data_d = _place((U, dyn, done, data), mesh)
 
-    history = [_to_host(fns["evaluate"](U, data_d)[1])]
+    # Optimistix methods: the first step evaluates and accepts the starts, so its losses are the
+    # initial ones and the evaluation program is compiled only as a fallback (as in fit).
+    optx = "final" in fns
+    history = [] if optx else [_to_host(fns["evaluate"](U, data_d)[1])]
     status = np.zeros((B + padding, n_starts), dtype=np.int32)
     finished = done.all(axis=1)
     spec_steps = np.zeros(B + padding, dtype=int)
@@ -323,7 +326,7 @@ def fit_batch(
     task = None
     if bar is not None:
         bar.start()
-        task = bar.add_task("fit", total=max_steps, completed=0, loss=f"{np.nanmax(np.nanmin(history[-1][:B], axis=1)):.6g}")
+        task = bar.add_task("fit", total=max_steps, completed=0, loss=f"{np.nanmax(np.nanmin(history[-1][:B], axis=1)):.6g}" if history else "-")
     try:
         while step < max_steps and not finished.all():
             try:
@@ -338,6 +341,8 @@ def fit_batch(
             step += 1
             new_status = _to_host(new_status)
             status = np.where(new_status != 0, new_status, status).astype(np.int32)
+            if not history:
+                history.append(_to_host(losses))
             history.append(_to_host(losses))
             now = _to_host(done_d).all(axis=1)
             spec_steps[now & ~finished] = step
@@ -348,7 +353,16 @@ def fit_batch(
         if bar is not None:
             bar.stop()
     spec_steps[~finished] = step
-    all_values, final, all_J, all_preds = (jax.tree_util.tree_map(_to_host, x) for x in fns["evaluate"](U, data_d))
+    result = None
+    if optx:
+        *result, ok = fns["final"](U, dyn, data_d)
+        if not bool(np.all(_to_host(ok))):
+            result = None
+    if result is None:
+        result = fns["evaluate"](U, data_d)
+    all_values, final, all_J, all_preds = (jax.tree_util.tree_map(_to_host, x) for x in result)
+    if not history:  # no step taken
+        history.append(final)
     U_h, done_h = _to_host(U), _to_host(done_d)
     compilations = fns["traces"][0] - traces_before
     H = np.stack(history)  # (steps + 1, B, S)
@@ -456,8 +470,15 @@ def _batched_functions(engine, mesh) -> dict[str, Any]:
     def evaluate(U, data):
         return jax.vmap(engine.evaluate)(U, data)
 
+    single_final = engine.make_final()  # None for optax methods
+
+    def final(U, dyn, data):
+        return jax.vmap(single_final)(U, dyn, data)
+
     if mesh is None:
         fns = {"step": jax.jit(step), "evaluate": jax.jit(evaluate), "traces": traces}
+        if single_final is not None:
+            fns["final"] = jax.jit(final)
     else:
         # The inputs are placed split along the specimen axis (NamedSharding); the compiler
         # (GSPMD) partitions the batched program along that axis and the outputs keep the same
@@ -465,6 +486,8 @@ def _batched_functions(engine, mesh) -> dict[str, Any]:
         # inside shard_map carry the mesh, and the optimiser state made outside does not match.)
         sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(AXIS))
         fns = {"step": jax.jit(step, out_shardings=sharded), "evaluate": jax.jit(evaluate, out_shardings=sharded), "traces": traces}
+        if single_final is not None:
+            fns["final"] = jax.jit(final, out_shardings=sharded)
     cache[key] = fns
     return fns
 
