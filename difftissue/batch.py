@@ -356,7 +356,7 @@ def fit_batch(
     result = None
     if optx:
         *result, ok = fns["final"](U, dyn, data_d)
-        if not bool(np.all(_to_host(ok))):
+        if not bool(np.all(_to_host(ok)[:B])):  # padding rows never step and are dropped
             result = None
     if result is None:
         result = fns["evaluate"](U, data_d)

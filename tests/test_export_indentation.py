@@ -197,7 +197,8 @@ def test_writers_structure_node_sets_and_penalty(tmp_path):
     assert sff.get("stiffness") == repr(100.0 * E * s["h"]) and sff.get("damping") == "0"
     assert sff.get("center") == f"0 0 {4e-3 + 1e-3!r}" and sff.get("radius") == repr(1e-3)
     mov = root.find("Node/LinearMovementProjectiveConstraint")
-    assert len(mov.get("indices").split()) == 81 and mov.get("movements") == f"0 0 0  0 0 {2e-4!r}"
+    assert len(mov.get("indices").split()) == 81 and mov.get("movements") == f"0 0 0  0 0 {2e-4!r}  0 0 {2e-4!r}"
+    assert mov.get("keyTimes") == "0 1 1000000"  # held after t = 1 (SOFA's constraint stops at its last key time)
     assert {p.get("name") for p in root.findall("RequiredPlugin")} >= {"Sofa.Component.MechanicalLoad"}
     root = ET.parse(export(card, "sofa", tmp_path / "p.scn", indentation=punch)).getroot()
     assert len(root.find("Node/FixedProjectiveConstraint").get("indices").split()) == 81
