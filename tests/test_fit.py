@@ -504,3 +504,26 @@ def test_docs_example_runs(tmp_path, monkeypatch):
         for block in blocks:
             exec(compile(block, "docs/fitting.md", "exec"), namespace)
     assert (tmp_path / "fit-out" / "fit.json").is_file()
+
+
+def test_forward_jacobian_wrapper_has_the_derivatives_of_the_function():
+    """``_with_forward_jacobian`` (the Jacobian by jacfwd inside a custom JVP) changes what a
+    linearisation stores, not the values or derivatives: JVP, VJP and linearize against the
+    plain function, and check_grads (forward and reverse) against finite differences."""
+    from jax.test_util import check_grads
+
+    from difftissue.fit import _with_forward_jacobian
+
+    def f(u):
+        return jnp.sin(u[0]) * jnp.exp(u[1]) + u ** 3, (u[0] * u[1] ** 2, jnp.cos(u))
+
+    g = _with_forward_jacobian(f)
+    u, t = jnp.array([0.3, -0.7]), jnp.array([1.1, 0.4])
+    np.testing.assert_allclose(g(u)[0], f(u)[0], rtol=0)
+    for a, b in zip(jax.tree_util.tree_leaves(jax.jvp(g, (u,), (t,))), jax.tree_util.tree_leaves(jax.jvp(f, (u,), (t,)))):
+        np.testing.assert_allclose(a, b, rtol=1e-14)
+    np.testing.assert_allclose(jax.jacrev(lambda v: g(v)[0])(u), jax.jacfwd(lambda v: f(v)[0])(u), rtol=1e-14)
+    _, lin = jax.linearize(lambda v: g(v)[0], u)
+    np.testing.assert_allclose(lin(t), jax.jvp(lambda v: f(v)[0], (u,), (t,))[1], rtol=1e-14)
+    check_grads(lambda v: g(v)[0], (u,), order=1, modes=("fwd", "rev"))
+    check_grads(lambda v: g(v)[1][1], (u,), order=1, modes=("fwd", "rev"))
