@@ -36,7 +36,7 @@ def configure() -> bool:
 
         if xla_bridge.backends_are_initialized():
             return False
-    except Exception:  # noqa: BLE001 - a private API; without it, set the variable anyway
+    except (ImportError, AttributeError):  # a private API; without it, set the variable anyway
         pass
     os.environ["XLA_FLAGS"] = (flags + f" {FLAG}=false").strip()
     return True

@@ -590,6 +590,20 @@ def febio_model(card: MaterialCard, mesh=None, *, law: str | None = None, approx
     return root
 
 
+def _febio_static_root(comments, steps: int) -> ET.Element:
+    """``<febio_spec version="4.0">`` with ``comments``, the solid ``Module`` and a STATIC
+    ``Control`` of ``steps`` time steps of ``1/steps`` (the specimen models' common head)."""
+    root = ET.Element("febio_spec", {"version": "4.0"})
+    for line in comments:
+        root.append(_xml_comment(line))
+    ET.SubElement(root, "Module", {"type": "solid"})
+    ctrl = ET.SubElement(root, "Control")
+    ET.SubElement(ctrl, "analysis").text = "STATIC"
+    ET.SubElement(ctrl, "time_steps").text = str(int(steps))
+    ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / steps)
+    return root
+
+
 def _febio_ramp_and_output(root: ET.Element) -> None:
     """FEBio ``LoadData`` (load controller 1: a linear ramp 0 -> 1 over the step) and ``Output``
     (plot file with displacement, stress and reaction forces)."""
@@ -1314,14 +1328,7 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
     pts_t = np.asarray(mesh.points, dtype=float)
     tets = np.asarray(mesh.tets)
     H = s["H"]
-    root = ET.Element("febio_spec", {"version": "4.0"})
-    for line in spec.describe():
-        root.append(_xml_comment(line))
-    ET.SubElement(root, "Module", {"type": "solid"})
-    ctrl = ET.SubElement(root, "Control")
-    ET.SubElement(ctrl, "analysis").text = "STATIC"
-    ET.SubElement(ctrl, "time_steps").text = str(int(spec.steps))
-    ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / spec.steps)
+    root = _febio_static_root(spec.describe(), spec.steps)
     mats = febio_material(card, law=law, approximate=approximate)
     root.append(mats)
     if contact:

@@ -532,19 +532,12 @@ def febio_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, ap
     forces`` plot variable over it; a compression's top platen). Incision: ``cut_plus`` / ``cut_minus`` (pair k's original and duplicate, in pair
     order); the pairs are not tied, so the static solution is the opened state.
     """
-    from .export import _febio_ramp_and_output, _fmt, _law, _xml_comment, febio_material
+    from .export import _febio_ramp_and_output, _febio_static_root, _fmt, _law, febio_material
 
     law = _law(card, law)
     cards = spec.region_cards(card)
     steps = load_steps(spec) if steps is None else int(steps)
-    root = ET.Element("febio_spec", {"version": "4.0"})
-    for line in spec.describe():
-        root.append(_xml_comment(line))
-    ET.SubElement(root, "Module", {"type": "solid"})
-    ctrl = ET.SubElement(root, "Control")
-    ET.SubElement(ctrl, "analysis").text = "STATIC"
-    ET.SubElement(ctrl, "time_steps").text = str(int(steps))
-    ET.SubElement(ctrl, "step_size").text = _fmt(1.0 / steps)
+    root = _febio_static_root(spec.describe(), steps)
     mats = ET.SubElement(root, "Material")
     names: dict[int, str] = {}
     mat_id = 0
