@@ -235,8 +235,11 @@ def fit_batch(
             vector, as a serial loop of ``fit(..., seed=seed)`` calls would make).
         devices: ``None`` (default): one batch on the default device. ``"all"``, an int ``n``
             or a sequence of devices, or a :func:`specimen_mesh`: the specimens are split across
-            these devices (``jax.shard_map`` of the same batched step over the mesh axis
-            ``"specimen"``); the batch is padded to a multiple of the device count.
+            these devices (the inputs placed with ``NamedSharding`` along the mesh axis
+            ``"specimen"``, the same jitted batched step partitioned by the compiler); the batch
+            is padded to a multiple of the device count. On (simulated) CPU devices, batches of
+            simulated specimens with more than one specimen per device hung in XLA (a
+            ``RuntimeWarning`` says so; docs/scale.md).
         labels: names of the specimens (default ``"0"``, ``"1"``, ...), used in messages.
         progress: show a rich progress bar (on stderr).
 
@@ -459,7 +462,7 @@ def _shared_structure(problems: list[FitProblem], labels) -> list[FitProblem]:
 def _batched_functions(engine, mesh) -> dict[str, Any]:
     """The compiled batched step and evaluation of ``engine`` (kept with it, per mesh), from
     the same single-start step as :func:`difftissue.fit.fit`: ``vmap`` over the starts inside
-    ``vmap`` over the specimens, wrapped in ``shard_map`` over the mesh axis when sharded."""
+    ``vmap`` over the specimens, jitted with outputs sharded along the mesh axis when sharded."""
     cache = engine.__dict__.setdefault("_batch_functions", {})
     key = None if mesh is None else (tuple(d.id for d in mesh.devices.reshape(-1)), mesh.axis_names)
     hit = cache.get(key)
@@ -488,8 +491,10 @@ def _batched_functions(engine, mesh) -> dict[str, Any]:
     else:
         # The inputs are placed split along the specimen axis (NamedSharding); the compiler
         # (GSPMD) partitions the batched program along that axis and the outputs keep the same
-        # sharding. (jax.shard_map was tried: optimistix/lineax compare abstract shapes that
-        # inside shard_map carry the mesh, and the optimiser state made outside does not match.)
+        # sharding. Its batched while-loop predicates and error checks become cross-device
+        # all-reduces (36 per LM step). jax.shard_map / jax.pmap (one local batch per device, no
+        # communication) were tried (2026-12-02): lineax 0.1.1 rejects the vectors inside them,
+        # whose abstract shapes carry the manual mesh (lineax issue #185).
         sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(AXIS))
         fns = {"step": jax.jit(step, out_shardings=sharded), "evaluate": jax.jit(evaluate, out_shardings=sharded), "traces": traces}
         if single_final is not None:
