@@ -28,6 +28,7 @@ Units: as in :mod:`difftissue.fit` (SI values and standard errors, dimensionless
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -255,8 +256,6 @@ def fit_batch(
         other; the dense Cholesky and CG solvers are batched by XLA.
     """
     if jax.default_backend() == "cpu" and not _xla.active():
-        import warnings
-
         warnings.warn(f"XLA_FLAGS lacks {_xla.FLAG}=false (JAX started before difftissue was imported?): batched fits of "
                       "simulated scenarios can deadlock on CPU without it (difftissue/_xla.py); set it in XLA_FLAGS before "
                       "the first JAX computation", RuntimeWarning, stacklevel=2)
@@ -309,8 +308,6 @@ def fit_batch(
     done = np.zeros((B + padding, n_starts), dtype=bool)
     done[B:] = True  # padding: frozen from the start
     if mesh is not None and (B + padding) > n_dev and all(d.platform == "cpu" for d in mesh.devices.reshape(-1)):
-        import warnings
-
         warnings.warn(f"sharded fit_batch with {(B + padding) // n_dev} specimens per CPU device: batches of simulated specimens with "
                       "more than one specimen per (simulated) CPU device hung in XLA on jaxlib 0.10 (docs/scale.md, 'Sharded batches "
                       "on simulated CPU devices'); analytic scenarios ran", RuntimeWarning, stacklevel=2)
@@ -350,9 +347,10 @@ def fit_batch(
             step += 1
             new_status = _to_host(new_status)
             status = np.where(new_status != 0, new_status, status).astype(np.int32)
-            if not history:
-                history.append(_to_host(losses))
-            history.append(_to_host(losses))
+            losses_h = _to_host(losses)
+            if not history:  # optimistix: the first step's losses are the initial ones
+                history.append(losses_h)
+            history.append(losses_h)
             now = _to_host(done_d).all(axis=1)
             spec_steps[now & ~finished] = step
             finished = now
