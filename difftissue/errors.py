@@ -29,6 +29,7 @@ __all__ = [
     "RigidModeError",
     "ModelError",
     "ConvergenceError",
+    "LinearSolverError",
 ]
 
 
@@ -132,6 +133,11 @@ class ModelError(DifftissueError):
 
 class ConvergenceError(DifftissueError):
     """A solver did not converge (raised only when the solver is asked to throw)."""
+
+
+class LinearSolverError(ConvergenceError):
+    """An iterative linear solve (preconditioned conjugate gradients) did not reach its
+    tolerance: the message gives the iteration count and the relative residual."""
 
 
 # =========================================================================== data

@@ -25,14 +25,17 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
+import scipy.sparse as sps
 
 from ..boundary import BoundaryConditions, _validate_values, check_rigid_modes
-from ..errors import ConvergenceError, ModelError
+from ..errors import ConvergenceError, LinearSolverError, ModelError
 from ..materials import Material
 from ..models import ElasticModel
+from .multigrid import BlockEllMatrix, JacobiPreconditioner, MultigridPreconditioner, PreconditionedCG, cache_key, multigrid_cached, multigrid_setup, sparse_layout
 from .sparse import SparseLU, assemble_csr_data, sparse_pattern
 
-__all__ = ["StaticSolution", "StaticResult", "solve_static", "element_hessian_operator"]
+__all__ = ["StaticSolution", "StaticResult", "solve_static", "element_hessian_operator", "auto_linear_solver", "LINEAR_SOLVERS"]
 
 
 class StaticResult(enum.IntEnum):
@@ -43,6 +46,7 @@ class StaticResult(enum.IntEnum):
     line_search_failed = 2
     inverted_elements = 3
     nonfinite = 4
+    linear_solver_failed = 5
 
 
 _MESSAGES = (
@@ -51,7 +55,15 @@ _MESSAGES = (
     "static solve: the line search found no step that lowers the energy without inverting an element (load too large for one step?)",
     "static solve: an element is inverted in the solution",
     "static solve produced NaN or infinite values",
+    "static solve: the preconditioned conjugate gradients did not converge (the preconditioner no longer fits the operator: nu close to 0.5, or a material or deformation far from the one the multigrid hierarchy was built for); raise cg_max_steps or use linear_solver='sparse' (direct)",
 )
+
+#: A Newton direction whose CG relative residual is above this is unusable (solve stops with
+#: ``linear_solver_failed``); below it but above ``cg_rtol`` it is an inexact Newton step.
+NEWTON_CG_FAILURE = 1e-4
+#: An implicit-gradient (tangent / adjoint) solve must reach this relative residual, else the
+#: tangent is NaN (never a silently wrong gradient).
+TANGENT_CG_FAILURE = 1e-7
 
 
 class StaticSolution(eqx.Module):
@@ -66,6 +78,10 @@ class StaticSolution(eqx.Module):
         steps: Newton steps taken.
         result: a :class:`StaticResult` code (0 = successful).
         min_volume_ratio: smallest element volume ratio ``V / V0`` [-].
+        linear_steps: largest number of conjugate-gradient iterations of one Newton step
+            (0 for direct solvers).
+        linear_residual: relative residual ``|b - A d| / |b|`` of the last Newton step's
+            linear solve (0 for direct solvers).
     """
 
     displacement: jax.Array
@@ -75,6 +91,8 @@ class StaticSolution(eqx.Module):
     steps: jax.Array
     result: jax.Array
     min_volume_ratio: jax.Array
+    linear_steps: jax.Array
+    linear_residual: jax.Array
 
     @property
     def converged(self) -> jax.Array:
@@ -137,9 +155,13 @@ class _Options(eqx.Module):
     cg_max_steps: int
     #: CSR pattern for linear_solver="sparse" (hashable by content: no recompile per call).
     pattern: Any = eqx.field(static=True, default=None)
+    #: linear_solver="multigrid": the ELL layout of the Hessian and the multigrid hierarchy
+    #: (arrays, traced: a new mesh of the same size does not recompile).
+    layout: Any = None
+    hierarchy: Any = None
 
 
-def _projected_operator(model, u, material, free, options: _Options):
+def _projected_operator(model, u, material, free, options: _Options, *, tangent: bool = False):
     """The SPD operator ``P H P + (I - P)`` on flat vectors, as a lineax operator + solver."""
     x = jnp.asarray(model.rest_points) + u
     P = free.reshape(-1)
@@ -161,15 +183,25 @@ def _projected_operator(model, u, material, free, options: _Options):
 
         op = lx.FunctionLinearOperator(mv_sparse, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
         return op, SparseLU(options.pattern), {"csr_data": csr}
-    matvec, diag = element_hessian_operator(model, x, material)
     struct = jax.ShapeDtypeStruct((3 * model.n_nodes,), u.dtype)
+    solver = PreconditionedCG(rtol=options.cg_rtol, max_steps=options.cg_max_steps, failure_rtol=TANGENT_CG_FAILURE if tangent else NEWTON_CG_FAILURE)
+    if options.linear_solver == "multigrid":
+        Pf = P.astype(x.dtype)
+        ell = options.layout.assemble(_element_data(model, x, material), Pf)
+        op = lx.FunctionLinearOperator(ell.mv, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
+        return op, solver, {"preconditioner": MultigridPreconditioner.build(ell, options.hierarchy, Pf)}
+    matvec, diag = element_hessian_operator(model, x, material)
     op = lx.FunctionLinearOperator(lambda v: P * matvec(P * v) + (1.0 - P) * v, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
     d = P * diag + (1.0 - P)
     d = jnp.where(d > 0, d, 1.0)
-    precond = lx.DiagonalLinearOperator(1.0 / d)
-    precond = lx.TaggedLinearOperator(precond, (lx.symmetric_tag, lx.positive_semidefinite_tag))
-    solver = lx.CG(rtol=options.cg_rtol, atol=0.0, max_steps=options.cg_max_steps)
-    return op, solver, {"preconditioner": precond}
+    return op, solver, {"preconditioner": JacobiPreconditioner(1.0 / d)}
+
+
+def _linear_stats(sol):
+    """``(CG iterations, relative residual)`` of a lineax solution (zeros for direct solvers)."""
+    steps = sol.stats.get("num_steps", 0)
+    res = sol.stats.get("relative_residual", 0.0)
+    return jnp.asarray(steps, jnp.int32), jnp.asarray(res, float)
 
 
 def _potential(model, u, material, force):
@@ -226,7 +258,9 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     _, h_jump = jax.jvp(lambda uu: _full_gradient(model, uu, material, force), (u_init,), (jump,))
     rhs = Pf * (_full_gradient(model, u_init, material, force) + h_jump)
     op0, solver0, opts0 = _projected_operator(model, u_init, material, free, options)
-    delta = lx.linear_solve(op0, -rhs.reshape(-1), solver0, options=opts0, throw=False).value.reshape(u_init.shape)
+    sol0 = lx.linear_solve(op0, -rhs.reshape(-1), solver0, options=opts0, throw=False)
+    cg_steps0, cg_res0 = _linear_stats(sol0)
+    delta = sol0.value.reshape(u_init.shape)
     predicted = naive + Pf * delta
     use = jnp.all(jnp.isfinite(predicted)) & (potential(predicted) <= potential(naive))
     u0 = jnp.where(use, predicted, naive)
@@ -234,13 +268,16 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     tol = jnp.maximum(options.atol, options.rtol * jnp.linalg.norm(residual(cold)))
 
     def cond(state):
-        u, g, step, code, done = state
-        return ~done
+        return ~state[4]
 
     def body(state):
-        u, g, step, code, _ = state
+        u, g, step, code, _, cg_max, _ = state
         op, solver, opts = _projected_operator(model, u, material, free, options)
         sol = lx.linear_solve(op, -g.reshape(-1), solver, options=opts, throw=False)
+        cg_steps, cg_res = _linear_stats(sol)
+        # Negative curvature (an indefinite Hessian away from the solution) is not a failure:
+        # the Newton loop falls back to a scaled gradient step as with a direct solver.
+        linear_failed = (cg_res > NEWTON_CG_FAILURE) & ~sol.stats.get("negative_curvature", False)
         d = sol.value.reshape(u.shape)
         gd = jnp.vdot(g, d)
         bad = ~jnp.all(jnp.isfinite(d)) | (gd >= 0)
@@ -263,25 +300,29 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
             ~finite,
             StaticResult.nonfinite,
             jnp.where(~accepted, StaticResult.line_search_failed, jnp.where(ok, StaticResult.successful, StaticResult.max_steps_reached)),
-        ).astype(jnp.int32)
+        )
+        # A conjugate-gradient solve that did not converge is reported as such (with its
+        # iteration count and residual), not taken as a Newton direction.
+        code = jnp.where(linear_failed & ~ok, StaticResult.linear_solver_failed, code).astype(jnp.int32)
         done = (code != StaticResult.max_steps_reached) | (step >= options.max_steps)
-        return u_new, g_new, step, code, done
+        return u_new, g_new, step, code, done, jnp.maximum(cg_max, cg_steps), cg_res
 
     g0 = residual(u0)
     done0 = jnp.linalg.norm(g0) <= tol
     code0 = jnp.where(done0, StaticResult.successful, StaticResult.max_steps_reached)
-    state = (u0, g0, jnp.asarray(0, jnp.int32), code0.astype(jnp.int32), done0 | (options.max_steps <= 0))
-    u, g, step, code, _ = jax.lax.while_loop(cond, body, state)
+    zero = jnp.asarray(0, jnp.int32)
+    state = (u0, g0, zero, code0.astype(jnp.int32), done0 | (options.max_steps <= 0), cg_steps0, cg_res0.astype(u0.dtype))
+    u, g, step, code, _, cg_max, cg_res = jax.lax.while_loop(cond, body, state)
     inverted = model.min_volume_ratio(jnp.asarray(model.rest_points) + u) <= 0
     code = jnp.where((code == StaticResult.successful) & inverted, StaticResult.inverted_elements, code)
-    return u, jnp.linalg.norm(g), step, code
+    return u, jnp.linalg.norm(g), step, code, cg_max, cg_res
 
 
 @eqx.filter_custom_jvp
 def _equilibrium(material, displacement, force, *, model, free, u_init, options):
-    u, rn, steps, code = _newton(model, material, displacement, force, free, u_init, options)
+    u, rn, steps, code, cg_steps, cg_res = _newton(model, material, displacement, force, free, u_init, options)
     # Diagnostics as floats so they can carry (zero) tangents.
-    return u, jnp.stack([rn, steps.astype(u.dtype), code.astype(u.dtype)])
+    return u, jnp.stack([rn, steps.astype(u.dtype), code.astype(u.dtype), cg_steps.astype(u.dtype), cg_res])
 
 
 @_equilibrium.def_jvp
@@ -300,10 +341,18 @@ def _equilibrium_jvp(primals, tangents, *, model, free, u_init, options):
     material_f = jax.tree_util.tree_map(lambda p: jnp.asarray(p, dtype=u.dtype), material)
     t_u_fixed = (1.0 - P) * t_disp
     _, dgrad = jax.jvp(lambda uu, mm, ff: _full_gradient(model, uu, mm, ff), (u, material_f, force), (t_u_fixed, t_material, t_f))
-    op, solver, opts = _projected_operator(model, u, material_f, free, options)
+    op, solver, opts = _projected_operator(model, u, material_f, free, options, tangent=True)
     # throw=False: a failed primal solve (NaN) gives NaN tangents instead of a crash, so an
     # optimiser can reject the step; the primal result code still reports the failure.
-    w = lx.linear_solve(op, (-P * dgrad).reshape(-1), solver, options=opts, throw=False).value.reshape(u.shape)
+    # An iterative tangent (or, transposed, adjoint) solve that does not reach
+    # TANGENT_CG_FAILURE returns NaN (PreconditionedCG.failure_rtol), never a wrong tangent.
+    # jax.lax.custom_linear_solve (symmetric) carries the solve into reverse mode: lineax's
+    # own transpose rule raises on a NaN cotangent whatever ``throw`` says, which would turn a
+    # failed trial point of a fit into a crash instead of a NaN it can reject.
+    def solve(_, b):
+        return lx.linear_solve(op, b, solver, options=opts, throw=False).value
+
+    w = jax.lax.custom_linear_solve(op.mv, (-P * dgrad).reshape(-1), solve, symmetric=True).reshape(u.shape)
     t_u = P * w + t_u_fixed
     return (u, info), (t_u, jnp.zeros_like(info))
 
@@ -325,6 +374,8 @@ def _solve(model, material, bc, u_init, options: _Options):
         steps=info[1].astype(jnp.int32),
         result=code,
         min_volume_ratio=model.min_volume_ratio(x),
+        linear_steps=info[3].astype(jnp.int32),
+        linear_residual=info[4],
     )
 
 
@@ -338,11 +389,12 @@ def solve_static(
     xtol: float = 1e-8,
     max_steps: int = 50,
     linear_solver: str = "auto",
-    cg_rtol: float = 1e-12,
+    cg_rtol: float = 1e-10,
     cg_max_steps: int | None = None,
     initial_displacement=None,
     load_steps: int = 1,
     throw: bool = True,
+    preconditioner_material: Material | None = None,
 ) -> StaticSolution:
     """Static equilibrium of ``model`` under ``bc``, differentiable in ``material`` and ``bc``.
 
@@ -356,11 +408,18 @@ def solve_static(
             the residual of an ill-conditioned problem stalls at round-off level, and with
             Newton's quadratic convergence the remaining error is far below that correction.
         max_steps: Newton steps allowed.
-        linear_solver: ``"dense"`` (Cholesky of the assembled Hessian), ``"sparse"`` (SciPy
-            sparse LU of the assembled CSR Hessian, on the host via ``pure_callback``),
-            ``"cg"`` (matrix-free Jacobi-preconditioned CG) or ``"auto"`` (dense up to 3000
-            unknowns, sparse above; CG when the model's connectivity is traced).
-        cg_rtol, cg_max_steps: CG tolerance and step limit (default 10 x unknowns).
+        linear_solver: ``"multigrid"`` (conjugate gradients preconditioned by a
+            smoothed-aggregation multigrid V-cycle, applied in JAX: jit, vmap, GPU; see
+            :mod:`~difftissue.solvers.multigrid`), ``"sparse"`` (sparse direct: Cholesky of
+            the assembled CSR Hessian on the host via ``pure_callback``, LU where it is not
+            positive definite), ``"dense"`` (Cholesky of the assembled Hessian), ``"cg"``
+            (matrix-free Jacobi-preconditioned CG) or ``"auto"``: :func:`auto_linear_solver`.
+        cg_rtol, cg_max_steps: CG tolerance on the relative 2-norm of the true residual and
+            step limit (default 500 for multigrid, 10 x unknowns for Jacobi).
+        preconditioner_material: the material the multigrid hierarchy is built for when
+            ``material`` is traced (a fit): the start values are a good choice. Default:
+            ``material`` when concrete, else E = 1 Pa, nu = 0.45 (only the convergence speed
+            depends on it, never the answer).
         initial_displacement: ``(N, 3)`` starting guess [m] for the free components.
         load_steps: apply the prescribed displacements and forces in this many equal
             increments, each solve starting from the previous one (for large deformations
@@ -383,16 +442,24 @@ def solve_static(
     model.region_values(material)  # range checks (raise now when concrete)
     node_arrays = [t.nodes for t in model.terms(material)]
     concrete_nodes = not any(isinstance(a, jax.core.Tracer) for a in node_arrays)
+    concrete_fixed = not isinstance(bc.fixed, jax.core.Tracer)
     if linear_solver == "auto":
-        linear_solver = "dense" if 3 * n <= 3000 else ("sparse" if concrete_nodes else "cg")
-    if linear_solver not in ("dense", "cg", "sparse"):
-        raise ModelError(f"linear_solver must be 'auto', 'dense', 'sparse' or 'cg', got {linear_solver!r}")
-    pattern = None
+        linear_solver = auto_linear_solver(3 * n, concrete=concrete_nodes and concrete_fixed)
+    if linear_solver not in LINEAR_SOLVERS:
+        raise ModelError(f"linear_solver must be 'auto' or one of {LINEAR_SOLVERS}, got {linear_solver!r}")
+    pattern = layout = hierarchy = None
+    if linear_solver in ("sparse", "multigrid"):
+        if not concrete_nodes or (linear_solver == "multigrid" and not concrete_fixed):
+            raise ModelError(
+                f"linear_solver={linear_solver!r} needs the model's element connectivity and the fixed DOFs as concrete arrays "
+                "(close over the model and boundary mask instead of passing them as traced arguments), or use 'cg'"
+            )
     if linear_solver == "sparse":
-        if not concrete_nodes:
-            raise ModelError("linear_solver='sparse' needs the model's element connectivity as concrete arrays (close over the model instead of passing it as a traced argument), or use 'cg'")
         pattern = sparse_pattern(node_arrays, n)
-    options = _Options(float(rtol), float(atol), float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or 10 * 3 * n), pattern)
+    if linear_solver == "multigrid":
+        layout, hierarchy = _multigrid_for(model, material, bc.fixed, node_arrays, preconditioner_material)
+    default_steps = 500 if linear_solver == "multigrid" else 10 * 3 * n
+    options = _Options(float(rtol), float(atol), float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or default_steps), pattern, layout, hierarchy)
     # Python floats would be static under jit (a recompile per value): make every leaf an array.
     material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
     u_init = jnp.zeros((n, 3)) if initial_displacement is None else jnp.asarray(initial_displacement, dtype=float)
@@ -410,6 +477,78 @@ def solve_static(
         code = sol.result
         if isinstance(code, jax.core.Tracer):
             sol = eqx.tree_at(lambda s: s.displacement, sol, eqx.branched_error_if(sol.displacement, code != 0, code, _MESSAGES))
+        elif int(code) == StaticResult.linear_solver_failed:
+            raise LinearSolverError(
+                f"{_MESSAGES[int(code)]} (Newton step {int(sol.steps)}: {int(sol.linear_steps)} CG iterations, "
+                f"relative residual {float(sol.linear_residual):.3g} > {NEWTON_CG_FAILURE:g})"
+            )
         elif int(code) != 0:
             raise ConvergenceError(f"{_MESSAGES[int(code)]} (steps {int(sol.steps)}, residual {float(sol.residual_norm):.3g} N, min V/V0 {float(sol.min_volume_ratio):.3g})")
     return sol
+
+
+#: The linear solvers of :func:`solve_static`.
+LINEAR_SOLVERS = ("multigrid", "sparse", "dense", "cg")
+#: ``"auto"`` picks the dense Cholesky up to this many unknowns (3 x nodes) ...
+AUTO_DENSE_MAX = 600
+#: ... the sparse direct Cholesky up to this many, multigrid-preconditioned CG above.
+AUTO_SPARSE_MAX = 30_000
+
+
+def auto_linear_solver(n_unknowns: int, *, concrete: bool = True) -> str:
+    """The linear solver ``linear_solver="auto"`` uses for ``n_unknowns`` (3 x nodes).
+
+    Rule (measured in ``benchmarks/static.py``, table in docs/performance.md): dense Cholesky
+    up to :data:`AUTO_DENSE_MAX` unknowns, sparse direct Cholesky up to
+    :data:`AUTO_SPARSE_MAX`, multigrid-preconditioned CG above; Jacobi-preconditioned CG
+    when the connectivity or the fixed DOFs are traced (no pattern can be built).
+    Batched fits (``vmap``) and GPUs should use ``"multigrid"`` at every size above the dense
+    limit: the sparse direct solve is a host callback, run one specimen at a time.
+    """
+    if not concrete:
+        return "dense" if n_unknowns <= AUTO_DENSE_MAX else "cg"
+    if n_unknowns <= AUTO_DENSE_MAX:
+        return "dense"
+    return "sparse" if n_unknowns <= AUTO_SPARSE_MAX else "multigrid"
+
+
+def _reference_material(material, preconditioner_material):
+    if not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(material)):
+        return material
+    if preconditioner_material is not None:
+        return preconditioner_material
+    shape = jnp.shape(material.youngs_modulus)
+    return Material(np.ones(shape), np.full(shape, 0.45), np.zeros(shape), np.full(shape, 1000.0), np.ones(shape))
+
+
+def _multigrid_for(model, material, fixed, node_arrays, preconditioner_material):
+    """The block-ELL layout (cached per mesh) and the multigrid hierarchy (cached per mesh,
+    fixed DOFs and reference material) of ``model``'s projected Hessian."""
+    layout = sparse_layout(node_arrays, model.n_nodes)
+    ref = jax.tree_util.tree_map(lambda v: np.asarray(v, dtype=float), _reference_material(material, preconditioner_material))
+    free = 1.0 - np.asarray(fixed, dtype=float).reshape(-1)
+    rest = np.asarray(model.rest_points, dtype=float)
+    key = cache_key(*[np.asarray(a) for a in node_arrays], free, rest, *jax.tree_util.tree_leaves(ref))
+    hierarchy = multigrid_cached(key)
+    if hierarchy is None:
+        A = _reference_matrix(model, jax.tree_util.tree_map(np.asarray, ref), layout, np.asarray(free)).to_scipy()
+        hierarchy = multigrid_setup(A, rest, free, key=key)
+    return layout, hierarchy
+
+
+def _reference_matrix(model, material, layout, free):
+    """The block-ELL matrix ``P H P + (I - P)`` at rest, computed now (host arrays), also when
+    called while ``solve_static`` is being traced: the program is lowered and compiled on its
+    own and its executable called with concrete arrays."""
+    # The (concrete) material is closed over: its range checks then run now, in Python,
+    # instead of as equinox runtime checks, which misfire in a program executed while an
+    # outer program is being traced.
+    dynamic, static = eqx.partition((model, layout, free), eqx.is_array)
+
+    def assemble(dynamic):
+        model, layout, free = eqx.combine(dynamic, static)
+        x = jnp.asarray(model.rest_points, dtype=free.dtype)
+        return layout.assemble(_element_data(model, x, material), free).data
+
+    data = jax.jit(assemble).lower(dynamic).compile()(dynamic)
+    return BlockEllMatrix(np.asarray(data), np.asarray(layout.cols))

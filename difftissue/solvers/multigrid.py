@@ -1,0 +1,518 @@
+"""Smoothed-aggregation multigrid preconditioned conjugate gradients for the static problem.
+
+The stiffness of an elastic specimen is sparse: a node couples to its element neighbours
+only. This module solves ``(P H P + (I - P)) d = b`` (``H`` the energy Hessian, ``P`` the
+free-DOF indicator, see :mod:`~difftissue.solvers.static`) with cost about linear in the
+number of unknowns:
+
+- **Set up once per mesh, on the host** (:func:`multigrid_setup`): the CSR pattern of the
+  Hessian from the element connectivity, the Hessian at rest for a reference material, and a
+  smoothed-aggregation hierarchy built by PyAMG from it, with the six rigid-body modes of the
+  nodes as the near-null space (3x3 nodal blocks). Everything is cached by content (mesh,
+  fixed DOFs, reference material), so Newton steps, load steps, fit steps, implicit adjoints
+  and Jacobian tangents all reuse one hierarchy.
+- **Applied in JAX** (:class:`PreconditionedCG` with a :class:`MultigridPreconditioner`): the fine matrix is re-assembled from the element
+  Hessians at the current state (one scatter into a padded-row ELL layout, per Newton step),
+  smoothed by Chebyshev polynomials in the Jacobi-scaled operator (spectral bound by power
+  iteration at the current state); coarse levels are the reference Galerkin operators scaled
+  by the ratio of the current to the reference diagonal, and the coarsest level is solved by
+  a precomputed pseudo-inverse. The V-cycle is symmetric positive definite, so it
+  preconditions CG. No host callback in the iteration: the solve jits, ``vmap``s over
+  specimens as one program, runs on a GPU, and is a :mod:`lineax` solver, so implicit
+  differentiation (forward and reverse mode) goes through it like through a direct solve.
+
+A changing material (a fit), a large deformation or contact make the current operator
+differ from the reference one; the hierarchy is then a preconditioner of a nearby operator
+and CG needs more iterations, never gives a different answer: the stopping rule is on the
+true residual ``|b - A d| <= rtol |b|`` (2-norms). When CG does not reach it within its step
+limit (e.g. nu -> 0.5 far from the reference), the solve reports it, and
+:func:`~difftissue.solvers.static.solve_static` raises a named error with the iteration count
+and residual.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import scipy.linalg
+import scipy.sparse as sps
+
+from ..errors import ModelError
+
+__all__ = ["EllMatrix", "BlockEllMatrix", "SparseLayout", "sparse_layout", "MultigridHierarchy", "multigrid_setup", "PreconditionedCG", "JacobiPreconditioner", "MultigridPreconditioner", "rigid_body_modes", "pcg"]
+
+#: Chebyshev smoother: polynomial degree and the ratio of the largest to the smallest
+#: eigenvalue of ``D^-1 A`` that it damps (the upper part of the spectrum).
+CHEBYSHEV_DEGREE = 3
+CHEBYSHEV_RATIO = 30.0
+#: Safety factor on the estimated largest eigenvalue of ``D^-1 A``.
+SPECTRAL_MARGIN = 1.1
+POWER_ITERATIONS = 12
+
+
+class EllMatrix(eqx.Module):
+    """A sparse matrix in ELL (padded rows) storage: row ``i`` is ``data[i] . x[cols[i]]``.
+
+    Padding slots hold zero data and the row's own index (local gathers). ELL suits a
+    vectorised gather + row sum on CPUs and GPUs alike, and ``vmap``s.
+
+    Attributes:
+        data: ``(n, w)`` values.
+        cols: ``(n, w)`` int32 column indices.
+    """
+
+    data: jax.Array
+    cols: jax.Array
+
+    def mv(self, x):
+        """``A x`` for ``x`` of shape ``(m,)``."""
+        return jnp.sum(self.data * x[self.cols], axis=1)
+
+    def diagonal(self):
+        """The diagonal ``(n,)`` (rows must contain their diagonal entry)."""
+        rows = jnp.arange(self.cols.shape[0])[:, None]
+        return jnp.sum(jnp.where(self.cols == rows, self.data, 0.0), axis=1)
+
+
+def _ell_layout(indptr: np.ndarray, indices: np.ndarray, n: int):
+    """ELL columns ``(n, w)`` and the flat ELL slot of every CSR entry."""
+    counts = np.diff(indptr)
+    w = max(int(counts.max()) if n else 1, 1)
+    rows = np.repeat(np.arange(n, dtype=np.int64), counts)
+    pos = np.arange(indices.size, dtype=np.int64) - np.repeat(indptr[:-1].astype(np.int64), counts)
+    cols = np.repeat(np.arange(n, dtype=np.int32)[:, None], w, axis=1)
+    cols[rows, pos] = indices
+    return cols, rows * w + pos
+
+
+def ell_from_csr(A) -> EllMatrix:
+    """An :class:`EllMatrix` from a SciPy sparse matrix."""
+    A = sps.csr_matrix(A)
+    A.sum_duplicates()
+    A.sort_indices()
+    cols, slot = _ell_layout(A.indptr, A.indices.astype(np.int32), A.shape[0])
+    data = np.zeros(cols.size)
+    data[slot] = A.data
+    return EllMatrix(data.reshape(cols.shape), cols)
+
+
+class BlockEllMatrix(eqx.Module):
+    """A sparse matrix of 3x3 nodal blocks in ELL storage: node row ``i`` is
+    ``sum_s B[i, s] @ x[cols[i, s]]`` (``x`` viewed as ``(N, 3)``).
+
+    The stiffness of a 3-D solid couples nodes, not single components: one index per 3x3
+    block gathers contiguous triples (9x fewer indices than scalar storage). The blocks of a
+    row are stored side by side, ``data[i, a, 3 s + b] = B[i, s][a, b]``, so a product is one
+    gather of ``(N, 3w)`` values and a contiguous multiply-and-sum (measured 5x faster on a
+    CPU than a batched 3x3 ``einsum``). Padding slots hold zero blocks and the row's own node.
+
+    Attributes:
+        data: ``(N, 3, 3w)`` block rows.
+        cols: ``(N, w)`` int32 node indices.
+    """
+
+    data: jax.Array
+    cols: jax.Array
+
+    @classmethod
+    def from_blocks(cls, blocks, cols) -> "BlockEllMatrix":
+        """From ``blocks`` of shape ``(N, w, 3, 3)``."""
+        n, w = cols.shape
+        return cls(blocks.transpose(0, 2, 1, 3).reshape(n, 3, 3 * w), cols)
+
+    def blocks(self):
+        """The blocks ``(N, w, 3, 3)``."""
+        n, w = self.cols.shape
+        return self.data.reshape(n, 3, w, 3).transpose(0, 2, 1, 3)
+
+    def mv(self, x):
+        """``A x`` for a flat ``x`` of shape ``(3N,)``."""
+        n, w = self.cols.shape
+        g = x.reshape(-1, 3)[self.cols].reshape(n, 1, 3 * w)
+        return jnp.sum(self.data * g, axis=2).reshape(-1)
+
+    def diagonal(self):
+        """The diagonal ``(3N,)``."""
+        rows = jnp.arange(self.cols.shape[0])[:, None]
+        own = jnp.sum(jnp.where((self.cols == rows)[:, :, None, None], self.blocks(), 0.0), axis=1)
+        return jnp.diagonal(own, axis1=1, axis2=2).reshape(-1)
+
+    def to_scipy(self):
+        """The matrix as a SciPy BSR matrix (host)."""
+        data = np.array(self.blocks())  # a writable copy (SciPy sorts in place)
+        n, w = data.shape[:2]
+        A = sps.bsr_matrix((data.reshape(-1, 3, 3), np.array(self.cols).reshape(-1), np.arange(0, n * w + 1, w)), shape=(3 * n, 3 * n))
+        A.sum_duplicates()
+        return A
+
+
+class SparseLayout(eqx.Module):
+    """Where each 3x3 nodal block of every element Hessian lands in the block-ELL matrix of
+    ``P H P + (I - P)``; computed once per mesh (:func:`sparse_layout`).
+
+    Attributes:
+        cols: ``(N, w)`` node columns of each node row.
+        term_slots: per element term, ``(E_t k_t^2,)`` flat block slots (element, row node,
+            column node order).
+        diagonal_slots: ``(N,)`` flat slot of each node's diagonal block.
+    """
+
+    cols: jax.Array
+    term_slots: tuple
+    diagonal_slots: jax.Array
+
+    def assemble(self, element_hessians, free_dofs) -> BlockEllMatrix:
+        """The block-ELL matrix ``P H P + (I - P)`` from ``[(hess (E, 3k, 3k), dofs (E, 3k)), ...]``
+        (in the order of the terms) and the free-DOF indicator ``(3N,)`` (floats)."""
+        P = free_dofs
+        n, w = self.cols.shape
+        flat = jnp.zeros((n * w, 3, 3), dtype=P.dtype)
+        for (hess, dofs), slots in zip(element_hessians, self.term_slots):
+            e, k3 = hess.shape[0], hess.shape[1]
+            k = k3 // 3
+            masked = hess * P[dofs][:, :, None] * P[dofs][:, None, :]
+            blocks = masked.reshape(e, k, 3, k, 3).transpose(0, 1, 3, 2, 4).reshape(e * k * k, 3, 3)
+            flat = flat.at[slots].add(blocks)
+        fixed = (1.0 - P).reshape(n, 3)
+        flat = flat.at[self.diagonal_slots].add(fixed[:, :, None] * jnp.eye(3, dtype=P.dtype))
+        return BlockEllMatrix.from_blocks(flat.reshape(n, w, 3, 3), self.cols)
+
+
+_LAYOUTS: dict[str, SparseLayout] = {}
+
+
+def sparse_layout(node_arrays, n_nodes: int) -> SparseLayout:
+    """The :class:`SparseLayout` of element terms with node arrays ``[(E_t, k_t), ...]`` on
+    ``n_nodes`` nodes: the node-pair pattern (every two nodes of an element couple), from one
+    sort of the element node pairs. Cached by content."""
+    arrays = [np.ascontiguousarray(np.asarray(a, dtype=np.int64)) for a in node_arrays]
+    key = cache_key(np.asarray(n_nodes), *arrays)
+    if key in _LAYOUTS:
+        return _LAYOUTS[key]
+    N = int(n_nodes)
+    keys = [(a[:, :, None] * N + a[:, None, :]).reshape(-1) for a in arrays]
+    diag = np.arange(N, dtype=np.int64)
+    keys.append(diag * N + diag)
+    uniq, inverse = np.unique(np.concatenate(keys), return_inverse=True)
+    rows, cols_ = uniq // N, uniq % N
+    counts = np.bincount(rows, minlength=N)
+    w = int(counts.max())
+    indptr = np.concatenate([[0], np.cumsum(counts)])
+    pos = np.arange(uniq.size) - indptr[rows]
+    slot_of_pair = rows * w + pos
+    slots = slot_of_pair[inverse.reshape(-1)]
+    cols = np.repeat(np.arange(N, dtype=np.int32)[:, None], w, axis=1)
+    cols[rows, pos] = cols_
+    out, start = [], 0
+    for a in arrays:
+        m = a.shape[0] * a.shape[1] ** 2
+        out.append(slots[start : start + m].astype(np.int32))
+        start += m
+    # NumPy arrays (not jax.Array): the cached layout must never hold tracers when it is first
+    # built while a solve is traced; jit traces them as arguments.
+    layout = SparseLayout(cols, tuple(out), slots[start : start + N].astype(np.int32))
+    if len(_LAYOUTS) > 8:
+        _LAYOUTS.pop(next(iter(_LAYOUTS)))
+    _LAYOUTS[key] = layout
+    return layout
+
+
+def rigid_body_modes(points) -> np.ndarray:
+    """The six rigid-body modes (3 translations, 3 rotations about the centroid) of nodes at
+    ``points`` ``(N, 3)`` [m], as ``(3N, 6)`` columns (rotations scaled to unit length scale)."""
+    x = np.asarray(points, dtype=float)
+    c = x - x.mean(axis=0)
+    scale = max(float(np.abs(c).max()), 1e-300)
+    c = c / scale
+    n = x.shape[0]
+    B = np.zeros((n, 3, 6))
+    for d in range(3):
+        B[:, d, d] = 1.0
+    # rotation about x: (0, -z, y); about y: (z, 0, -x); about z: (-y, x, 0)
+    B[:, 1, 3], B[:, 2, 3] = -c[:, 2], c[:, 1]
+    B[:, 0, 4], B[:, 2, 4] = c[:, 2], -c[:, 0]
+    B[:, 0, 5], B[:, 1, 5] = -c[:, 1], c[:, 0]
+    return B.reshape(3 * n, 6)
+
+
+class _Level(eqx.Module):
+    A: EllMatrix | None  # reference operator (None on the finest level: the current one is used)
+    P: EllMatrix  # prolongation to this level from the next coarser one
+    R: EllMatrix  # restriction (P^T)
+    lambda_max: jax.Array  # estimated largest eigenvalue of D^-1 A (reference)
+
+
+class MultigridHierarchy(eqx.Module):
+    """A smoothed-aggregation hierarchy of the reference operator, as JAX arrays.
+
+    Attributes:
+        levels: per level except the coarsest: its reference operator, the prolongation from
+            and restriction to the next level, and ``lambda_max(D^-1 A)``.
+        coarse_inverse: ``(m, m)`` pseudo-inverse of the coarsest reference operator.
+        reference_diagonal_sum: sum of the reference fine diagonal over free DOFs (for the
+            material scale of the current operator).
+        sizes: unknowns per level (static, for reports).
+    """
+
+    levels: tuple
+    coarse_inverse: jax.Array
+    reference_diagonal_sum: jax.Array
+    sizes: tuple = eqx.field(static=True)
+
+
+def _chebyshev(mv, inv_diag, lambda_max, b, x, degree: int = CHEBYSHEV_DEGREE, ratio: float = CHEBYSHEV_RATIO):
+    """``degree`` steps of Chebyshev iteration for ``A x = b`` in the Jacobi-scaled operator,
+    damping the eigenvalues of ``D^-1 A`` in ``[lambda_max / ratio, lambda_max]`` (Saad,
+    Iterative Methods, Alg. 12.1). A fixed polynomial in ``D^-1 A``: symmetric in the ``A``
+    inner product, so the V-cycle that uses it before and after the coarse correction is SPD."""
+    hi = lambda_max
+    lo = lambda_max / ratio
+    theta, delta = 0.5 * (hi + lo), 0.5 * (hi - lo)
+    sigma = theta / delta
+    rho = 1.0 / sigma
+    r = inv_diag * (b - mv(x))
+    d = r / theta
+    for k in range(degree):
+        x = x + d
+        if k == degree - 1:
+            break
+        r = r - inv_diag * mv(d)
+        rho_new = 1.0 / (2.0 * sigma - rho)
+        d = rho_new * rho * d + (2.0 * rho_new / delta) * r
+        rho = rho_new
+    return x
+
+
+def _power_lambda_max(mv, inv_diag, n: int, dtype, iterations: int = POWER_ITERATIONS):
+    """Largest eigenvalue of ``D^-1 A`` by power iteration (Rayleigh quotient in the ``D`` inner product)."""
+    v = jnp.cos(jnp.arange(n, dtype=dtype) * 0.7) + 1.5
+    d = jnp.where(inv_diag > 0, 1.0 / jnp.where(inv_diag > 0, inv_diag, 1.0), 0.0)
+
+    def body(_, v):
+        w = inv_diag * mv(v)
+        return w / jnp.maximum(jnp.linalg.norm(w), 1e-300)
+
+    v = jax.lax.fori_loop(0, iterations, body, v)
+    Av = mv(v)
+    return jnp.vdot(v, Av) / jnp.maximum(jnp.vdot(v, d * v), 1e-300)
+
+
+def _safe_inverse(diag):
+    return jnp.where(diag > 0, 1.0 / jnp.where(diag > 0, diag, 1.0), 0.0)
+
+
+class MultigridPreconditioner(eqx.Module):
+    """One symmetric V-cycle of a :class:`MultigridHierarchy` around the current fine matrix."""
+
+    fine: BlockEllMatrix
+    fine_inv_diag: jax.Array
+    fine_lambda_max: jax.Array
+    scale: jax.Array
+    hierarchy: MultigridHierarchy
+
+    @classmethod
+    def build(cls, fine: BlockEllMatrix, hierarchy: MultigridHierarchy, free_dofs) -> "MultigridPreconditioner":
+        diag = fine.diagonal()
+        inv_diag = _safe_inverse(diag)
+        lam = _power_lambda_max(fine.mv, inv_diag, diag.shape[0], diag.dtype)
+        ref = hierarchy.levels[0].lambda_max if hierarchy.levels else jnp.asarray(1.0)
+        lam = SPECTRAL_MARGIN * jnp.maximum(lam, ref)
+        scale = jnp.sum(free_dofs * diag) / hierarchy.reference_diagonal_sum
+        return cls(fine, inv_diag, lam, scale, hierarchy)
+
+    def _cycle(self, k: int, b):
+        h = self.hierarchy
+        if k == len(h.levels):
+            return (h.coarse_inverse @ b) / self.scale
+        if k == 0:
+            mv, inv_diag, lam = self.fine.mv, self.fine_inv_diag, self.fine_lambda_max
+        else:
+            A = h.levels[k].A
+
+            def mv(x):
+                return self.scale * A.mv(x)
+
+            inv_diag = _safe_inverse(self.scale * A.diagonal())
+            lam = SPECTRAL_MARGIN * h.levels[k].lambda_max
+        lvl = h.levels[k]
+        x = _chebyshev(mv, inv_diag, lam, b, jnp.zeros_like(b))
+        r = b - mv(x)
+        x = x + lvl.P.mv(self._cycle(k + 1, lvl.R.mv(r)))
+        return _chebyshev(mv, inv_diag, lam, b, x)
+
+    def __call__(self, b):
+        return self._cycle(0, b)
+
+
+def pcg(mv, precondition, b, x0, *, rtol, max_steps: int):
+    """Preconditioned conjugate gradients on ``A x = b`` (``A`` SPD), stopping when the
+    residual ``|b - A x|_2 <= rtol |b|_2`` or after ``max_steps`` iterations.
+
+    Returns ``(x, steps, relative_residual, negative_curvature)``; on negative curvature
+    (``p.Ap <= 0``: ``A`` not positive definite, e.g. a Newton step at a non-convex point)
+    it stops with the iterate reached so far (truncated CG).
+    """
+    bnorm = jnp.linalg.norm(b)
+    tol = rtol * bnorm
+    r = b - mv(x0)
+    z = precondition(r)
+    state = (x0, r, z, jnp.vdot(r, z), jnp.asarray(0, jnp.int32), jnp.asarray(False))
+
+    def cond(s):
+        x, r, p, gamma, k, neg = s
+        return (jnp.linalg.norm(r) > tol) & (k < max_steps) & ~neg & jnp.isfinite(gamma)
+
+    def body(s):
+        x, r, p, gamma, k, _ = s
+        Ap = mv(p)
+        pAp = jnp.vdot(p, Ap)
+        neg = ~(pAp > 0)
+        alpha = jnp.where(neg, 0.0, gamma / jnp.where(neg, 1.0, pAp))
+        x = x + alpha * p
+        r = r - alpha * Ap
+        z = precondition(r)
+        gamma_new = jnp.vdot(r, z)
+        beta = gamma_new / jnp.where(gamma != 0, gamma, 1.0)
+        p = z + beta * p
+        return x, r, p, gamma_new, k + 1, neg
+
+    x, _, _, _, k, neg = jax.lax.while_loop(cond, body, state)
+    # The true residual (not the recurrence's) decides success.
+    res = jnp.linalg.norm(b - mv(x)) / jnp.where(bnorm > 0, bnorm, 1.0)
+    return x, k, res, neg
+
+
+class JacobiPreconditioner(eqx.Module):
+    """Diagonal (Jacobi) preconditioner ``b -> b / diag(A)``."""
+
+    inv_diag: jax.Array
+
+    def __call__(self, b):
+        return self.inv_diag * b
+
+
+class PreconditionedCG(lx.AbstractLinearSolver):
+    """:mod:`lineax` solver: conjugate gradients with a preconditioner, stopping on the 2-norm
+    of the true residual relative to the right-hand side (see :func:`pcg`).
+
+    ``options`` must hold ``"preconditioner"``: a callable SPD approximation of the inverse
+    (a :class:`MultigridPreconditioner` V-cycle or a :class:`JacobiPreconditioner`). The
+    operator must be symmetric positive definite (transposed solves reuse it).
+
+    Failure is carried by the values, not by lineax's result code: a solution whose relative
+    residual exceeds ``failure_rtol`` is NaN. (lineax raises on any unsuccessful result of a
+    transposed solve in reverse mode, whatever ``throw`` says; a NaN instead lets a fit reject
+    the trial point in forward and reverse mode alike.) Stats: ``num_steps`` (CG iterations),
+    ``relative_residual`` and ``negative_curvature`` (``p.Ap <= 0`` met: the operator is not
+    positive definite; the iterate reached so far is the truncated-CG direction).
+    """
+
+    rtol: float
+    max_steps: int
+    #: A solution whose relative residual exceeds this is returned as NaN (never a silently
+    #: inaccurate solution); between ``rtol`` and this it is returned (its residual in the stats).
+    failure_rtol: float = 1e-7
+
+    def init(self, operator, options: dict[str, Any]):
+        return operator, options["preconditioner"]
+
+    def compute(self, state, vector, options):
+        operator, precond = state
+        x0 = options.get("y0", jnp.zeros_like(vector))
+        x, steps, res, neg = pcg(operator.mv, precond, vector, x0, rtol=self.rtol, max_steps=self.max_steps)
+        x = jnp.where(res <= jnp.maximum(self.failure_rtol, self.rtol), x, jnp.nan)
+        return x, lx.RESULTS.successful, {"num_steps": steps, "relative_residual": res, "negative_curvature": neg}
+
+    def transpose(self, state, options):
+        return state, options
+
+    def conj(self, state, options):
+        return state, options
+
+    def assume_full_rank(self):
+        return True
+
+
+# ------------------------------------------------------------------------ host setup
+_CACHE: dict[str, MultigridHierarchy] = {}
+
+
+def multigrid_setup(A, points, free_dofs, *, max_coarse: int = 60, key: str | None = None) -> MultigridHierarchy:
+    """Build a :class:`MultigridHierarchy` on the host from the reference matrix ``A``.
+
+    Args:
+        A: SciPy sparse ``(3N, 3N)`` matrix (BSR with 3x3 blocks is used as it is) ``P H P + (I - P)`` at rest for the reference
+            material (symmetric positive definite).
+        points: ``(N, 3)`` node positions [m] (for the rigid-body near-null space).
+        free_dofs: ``(3N,)`` 1 on free, 0 on prescribed DOFs.
+        max_coarse: largest coarsest level in nodal blocks (PyAMG counts blocks: 3 unknowns
+            per node on the finest level, 6 rigid-body modes per aggregate below); it is
+            solved by a dense inverse.
+        key: a content key for the cache (the hierarchy is reused when it matches).
+
+    Returns:
+        The hierarchy (NumPy arrays; a jitted solve takes them as arguments).
+    """
+    import pyamg  # one-off setup only; heavy import kept out of the package import
+
+    if key is not None and key in _CACHE:
+        return _CACHE[key]
+    n = A.shape[0]
+    if n % 3:
+        raise ModelError(f"the multigrid solver needs 3 unknowns per node, got a matrix of size {n}")
+    A = sps.bsr_matrix(A, blocksize=(3, 3), dtype=float)
+    free = np.asarray(free_dofs, dtype=float).reshape(-1)
+    B = rigid_body_modes(points) * free[:, None]
+    ml = pyamg.smoothed_aggregation_solver(
+        A, B=B, symmetry="hermitian", strength="symmetric", max_coarse=max_coarse, keep=False
+    )
+    levels = []
+    sizes = []
+    for lvl in ml.levels[:-1]:
+        Al = sps.csr_matrix(lvl.A)
+        d = Al.diagonal()
+        dinv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
+        lam = pyamg.util.linalg.approximate_spectral_radius(sps.diags(dinv) @ Al, maxiter=15, restart=0)
+        A_ell = None if not levels else ell_from_csr(Al)
+        levels.append(_Level(A_ell, ell_from_csr(lvl.P), ell_from_csr(lvl.R), np.asarray(float(lam))))
+        sizes.append(Al.shape[0])
+    Ac = np.asarray(sps.csr_matrix(ml.levels[-1].A).toarray())
+    sizes.append(Ac.shape[0])
+    Ac = 0.5 * (Ac + Ac.T)
+    try:
+        L = np.linalg.cholesky(Ac)
+        Linv = scipy.linalg.solve_triangular(L, np.eye(L.shape[0]), lower=True)
+        coarse_inv = Linv.T @ Linv
+    except np.linalg.LinAlgError:  # a rank-deficient coarse space (e.g. empty aggregates): pseudo-inverse
+        w, V = np.linalg.eigh(Ac)
+        keep = w > w.max() * 1e-12
+        coarse_inv = (V[:, keep] / w[keep]) @ V[:, keep].T
+    ref_diag = float(np.sum(free * A.diagonal()))
+    # NumPy arrays, as in SparseLayout: nothing cached may be a tracer.
+    h = MultigridHierarchy(tuple(levels), coarse_inv, np.asarray(ref_diag), tuple(sizes))
+    if key is not None:
+        if len(_CACHE) > 8:
+            _CACHE.pop(next(iter(_CACHE)))
+        _CACHE[key] = h
+    return h
+
+
+def multigrid_cached(key: str) -> MultigridHierarchy | None:
+    """The cached hierarchy for ``key`` (see :func:`multigrid_setup`), or None."""
+    return _CACHE.get(key)
+
+
+def cache_key(*parts) -> str:
+    """A content hash of arrays and values (for :func:`multigrid_setup`'s cache)."""
+    h = hashlib.sha256()
+    for p in parts:
+        a = np.asarray(p)
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()

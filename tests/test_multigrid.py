@@ -1,0 +1,162 @@
+"""The multigrid-preconditioned CG linear solver of the static solve: same answers and
+implicit gradients as the dense solve, vmap, no recompilation, a named error when it fails."""
+
+import logging
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse as sps
+
+from difftissue.boundary import BoundaryConditions
+from difftissue.errors import LinearSolverError
+from difftissue.materials import Material
+from difftissue.mesh import block
+from difftissue.models import MODELS, make_model
+from difftissue.solvers import solve_static
+from difftissue.solvers.multigrid import EllMatrix, JacobiPreconditioner, ell_from_csr, pcg, rigid_body_modes, sparse_layout
+from difftissue.solvers.static import _dense_hessian, _element_data, auto_linear_solver
+
+DEPTH = 2e-4  # punch displacement [m]
+
+
+def _punch(kind, cells=(6, 6, 4)):
+    """A bonded block 12 x 12 x 8 mm under a bonded flat punch of radius 3 mm: enough nodes
+    (245) for a two-level hierarchy."""
+    mesh = block((0.012, 0.012, 0.008), cells)
+    model = make_model(mesh, kind)
+    X = np.asarray(mesh.points)
+    top = (np.isclose(X[:, 2], 0.008)) & (np.hypot(X[:, 0] - 0.006, X[:, 1] - 0.006) <= 0.003 + 1e-12)
+    fixed = np.zeros(X.shape, bool)
+    fixed[np.isclose(X[:, 2], 0.0)] = True
+    fixed[top] = True
+    disp = np.zeros(X.shape)
+    disp[top, 2] = -DEPTH
+    return model, BoundaryConditions(fixed, jnp.asarray(disp), jnp.zeros(X.shape)), np.flatnonzero(top)
+
+
+@pytest.fixture(scope="module")
+def springs():
+    return _punch("springs_volume")
+
+
+def _force(model, bc, top, material, solver="multigrid", **kw):
+    sol = solve_static(model, material, bc, linear_solver=solver, **kw)
+    return jnp.sum(sol.reaction[top, 2])
+
+
+def test_ell_layout_assembles_the_projected_hessian(springs):
+    model, bc, _ = springs
+    material = Material(1e4, 0.45, 2.0)
+    terms = model.terms(material)
+    layout = sparse_layout([t.nodes for t in terms], model.n_nodes)
+    x = jnp.asarray(model.rest_points) + 1e-4 * jnp.sin(jnp.arange(3 * model.n_nodes).reshape(-1, 3))
+    P = 1.0 - jnp.asarray(bc.fixed, float).reshape(-1)
+    ell = layout.assemble(_element_data(model, x, material), P)
+    H = _dense_hessian(model, x, material)
+    expected = H * P[:, None] * P[None, :] + jnp.diag(1.0 - P)
+    v = jnp.cos(jnp.arange(3 * model.n_nodes) * 0.3)
+    np.testing.assert_allclose(ell.mv(v), expected @ v, rtol=1e-12, atol=1e-12 * float(jnp.abs(expected).max()))
+    np.testing.assert_allclose(ell.diagonal(), jnp.diagonal(expected), rtol=1e-13)
+
+
+def test_ell_from_csr_and_pcg_on_a_known_system():
+    rng = np.random.default_rng(0)
+    M = sps.random(60, 60, density=0.1, random_state=1)
+    A = (M @ M.T + 60 * sps.eye(60)).tocsr()
+    ell = ell_from_csr(A)
+    b = rng.standard_normal(60)
+    np.testing.assert_allclose(ell.mv(jnp.asarray(b)), A @ b, rtol=1e-13)
+    x, steps, res, neg = pcg(ell.mv, JacobiPreconditioner(1.0 / jnp.asarray(A.diagonal())), jnp.asarray(b), jnp.zeros(60), rtol=1e-12, max_steps=200)
+    np.testing.assert_allclose(x, np.linalg.solve(A.toarray(), b), rtol=1e-10)
+    assert float(res) <= 1e-12 and not bool(neg) and 0 < int(steps) < 60
+    # an indefinite matrix is detected (negative curvature), not silently solved
+    _, _, _, neg = pcg(EllMatrix(-ell.data, ell.cols).mv, lambda r: r, jnp.asarray(b), jnp.zeros(60), rtol=1e-12, max_steps=200)
+    assert bool(neg)
+
+
+def test_rigid_body_modes_are_in_the_null_space_of_the_free_stiffness(springs):
+    model, _, _ = springs
+    material = Material(1e4, 0.45)
+    H = _dense_hessian(model, jnp.asarray(model.rest_points), material)
+    B = rigid_body_modes(model.rest_points)
+    assert float(jnp.abs(H @ B).max()) <= 1e-9 * float(jnp.abs(H).max())
+
+
+@pytest.mark.parametrize("kind", MODELS)
+def test_multigrid_equals_dense_for_every_model(kind):
+    model, bc, top = _punch(kind)
+    material = Material(1e4, 0.45, 1.0 if kind == "springs_volume" else 0.0)
+    dense = solve_static(model, material, bc, linear_solver="dense", rtol=1e-12)
+    mg = solve_static(model, material, bc, linear_solver="multigrid", rtol=1e-12, cg_rtol=1e-12)
+    assert bool(mg.converged)
+    assert 0 < int(mg.linear_steps) < 60  # preconditioned: far fewer than the 735 unknowns
+    scale = float(jnp.abs(dense.displacement).max())
+    np.testing.assert_allclose(mg.displacement, dense.displacement, rtol=0, atol=1e-8 * scale)
+    np.testing.assert_allclose(float(jnp.sum(mg.reaction[top, 2])), float(jnp.sum(dense.reaction[top, 2])), rtol=1e-8)
+
+
+@pytest.mark.parametrize("field", ["youngs_modulus", "poisson_ratio", "cubic_coefficient", "pre_stretch", "depth"])
+def test_implicit_gradients_through_multigrid_match_central_differences(springs, field):
+    model, bc, top = springs
+    base = {"youngs_modulus": 1e4, "poisson_ratio": 0.45, "cubic_coefficient": 2.0, "pre_stretch": 1.02, "depth": 1.0}
+    node = int(np.flatnonzero(~np.asarray(bc.fixed)[:, 2])[len(top) + 40])
+
+    def outputs(value):
+        p = dict(base, **{field: value})
+        material = Material(p["youngs_modulus"], p["poisson_ratio"], p["cubic_coefficient"], 1000.0, p["pre_stretch"])
+        b = BoundaryConditions(bc.fixed, bc.displacement * p["depth"], bc.force)
+        sol = solve_static(model, material, b, linear_solver="multigrid", rtol=1e-12, cg_rtol=1e-12, preconditioner_material=Material(1e4, 0.45))
+        return jnp.stack([jnp.sum(sol.reaction[top, 2]), sol.displacement[node, 2]])
+
+    v = base[field]
+    h = 1e-4 * abs(v)
+    jac = jax.jacrev(outputs)(v)
+    fd = (outputs(v + h) - outputs(v - h)) / (2 * h)
+    # rtol 1e-5, and an absolute floor of 1e-9 of each output per unit relative change for a
+    # derivative that vanishes (the displacement under a displacement control does not depend on E)
+    floor = 1e-9 * np.abs(np.asarray(outputs(v))) / abs(v)
+    assert np.all(np.abs(np.asarray(jac) - np.asarray(fd)) <= 1e-5 * np.abs(np.asarray(fd)) + floor), (jac, fd)
+    assert np.all(np.abs(np.asarray(fd)) > 1e3 * floor) or field == "youngs_modulus"  # the derivatives checked are not zero
+    _, tangent = jax.jvp(outputs, (v,), (1.0,))  # forward mode agrees with reverse mode
+    assert np.all(np.abs(np.asarray(tangent) - np.asarray(jac)) <= 1e-8 * np.abs(np.asarray(jac)) + 1e-3 * floor)
+
+
+def test_vmap_over_specimens_equals_single_solves_without_recompiling(springs, caplog):
+    model, bc, top = springs
+    E = jnp.array([5e3, 1e4, 4e4])
+    nu = jnp.array([0.3, 0.45, 0.4])
+
+    @jax.jit
+    def batch(E, nu):
+        return jax.vmap(lambda e, n: _force(model, bc, top, Material(e, n), preconditioner_material=Material(1e4, 0.45)))(E, nu)
+
+    forces = batch(E, nu)
+    single = [float(_force(model, bc, top, Material(float(e), float(n)))) for e, n in zip(E, nu)]
+    np.testing.assert_allclose(forces, single, rtol=1e-9)
+    E2, nu2 = E * 1.5, nu * 0.9
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        caplog.clear()
+        batch(E2, nu2).block_until_ready()
+    assert [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()] == []
+
+
+def test_preconditioner_that_stops_converging_raises_a_named_error(springs):
+    model, bc, _ = springs
+    # A hierarchy built for nu = 0.3 applied at nu = 0.4999, with a small CG budget.
+    with pytest.raises(LinearSolverError, match=r"CG iterations, relative residual"):
+        solve_static(model, Material(1e4, 0.4999), bc, linear_solver="multigrid", cg_max_steps=5, preconditioner_material=Material(1e4, 0.3))
+
+
+def test_tangent_of_an_unconverged_iterative_solve_is_nan_not_wrong(springs):
+    model, bc, top = springs
+    f = lambda E: _force(model, bc, top, Material(E, 0.45), cg_max_steps=3, throw=False)  # noqa: E731
+    assert not np.isfinite(float(jax.grad(f)(1e4)))
+
+
+def test_auto_rule():
+    assert auto_linear_solver(300) == "dense"
+    assert auto_linear_solver(10_000) == "sparse"
+    assert auto_linear_solver(200_000) == "multigrid"
+    assert auto_linear_solver(200_000, concrete=False) == "cg"
