@@ -1177,7 +1177,8 @@ def fit(
                     stopped_by_callback = True
                     break
     except BaseException:
-        save()
+        if step > resumed_from:  # nothing new to save before the first step (a rerun must not find a stale checkpoint)
+            save()
         raise
     finally:
         if bar is not None:

@@ -1,6 +1,7 @@
 """The command line: help, version, mesh generation, info, demo, one-line errors."""
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -131,3 +132,128 @@ def test_mesh_skin_to_medit_keeps_geometry_and_says_so(tmp_path, capsys):
     assert read_mesh(out).n_tets > 0
     assert main(["mesh", "block", "--size", "1", "0", "1", "--resolution", "1", "1", "1", "--out", str(tmp_path / "b.vtu")]) == 2
     assert "positive lengths in mm" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------- issue 17: fits a user can trust
+def test_help_and_version_do_not_import_jax():
+    """`difftissue --help` / `--version` parse arguments before any heavy import (no JAX, NumPy)."""
+    code = ("import sys\nfrom difftissue.cli import main\n"
+            "for argv in (['--help'], ['--version'], ['fit', '--help']):\n"
+            "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
+            "print('HEAVY=' + ','.join(sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib', 'numpy', 'equinox', 'rich'))))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "HEAVY=\n" in r.stdout, r.stdout[-500:]
+
+
+_AFM = Path(__file__).resolve().parents[1] / "difftissue" / "configs" / "afm_hertz.toml"
+
+
+def _raise_interrupt(*a, **k):
+    raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize("command, target", [
+    ("fit", "difftissue.config.load_config"),          # while reading the config and data
+    ("fit", "difftissue.config.FitConfig.run"),        # while fitting
+    ("fit", "difftissue.fit.write_fit_outputs"),       # while writing the outputs
+    ("simulate", "difftissue.config.load_config"),
+    ("simulate", "difftissue.simulate.simulate_config"),
+    ("demo", "difftissue.config.load_config"),
+    ("demo", "difftissue.config.FitConfig.run"),
+])
+def test_ctrl_c_in_any_phase_exits_130_with_one_line(tmp_path, capsys, monkeypatch, command, target):
+    module, _, attr = target.rpartition(".")
+    if attr == "run":
+        from difftissue.config import FitConfig
+
+        monkeypatch.setattr(FitConfig, "run", _raise_interrupt)
+    else:
+        monkeypatch.setattr(target, _raise_interrupt)
+    if attr == "write_fit_outputs":  # the fit itself must not run for seconds here: stop it at once
+        from difftissue.config import FitConfig
+
+        monkeypatch.setattr(FitConfig, "run", lambda self, **kw: object())
+    out = tmp_path / "out"
+    argv = {"fit": ["fit", str(_AFM), "--out", str(out)], "simulate": ["simulate", str(_AFM), "--out", str(out)],
+            "demo": ["demo", "--quick", "--out", str(out)]}[command]
+    assert main(argv) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("difftissue: interrupted; rerun the same command"), err
+    assert "Traceback" not in err
+    assert not (out / ".difftissue.lock").exists()  # the lock is released
+    if command == "fit":
+        assert not (out / "checkpoint" / "fit.npz").exists() and not (out / "checkpoint").exists()
+
+
+def test_ctrl_c_after_a_checkpoint_says_resume(tmp_path, capsys, monkeypatch):
+    from difftissue.config import FitConfig
+
+    def run(self, **kw):
+        Path(kw["checkpoint"]).write_bytes(b"state")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(FitConfig, "run", run)
+    out = tmp_path / "out"
+    assert main(["fit", str(_AFM), "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "with --resume to continue from" in err and str(out / "checkpoint" / "fit.npz") in err
+
+
+def test_a_second_run_into_a_locked_out_is_refused_and_a_stale_lock_taken_over(tmp_path, capsys, monkeypatch):
+    import os
+
+    from difftissue.cli import LOCK_NAME
+
+    out = tmp_path / "out"
+    out.mkdir()
+    lock = out / LOCK_NAME
+    lock.write_text(f"{os.getpid()}\n")  # a live process holds it (this one)
+    assert main(["fit", str(_AFM), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is in use by another difftissue run" in err and f"pid {os.getpid()}" in err
+    assert lock.read_text() == f"{os.getpid()}\n"  # not removed by the refused run
+    for argv in (["demo", "--quick", "--out", str(out)], ["simulate", str(_AFM), "--out", str(out)]):
+        assert main(argv) == 1 and "in use by another difftissue run" in capsys.readouterr().err
+    # a dead process's lock is taken over, with a note
+    child = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    lock.write_text(child.stdout.strip() + "\n")
+    from difftissue.config import FitConfig
+
+    seen = {}
+
+    def run(self, **kw):
+        seen["lock"] = lock.read_text().split()[0]
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(FitConfig, "run", run)
+    assert main(["fit", str(_AFM), "--out", str(out)]) == 130
+    assert seen["lock"] == str(os.getpid()) and not lock.exists()
+
+
+def test_a_fit_that_fails_before_any_step_leaves_nothing_blocking_a_rerun(tmp_path, capsys, monkeypatch):
+    from difftissue.config import FitConfig
+    from difftissue.errors import FitError
+
+    def run(self, **kw):
+        raise FitError("boom")
+
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        m.setattr(FitConfig, "run", run)
+        assert main(["fit", str(_AFM), "--out", str(out)]) == 1
+    assert "boom" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == []
+    assert main(["fit", str(_AFM), "--out", str(out)]) == 0  # the rerun is not refused
+
+
+def test_library_words_become_cli_flags():
+    from difftissue.cli import cli_words
+
+    assert cli_words("x exists; refusing to overwrite it (choose another output directory or pass force=True / --force)") \
+        .endswith("(choose another output directory or pass --force)")
+    assert "--approximate to drop it" in cli_words("b != 0; pass approximate=True (--approximate) to drop it")
+    assert "pass --resume" in cli_words("checkpoint c exists; pass resume=True to continue that fit")
+    msg = "read it with reorient=True (CLI: --reorient)"
+    assert cli_words(msg, "info") == "read it with --reorient"
+    assert "reorient = true" in cli_words(msg, "fit") and "=True" not in cli_words(msg, "fit")
