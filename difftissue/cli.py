@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 import warnings
@@ -241,6 +242,17 @@ def _cmd_info(args) -> int:
     return 1 if any(f.severity == "error" for f in findings) else 0
 
 
+def _load_config(path):
+    """:func:`difftissue.config.load_config`, its data-plausibility warnings kept for the
+    command's own output (``warning:`` lines, fit.json, report.md) instead of Python's format."""
+    from .config import load_config
+    from .errors import ImplausibleUnitWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ImplausibleUnitWarning)
+        return load_config(path)
+
+
 def _enable_float64() -> None:
     """Fits run in float64 (the covariance and tight tolerances need it); must precede any jax array."""
     import jax
@@ -446,7 +458,7 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
 
     paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name,
                               force=force or resume, scenario_records=[scenario_record(s) for s in cfg.scenarios],
-                              scenarios=cfg.scenarios)
+                              scenarios=cfg.scenarios, data=cfg.data_provenance, data_warnings=cfg.data_warnings)
     if cfg.path is not None:
         with atomic_output(out / "config.toml", overwrite=True) as tmp:
             tmp.write_bytes(Path(cfg.path).read_bytes())
@@ -477,7 +489,7 @@ def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
     state = "converged" if result.converged else "NOT converged"
     rms = ", ".join(f"{s.name} {np.sqrt(np.mean(s.residual ** 2)):.3g}" for s in result.scenarios)
     console.print(f"loss {result.loss:.6g}, {state} after {result.steps} steps ({result.reason}); rms residual/sigma: {rms}; {elapsed:.1f} s", markup=False, highlight=False)
-    for w in result.warnings:
+    for w in [*cfg.data_warnings, *result.warnings]:
         console.print(f"warning: {_one_line(w)}", markup=False, highlight=False)
     for n in notes:
         console.print(f"note: {cli_words(n, 'fit')}", markup=False, highlight=False)
@@ -492,10 +504,9 @@ def _cmd_fit(args) -> int:
     """Fit a TOML config and write the outputs."""
     from rich.console import Console
 
-    from .config import load_config
 
     _enable_float64()
-    cfg = load_config(args.config)
+    cfg = _load_config(args.config)
     if args.starts is not None and args.starts < 1:
         raise _UsageError(f"--starts must be >= 1, got {args.starts}")
     out = Path(args.out)
@@ -533,12 +544,11 @@ def _parse_overrides(items) -> dict:
 
 def _cmd_simulate(args) -> int:
     """Evaluate a config's experiments at its [material] (or --set values) without fitting."""
-    from .config import load_config
     from .simulate import simulate_config, write_simulation_outputs
 
     _enable_float64()
     overrides = _parse_overrides(args.set)
-    cfg = load_config(args.config)
+    cfg = _load_config(args.config)
     out = Path(args.out)
     with _OutputLock(out) as lock:
         try:
@@ -551,6 +561,8 @@ def _cmd_simulate(args) -> int:
         paths = write_simulation_outputs(material, sims, out, config=cfg.path, force=args.force)
     if lock.note:
         print(f"note: {lock.note}")
+    for w in cfg.data_warnings:
+        print(f"warning: {_one_line(w)}")
     print(f"material: E = {float(material.youngs_modulus):.6g} Pa, nu = {float(material.poisson_ratio):.6g}, "
           f"b = {float(material.cubic_coefficient):.6g}, pre-stretch = {float(material.pre_stretch):.6g}")
     for s in sims:
@@ -584,14 +596,12 @@ def _demo(args, out: Path, t0: float, notes) -> int:
     import numpy as np
     from rich.console import Console
 
-    from .config import load_config
-
     console = Console(highlight=False)
     here = Path(__file__).resolve().parent / "configs"
     chosen = DEMO_CONFIGS[:1] if args.quick else DEMO_CONFIGS
     summary = {}
     for name, sub in chosen:
-        cfg = load_config(here / name)
+        cfg = _load_config(here / name)
         result, _ = _run_config(cfg, out / sub, force=True, resume=False, progress=False, starts=None, checkpoint=False, console=console, extra_notes=notes)
         notes = []
         summary[sub] = result
@@ -764,4 +774,6 @@ def cli_words(text: str, command: str | None = None) -> str:
     for api, cli in _CLI_WORDS:
         text = text.replace(api, cli)
     reorient = "--reorient" if command == "info" else "reorient = true (in the mesh's specimen or data table of the config)"
-    return text.replace("reorient=True (CLI: --reorient)", reorient)
+    text = text.replace("reorient=True (CLI: --reorient)", reorient)
+    # data.py: "pass plausible={'depth': (lo, hi)}" -> the config's data-table key
+    return re.sub(r"pass plausible=\{'(\w+)': \(lo, hi\)\}", r"set plausible = { \1 = [lo, hi] } (SI) in the experiment's data table", text)

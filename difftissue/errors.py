@@ -295,7 +295,7 @@ class DisconnectedCutError(CutError):
 
 # ====================================================================== trustworthy fits
 # (appended block: issue 17 -- no silent wrong answers)
-__all__ += ["OutputLockedError", "ImplausibleUnitWarning", "ReactionSignError", "DataRowsWarning"]
+__all__ += ["OutputLockedError", "ImplausibleUnitWarning", "ReactionSignError"]
 
 
 class OutputLockedError(OutputError):
@@ -312,11 +312,6 @@ class ImplausibleUnitWarning(DifftissueWarning):
     """Measured values are implausible for the experiment's geometry (e.g. indentation depths
     larger than the indenter radius, or a thousand times smaller): most often a unit mistake
     (depths in m declared as mm). The message names the likely mistake and its factor."""
-
-
-class DataRowsWarning(DifftissueWarning):
-    """Data rows were reordered or left out before a fit (unsorted depths, depths <= 0, rows
-    beyond ``max_depth``, thinning to ``points``); the message says which and why."""
 
 
 class ReactionSignError(DataError):

@@ -257,3 +257,140 @@ def test_library_words_become_cli_flags():
     msg = "read it with reorient=True (CLI: --reorient)"
     assert cli_words(msg, "info") == "read it with --reorient"
     assert "reorient = true" in cli_words(msg, "fit") and "=True" not in cli_words(msg, "fit")
+
+
+# Bad input (docs/fitting.md, "Bad input"): what a user sees for each case. A Hertz curve of
+# E = 5 kPa, nu = 0.45, sphere radius 2 mm, 30 rows, depths 0.02 .. 0.6 mm.
+_E, _NU, _R = 5.0e3, 0.45, 2.0e-3
+
+
+def _hertz_rows(depth_m):
+    d = np.asarray(depth_m, dtype=float)
+    return 4.0 / 3.0 * _E / (1 - _NU**2) * np.sqrt(_R) * np.clip(d, 0, None) ** 1.5
+
+
+def _curve(case):
+    """(depth values as written, force values as written, depth unit, force unit, data extra)."""
+    d = np.linspace(0.02e-3, 0.6e-3, 30)
+    f = _hertz_rows(d)
+    perm = np.random.default_rng(0).permutation(30)
+    return {
+        "unsorted": (d[perm] * 1e3, f[perm], "mm", "N", ""),
+        "unsorted_sort_true": (d[perm] * 1e3, f[perm], "mm", "N", ", sort = true"),
+        "loading_then_unloading": (np.r_[d, d[::-1][1:]] * 1e3, np.r_[f, 0.8 * f[::-1][1:]], "mm", "N", ""),
+        "precontact_rows": (np.r_[-0.1e-3, -0.05e-3, 0.0, d] * 1e3, np.r_[0.0, 0.0, 0.0, f], "mm", "N", ""),
+        "depth_m_declared_mm": (d, f, "mm", "N", ""),
+        "depth_um_declared_mm": (d * 1e6, f, "mm", "N", ""),  # 0.6 m: beyond the loader's 'macro' range
+        "depth_30x_radius": (d * 1e5, f, "mm", "N", ""),  # 0.06 m: in range, but 30 x the radius
+        "force_uN_declared_N": (d * 1e3, f * 1e6, "mm", "N", ""),
+    }[case]
+
+
+def _write_case(tmp_path, case):
+    depth, force, du, fu, extra = _curve(case)
+    (tmp_path / "curve.csv").write_text("depth,force\n" + "".join(f"{a:.9g},{b:.9g}\n" for a, b in zip(depth, force)))
+    (tmp_path / "fit.toml").write_text(f'''
+[material]
+youngs_modulus = 1e3
+poisson_ratio = 0.45
+[fit]
+parameters = ["youngs_modulus"]
+[[experiment]]
+name = "curve"
+scenario = "analytic_indentation"
+data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "{du}" }}, force = {{ name = "force", unit = "{fu}" }} }}{extra} }}
+indenter = {{ shape = "sphere", radius = 2, length_unit = "mm" }}
+''')
+    return tmp_path / "fit.toml"
+
+
+# case, exit status, text the user sees (stderr on errors, stdout otherwise), fitted E [Pa] or None
+BAD_INPUT = [
+    ("unsorted", 1, "rows are out of order at file lines", None),
+    ("unsorted_sort_true", 0, "reordered 30 (file lines", _E),
+    ("loading_then_unloading", 0, "left out 29 (file lines [32, 33", _E),
+    ("precontact_rows", 0, "depth <= 0 (at or before the contact point", _E),
+    ("depth_m_declared_mm", 0, "warning: experiment[0]: the deepest point 6e-07 m is 0.0003 x the indenter radius", None),
+    ("depth_um_declared_mm", 1, "above the plausible range [1e-07, 2e-01] m for 'macro' data; the values would be plausible in 'um' or 'nm'. "
+     "Check the unit, or set plausible = { depth = [lo, hi] } (SI) in the experiment's data table", None),
+    ("depth_30x_radius", 0, "most likely depths given in um but declared as mm", None),
+    ("force_uN_declared_N", 0, "implies an effective modulus of", None),
+]
+
+
+@pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning")
+@pytest.mark.parametrize("case, status, seen, modulus", BAD_INPUT, ids=[b[0] for b in BAD_INPUT])
+def test_bad_input_is_never_a_silent_wrong_modulus(tmp_path, capsys, case, status, seen, modulus):
+    out = tmp_path / "out"
+    assert main(["fit", str(_write_case(tmp_path, case)), "--out", str(out)]) == status
+    cap = capsys.readouterr()
+    text = " ".join((cap.err if status else cap.out).split())
+    assert seen in text, text[-2000:]
+    if status:
+        assert cap.err.count("\n") == 1 and "Traceback" not in cap.err and not (out / "fit.json").exists()
+        return
+    rec = json.loads((out / "fit.json").read_text())
+    report = (out / "report.md").read_text()
+    rows = rec["data_rows"][0]
+    assert rows["rows_used"] == len(rows["used"]) and rows["rows_in_file"] == len(_curve(case)[0])
+    assert "## Data rows" in report and f"| curve | `curve.csv` | {rows['rows_used']} |" in report
+    if modulus is not None:  # the rows were handled correctly: the true modulus comes back
+        assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(modulus, rel=1e-6)
+        assert rec["data_warnings"] == []
+    else:  # a likely unit mistake: named in the output, fit.json and report.md
+        assert len(rec["data_warnings"]) >= 1 and "ImplausibleUnitWarning" not in text
+        assert all(f"- data: {w}" in report for w in rec["data_warnings"])
+
+
+def _punch_reference(tmp_path):
+    """A tiny fem_field reference (2 x 2 x 1 cubes, punch of 4 top nodes pressed down 1 % of the height)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from difftissue import Material, block, write_mesh
+    from difftissue.boundary import BoundaryConditions
+    from difftissue.models import make_model
+    from difftissue.solvers import solve_static
+
+    mesh = block((0.002, 0.002, 0.001), (2, 2, 1))
+    p = np.asarray(mesh.points)
+    bottom, top = np.isclose(p[:, 2], 0.0), np.isclose(p[:, 2], 0.001)
+    punch = top & (np.hypot(p[:, 0] - 0.001, p[:, 1] - 0.001) <= 0.0011)
+    bc = BoundaryConditions.free(mesh).fix(mesh, np.flatnonzero(bottom)).fix(mesh, np.flatnonzero(punch), "z", (0, 0, -1e-5))
+    sol = solve_static(make_model(mesh, "fem_linear"), Material(12e3, 0.42), bc)
+    write_mesh(tmp_path / "ref.vtu", mesh, point_data={"displacement": np.asarray(sol.displacement), "reaction": np.asarray(sol.reaction),
+                                                       "bottom": bottom.astype(np.int32), "punch": punch.astype(np.int32)})
+    return float(np.asarray(sol.reaction)[punch, 2].sum())
+
+
+@pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning")
+def test_fem_field_force_of_the_wrong_sign_is_refused(tmp_path, capsys):
+    """The reaction on the prescribed punch nodes is negative (pressed down in -z); the docs'
+    old comment suggested a positive force, which drove E to 2e-41 Pa with converged: true."""
+    F = _punch_reference(tmp_path)
+    assert F < 0
+    for force, status in ((-F, 1), (F, 0)):
+        (tmp_path / "fit.toml").write_text(f'''
+[material]
+youngs_modulus = 5e3
+poisson_ratio = 0.42
+[fit]
+parameters = ["youngs_modulus"]
+max_steps = 30
+[[experiment]]
+name = "punch"
+scenario = "fem_field"
+data = {{ format = "fem", path = "ref.vtu", field = "displacement" }}
+prescribed = [{{ set = "bottom" }}, {{ set = "punch", components = "z" }}]
+reaction = {{ set = "punch", components = "z", force = [{force!r}] }}
+''')
+        rc = main(["fit", str(tmp_path / "fit.toml"), "--out", str(tmp_path / f"out{status}")])
+        cap = capsys.readouterr()
+        assert rc == status, cap.err
+        if status:
+            err = " ".join(cap.err.split())
+            assert "ReactionSign" not in err and "opposite sign of the model's reaction" in err and f"force = [{F:.6g}]" in err
+            assert "negative along an axis the nodes are pushed into the specimen" in err
+        else:
+            rec = json.loads((tmp_path / "out0" / "fit.json").read_text())
+            assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(12e3, rel=1e-6)
