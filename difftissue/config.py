@@ -351,8 +351,8 @@ def _provenance_note(path: str, prov: dict) -> str:
 
     names = prov["row_names"]
     parts = [f"{st['action']} {len(st['rows'])} ({names} {_cite(st['rows'], 6)}): {st['reason']}" for st in prov["steps"]]
-    return (f"{path}: the fit uses {prov['rows_used']} of the {prov['rows_in_file']} data rows of {Path(prov['file']).name}"
-            + ("; " + "; ".join(parts) if parts else ""))
+    return (f"{path}: the fit uses {prov['rows_used']} of the {prov['rows_loaded']} rows loaded from {Path(prov['file']).name} "
+            f"({prov['loaded']})" + ("; " + "; ".join(parts) if parts else ""))
 
 
 # ============================================================================ result types
@@ -366,7 +366,8 @@ class Experiment:
     scenario: Any
     data_files: tuple[Path, ...]
     notes: tuple[str, ...] = ()
-    #: rows of the data file used by the fit: ``file``, ``rows_in_file``, ``rows_used``,
+    #: rows of the data file used by the fit: ``file``, ``rows_loaded`` (by the loader),
+    #: ``loaded`` (which rows the loader returned), ``rows_used``,
     #: ``row_names`` ("file lines" or "data rows"), ``used`` (their names, in fit order),
     #: ``steps`` (``{"action": "left out" | "reordered", "rows": [...], "reason": ...}``)
     provenance: dict | None = None
@@ -846,7 +847,10 @@ def _force_depth(e, path, base_dir, kind):
     labels, kind_name = _row_labels(curve)
     _record_thinning(labels, rows, sel, np.asarray(curve.depth, dtype=float), x_max=max_depth, points=points, record=steps)
     used = rows[sel]
-    prov = {"file": str(file), "rows_in_file": len(curve), "rows_used": int(used.size), "row_names": kind_name,
+    loaded = "every data row of the file"
+    if str(curve.metadata.get("segment", "")).startswith("approach from contact"):
+        loaded = f"the approach from the detected contact point ({kind_name[:-1]} {labels[0]}) to the turnaround (data.contact = true)"
+    prov = {"file": str(file), "rows_loaded": len(curve), "loaded": loaded, "rows_used": int(used.size), "row_names": kind_name,
             "used": [int(i) for i in labels[used]], "steps": steps}
     depth, force = np.asarray(curve.depth, dtype=float)[used], np.asarray(curve.force, dtype=float)[used]
     sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), force, "N")

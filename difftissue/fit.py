@@ -1483,10 +1483,10 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     data_warnings = [f"- data: {w}" for w in record.get("data_warnings", ())]
     lines += data_warnings + [f"- {w}" for w in result.warnings] or ["None: every parameter is determined by the data."]
     if record.get("data_rows"):
-        lines += ["", "## Data rows", "", "| experiment | file | rows used | of | left out or reordered |", "|---|---|---|---|---|"]
+        lines += ["", "## Data rows", "", "| experiment | file | rows used | rows loaded | left out or reordered |", "|---|---|---|---|---|"]
         for d in record["data_rows"]:
             steps = "; ".join(f"{st['action']} {len(st['rows'])}: {st['reason']}" for st in d["steps"]) or "-"
-            lines.append(f"| {d['experiment']} | `{Path(d['file']).name}` | {d['rows_used']} | {d['rows_in_file']} | {steps} |")
+            lines.append(f"| {d['experiment']} | `{Path(d['file']).name}` | {d['rows_used']} | {d['rows_loaded']} ({d['loaded']}) | {steps} |")
         lines += ["", "The row numbers are in `fit.json` (`data_rows`)."]
     lines += ["", "## Scenarios", "", "| scenario | points | rms residual / sigma |", "|---|---|---|"]
     for s in result.scenarios:

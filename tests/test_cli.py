@@ -332,7 +332,8 @@ def test_bad_input_is_never_a_silent_wrong_modulus(tmp_path, capsys, case, statu
     rec = json.loads((out / "fit.json").read_text())
     report = (out / "report.md").read_text()
     rows = rec["data_rows"][0]
-    assert rows["rows_used"] == len(rows["used"]) and rows["rows_in_file"] == len(_curve(case)[0])
+    assert rows["rows_used"] == len(rows["used"]) and rows["rows_loaded"] == len(_curve(case)[0])
+    assert rows["rows_used"] + sum(len(st["rows"]) for st in rows["steps"] if st["action"] == "left out") == rows["rows_loaded"]
     assert "## Data rows" in report and f"| curve | `curve.csv` | {rows['rows_used']} |" in report
     if modulus is not None:  # the rows were handled correctly: the true modulus comes back
         assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(modulus, rel=1e-6)
