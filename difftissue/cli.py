@@ -286,9 +286,12 @@ class _quiet_callback_logs:
         return False
 
 
-def _interrupted(ckpt) -> "_Interrupted":
-    """The interruption of a fit, with how to carry on (``--resume`` when a checkpoint exists)."""
-    if ckpt is not None and ckpt.exists():
+def _interrupted(ckpt) -> KeyboardInterrupt:
+    """The interruption of a fit, with how to carry on (``--resume`` when a checkpoint exists);
+    a plain KeyboardInterrupt for fits without a checkpoint (``demo``: the command's own hint)."""
+    if ckpt is None:
+        return KeyboardInterrupt()
+    if ckpt.exists():
         return _Interrupted(f"rerun the same command with --resume to continue from {ckpt}")
     return _Interrupted("rerun the same command to start again (no fit step was saved)")
 

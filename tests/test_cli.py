@@ -184,6 +184,8 @@ def test_ctrl_c_in_any_phase_exits_130_with_one_line(tmp_path, capsys, monkeypat
     assert not (out / ".difftissue.lock").exists()  # the lock is released
     if command == "fit":
         assert not (out / "checkpoint" / "fit.npz").exists() and not (out / "checkpoint").exists()
+    else:  # the folder may hold this run's files: the rerun needs --force
+        assert f"(add --force if {out} holds files of this run)" in err
 
 
 def test_ctrl_c_after_a_checkpoint_says_resume(tmp_path, capsys, monkeypatch):
