@@ -7,16 +7,50 @@ The public API is organised by job:
 - :mod:`difftissue.selectors` -- node sets described as data.
 
 Units are SI everywhere (m, N, Pa, s, kg).
+
+The submodules that need JAX (``materials``, ``mesh``, ``selectors``) and the names taken from
+them are imported on first use (PEP 562 ``__getattr__``), so ``import difftissue`` and the
+command line's ``--help`` / ``--version`` do not start JAX.
 """
+
+import importlib
 
 from ._version import __version__
 from . import _xla
 
 _xla.configure()  # before JAX's CPU backend starts (see difftissue/_xla.py)
 
-from . import errors, materials, mesh, selectors
-from .materials import Material
-from .mesh import Specimen, TetMesh, block, layered_skin, read_mesh, write_mesh
+from . import errors  # noqa: E402  (no JAX)
+
+#: Names imported on first access: name -> (submodule, attribute or None for the module).
+_LAZY = {
+    "materials": ("materials", None),
+    "mesh": ("mesh", None),
+    "selectors": ("selectors", None),
+    "Material": ("materials", "Material"),
+    "Specimen": ("mesh", "Specimen"),
+    "TetMesh": ("mesh", "TetMesh"),
+    "block": ("mesh", "block"),
+    "layered_skin": ("mesh", "layered_skin"),
+    "read_mesh": ("mesh", "read_mesh"),
+    "write_mesh": ("mesh", "write_mesh"),
+}
+
+
+def __getattr__(name: str):
+    """Import a JAX-backed submodule (or a name from it) on first access."""
+    if name not in _LAZY:
+        raise AttributeError(f"module 'difftissue' has no attribute {name!r}")
+    module, attr = _LAZY[name]
+    mod = importlib.import_module(f".{module}", __name__)
+    value = mod if attr is None else getattr(mod, attr)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_LAZY))
+
 
 __all__ = [
     "__version__",

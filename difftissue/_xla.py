@@ -19,6 +19,7 @@ first computation), so importing difftissue after a JAX computation cannot apply
 from __future__ import annotations
 
 import os
+import sys
 
 FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler"
 
@@ -31,6 +32,9 @@ def configure() -> bool:
         return True
     if os.environ.get("DIFFTISSUE_KEEP_XLA_FLAGS", "") not in ("", "0"):
         return False
+    if "jax" not in sys.modules:  # no JAX yet, so no backend: set the flag without importing JAX
+        os.environ["XLA_FLAGS"] = (flags + f" {FLAG}=false").strip()
+        return True
     try:
         from jax._src import xla_bridge
 

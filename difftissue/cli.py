@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import re
 import sys
 import time
 import warnings
@@ -140,7 +141,7 @@ def _print_summary(title: str, summary: dict, findings, notes) -> None:
     if not findings:
         console.print("validation: no problems found")
     for f in findings:
-        console.print(f"{f.severity}: {f.kind.__name__}: {f.message}", markup=False)
+        console.print(f"{f.severity}: {f.kind.__name__}: {cli_words(f.message, 'info')}", markup=False)
 
 
 def _parse_specimen(spec: str, factor: float):
@@ -241,6 +242,17 @@ def _cmd_info(args) -> int:
     return 1 if any(f.severity == "error" for f in findings) else 0
 
 
+def _load_config(path):
+    """:func:`difftissue.config.load_config`, its data-plausibility warnings kept for the
+    command's own output (``warning:`` lines, fit.json, report.md) instead of Python's format."""
+    from .config import load_config
+    from .errors import ImplausibleUnitWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ImplausibleUnitWarning)
+        return load_config(path)
+
+
 def _enable_float64() -> None:
     """Fits run in float64 (the covariance and tight tolerances need it); must precede any jax array."""
     import jax
@@ -274,9 +286,19 @@ class _quiet_callback_logs:
         return False
 
 
-def _interrupted(ckpt) -> None:
-    if ckpt is not None and ckpt.exists():
-        print(f"difftissue: fit interrupted; its state is saved in {ckpt}: continue with --resume", file=sys.stderr)
+def _interrupted(ckpt) -> KeyboardInterrupt:
+    """The interruption of a fit, with how to carry on (``--resume`` when a checkpoint exists);
+    a plain KeyboardInterrupt for fits without a checkpoint (``demo``: the command's own hint)."""
+    if ckpt is None:
+        return KeyboardInterrupt()
+    if ckpt.exists():
+        return _Interrupted(f"rerun the same command with --resume to continue from {ckpt}")
+    return _Interrupted("rerun the same command to start again (no fit step was saved)")
+
+
+def _is_runtime_error(e: BaseException) -> bool:
+    """A JAX / XLA / equinox runtime error (an exception raised inside compiled code)."""
+    return type(e).__name__ in ("JaxRuntimeError", "XlaRuntimeError", "EquinoxRuntimeError", "_EquinoxRuntimeError")
 
 
 def _runtime_message(e: BaseException) -> str:
@@ -288,6 +310,97 @@ def _runtime_message(e: BaseException) -> str:
                 return ln.split(tag, 1)[1].strip()
     text = next((ln for ln in lines if not ln.startswith(("File ", "Traceback", "---"))), "")
     return _one_line(text)[:300]
+
+
+LOCK_NAME = ".difftissue.lock"
+
+
+class _Interrupted(KeyboardInterrupt):
+    """Ctrl-C, with the one line that tells the user how to carry on."""
+
+    def __init__(self, hint: str):
+        super().__init__(hint)
+        self.hint = hint
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this machine (a permission error means it does)."""
+    import os
+
+    if pid <= 0:
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+class _OutputLock:
+    """``DIR/.difftissue.lock``, created with O_CREAT|O_EXCL and holding ``pid host``, for the
+    duration of one command that writes into DIR.
+
+    A second run into the same DIR is refused at once (:class:`~difftissue.errors.OutputLockedError`).
+    A lock whose process no longer exists on this host (a run that was killed) is taken over,
+    and :attr:`note` says so. The lock is removed on exit, whatever happened.
+    """
+
+    def __init__(self, out: Path):
+        self.out = Path(out)
+        self.path = self.out / LOCK_NAME
+        self.note: str | None = None
+        self._held = False
+
+    def _create(self) -> bool:
+        import os
+        import socket
+
+        try:
+            fd = os.open(self.path, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o644)
+        except FileExistsError:
+            return False
+        with os.fdopen(fd, "w") as fh:
+            fh.write(f"{os.getpid()} {socket.gethostname()}\n")
+        self._held = True
+        return True
+
+    def _owner(self) -> tuple[int | None, str]:
+        try:
+            parts = self.path.read_text().split()
+            return int(parts[0]), (parts[1] if len(parts) > 1 else "")
+        except (OSError, ValueError, IndexError):
+            return None, ""
+
+    def __enter__(self) -> "_OutputLock":
+        import socket
+
+        from .errors import OutputError, OutputLockedError
+
+        if self.out.exists() and not self.out.is_dir():
+            raise OutputError(f"{self.out} exists and is not a directory")
+        self.out.mkdir(parents=True, exist_ok=True)
+        if self._create():
+            return self
+        pid, host = self._owner()
+        stale = pid is not None and host in ("", socket.gethostname()) and not _pid_alive(pid)
+        if not stale:
+            who = f"pid {pid}" + (f" on {host}" if host else "") if pid is not None else "an unreadable lock"
+            raise OutputLockedError(f"{self.out} is in use by another difftissue run ({who}, lock file {self.path}); "
+                                    f"wait for it to finish or choose another --out (if no such run exists, delete {self.path})",
+                                    pid=pid, lock=self.path)
+        self.path.unlink(missing_ok=True)
+        if not self._create():  # another run took it over first
+            raise OutputLockedError(f"{self.out} is in use by another difftissue run (lock file {self.path}); choose another --out", lock=self.path)
+        self.note = f"took over the lock {self.path} of an earlier run (pid {pid}) that no longer exists"
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        if self._held:
+            self.path.unlink(missing_ok=True)
+            self._held = False
+        return False
 
 
 def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
@@ -331,15 +444,13 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
         warnings.simplefilter("always")
         try:
             result = cfg.run(**overrides)
-        except KeyboardInterrupt:
-            _interrupted(ckpt)
-            raise
+        except KeyboardInterrupt as e:
+            raise _interrupted(ckpt) from e
         except Exception as e:
-            if type(e).__name__ not in ("JaxRuntimeError", "XlaRuntimeError", "EquinoxRuntimeError", "_EquinoxRuntimeError"):
+            if not _is_runtime_error(e):
                 raise
             if "KeyboardInterrupt" in str(e):  # Ctrl-C while a model callback was running
-                _interrupted(ckpt)
-                raise KeyboardInterrupt from e
+                raise _interrupted(ckpt) from e
             from .errors import FitError
 
             hint = f"; resume with --resume (checkpoint {ckpt})" if ckpt is not None and ckpt.exists() else ""
@@ -350,7 +461,7 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
 
     paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name,
                               force=force or resume, scenario_records=[scenario_record(s) for s in cfg.scenarios],
-                              scenarios=cfg.scenarios)
+                              scenarios=cfg.scenarios, data=cfg.data_provenance, data_warnings=cfg.data_warnings)
     if cfg.path is not None:
         with atomic_output(out / "config.toml", overwrite=True) as tmp:
             tmp.write_bytes(Path(cfg.path).read_bytes())
@@ -381,10 +492,10 @@ def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
     state = "converged" if result.converged else "NOT converged"
     rms = ", ".join(f"{s.name} {np.sqrt(np.mean(s.residual ** 2)):.3g}" for s in result.scenarios)
     console.print(f"loss {result.loss:.6g}, {state} after {result.steps} steps ({result.reason}); rms residual/sigma: {rms}; {elapsed:.1f} s", markup=False, highlight=False)
-    for w in result.warnings:
+    for w in [*cfg.data_warnings, *result.warnings]:
         console.print(f"warning: {_one_line(w)}", markup=False, highlight=False)
     for n in notes:
-        console.print(f"note: {n}", markup=False, highlight=False)
+        console.print(f"note: {cli_words(n, 'fit')}", markup=False, highlight=False)
     console.print(f"wrote {out}/: fit.json, fit.png, loss.png, report.md" + (", config.toml" if cfg.path else ""), markup=False, highlight=False)
 
 
@@ -396,14 +507,27 @@ def _cmd_fit(args) -> int:
     """Fit a TOML config and write the outputs."""
     from rich.console import Console
 
-    from .config import load_config
 
     _enable_float64()
-    cfg = load_config(args.config)
+    cfg = _load_config(args.config)
     if args.starts is not None and args.starts < 1:
         raise _UsageError(f"--starts must be >= 1, got {args.starts}")
-    result, _ = _run_config(cfg, Path(args.out), force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts, checkpoint=True, console=Console(highlight=False))
+    out = Path(args.out)
+    with _OutputLock(out) as lock:
+        try:
+            _run_config(cfg, out, force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts,
+                        checkpoint=True, console=Console(highlight=False), extra_notes=[lock.note] if lock.note else ())
+        finally:
+            _remove_if_empty(out / _CHECKPOINT.parent)
     return 0
+
+
+def _remove_if_empty(folder: Path) -> None:
+    """Remove ``folder`` if it exists and is empty (a fit that stopped before its first checkpoint)."""
+    try:
+        folder.rmdir()
+    except OSError:
+        pass
 
 
 def _parse_overrides(items) -> dict:
@@ -423,16 +547,25 @@ def _parse_overrides(items) -> dict:
 
 def _cmd_simulate(args) -> int:
     """Evaluate a config's experiments at its [material] (or --set values) without fitting."""
-    from .config import load_config
     from .simulate import simulate_config, write_simulation_outputs
 
     _enable_float64()
     overrides = _parse_overrides(args.set)
-    cfg = load_config(args.config)
+    cfg = _load_config(args.config)
     out = Path(args.out)
-    with _quiet_callback_logs():
-        material, sims = simulate_config(cfg, overrides=overrides)
-    paths = write_simulation_outputs(material, sims, out, config=cfg.path, force=args.force)
+    with _OutputLock(out) as lock:
+        try:
+            with _quiet_callback_logs():
+                material, sims = simulate_config(cfg, overrides=overrides)
+        except Exception as e:
+            if _is_runtime_error(e) and "KeyboardInterrupt" in str(e):  # Ctrl-C inside a model callback
+                raise KeyboardInterrupt from e
+            raise
+        paths = write_simulation_outputs(material, sims, out, config=cfg.path, force=args.force)
+    if lock.note:
+        print(f"note: {lock.note}")
+    for w in cfg.data_warnings:
+        print(f"warning: {_one_line(w)}")
     print(f"material: E = {float(material.youngs_modulus):.6g} Pa, nu = {float(material.poisson_ratio):.6g}, "
           f"b = {float(material.cubic_coefficient):.6g}, pre-stretch = {float(material.pre_stretch):.6g}")
     for s in sims:
@@ -448,10 +581,6 @@ DEMO_CONFIGS = (("afm_hertz.toml", "afm_hertz"), ("ecoflex_compression.toml", "e
 
 def _cmd_demo(args) -> int:
     """Fit the bundled real data: the Chiaro AFM curve (Hertz) and the Ecoflex compression."""
-    import numpy as np
-    from rich.console import Console
-
-    from .config import load_config
     from .errors import OutputExistsError
 
     _enable_float64()
@@ -459,15 +588,25 @@ def _cmd_demo(args) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise OutputExistsError(f"{out} exists and is not a directory")
-    if out.exists() and any(out.iterdir()) and not args.force:
-        raise OutputExistsError(f"{out} exists and is not empty; choose another --out or pass --force")
+    with _OutputLock(out) as lock:
+        if any(p.name != LOCK_NAME for p in out.iterdir()) and not args.force:
+            raise OutputExistsError(f"{out} exists and is not empty; choose another --out or pass --force")
+        return _demo(args, out, t0, [lock.note] if lock.note else [])
+
+
+def _demo(args, out: Path, t0: float, notes) -> int:
+    """The demo's fits into ``out`` (locked by the caller)."""
+    import numpy as np
+    from rich.console import Console
+
     console = Console(highlight=False)
     here = Path(__file__).resolve().parent / "configs"
     chosen = DEMO_CONFIGS[:1] if args.quick else DEMO_CONFIGS
     summary = {}
     for name, sub in chosen:
-        cfg = load_config(here / name)
-        result, _ = _run_config(cfg, out / sub, force=True, resume=False, progress=False, starts=None, checkpoint=False, console=console)
+        cfg = _load_config(here / name)
+        result, _ = _run_config(cfg, out / sub, force=True, resume=False, progress=False, starts=None, checkpoint=False, console=console, extra_notes=notes)
+        notes = []
         summary[sub] = result
         console.print("")
     afm = summary.get("afm_hertz")
@@ -596,13 +735,48 @@ def main(argv: list[str] | None = None) -> int:
     except _UsageError as e:
         if args.debug:
             raise
-        print(f"difftissue: error: {e}", file=sys.stderr)
+        print(f"difftissue: error: {cli_words(str(e), args.command)}", file=sys.stderr)
         return 2
     except (DifftissueError, OSError) as e:
         if args.debug:
             raise
-        print(f"difftissue: error: {e}", file=sys.stderr)
+        print(f"difftissue: error: {cli_words(str(e), args.command)}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("difftissue: interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        if args.debug:
+            raise
+        print(f"difftissue: interrupted; {_interrupt_hint(e, args)}", file=sys.stderr)
         return 130
+
+
+def _interrupt_hint(e: KeyboardInterrupt, args) -> str:
+    """How to carry on after Ctrl-C: the fit's own hint (``--resume``), else rerun the command
+    (with ``--force`` where the interrupted run may have left outputs in --out)."""
+    if isinstance(e, _Interrupted):
+        return e.hint
+    out = getattr(args, "out", None)
+    if args.command in ("fit", "simulate", "demo") and out is not None:
+        return f"rerun the same command (add --force if {out} holds files of this run)"
+    return "rerun the same command"
+
+
+#: Library phrases (Python keyword arguments) and what a command-line user types instead.
+_CLI_WORDS = (
+    ("force=True / --force", "--force"),
+    ("overwrite/--force", "--force"),
+    ("pass resume=True", "pass --resume"),
+    ("approximate=True (--approximate)", "--approximate"),
+    ("bonded_punch=True (--bonded-punch)", "--bonded-punch"),
+)
+
+
+def cli_words(text: str, command: str | None = None) -> str:
+    """``text`` (a library message) with keyword arguments replaced by the CLI's words:
+    ``--force``, ``--resume``, ``--approximate``; ``reorient=True`` becomes ``--reorient``
+    for ``info`` and the config key ``reorient = true`` for the commands that read a config."""
+    for api, cli in _CLI_WORDS:
+        text = text.replace(api, cli)
+    reorient = "--reorient" if command == "info" else "reorient = true (in the mesh's specimen or data table of the config)"
+    text = text.replace("reorient=True (CLI: --reorient)", reorient)
+    # data.py: "pass plausible={'depth': (lo, hi)}" -> the config's data-table key
+    return re.sub(r"pass plausible=\{'(\w+)': \(lo, hi\)\}", r"set plausible = { \1 = [lo, hi] } (SI) in the experiment's data table", text)

@@ -218,16 +218,16 @@ def _reraise(path: str, e: Exception):
     raise new from e
 
 
-def _downsample(x: np.ndarray, y: np.ndarray, *, x_max: float | None, points: int | None, path: str, key: str, unit: str):
-    """The loading segment up to ``x_max``, thinned to ``points`` samples evenly spread in x.
+def _downsample_rows(x: np.ndarray, *, x_max: float | None, points: int | None, path: str, key: str, unit: str) -> np.ndarray:
+    """Indices of the loading-segment samples kept: up to ``x_max``, thinned to ``points``
+    samples evenly spread in x.
 
     The samples kept are measured points (no interpolation): for each of ``points`` targets
     ``x_max / points, ..., x_max`` the first sample whose running maximum of x reaches it, so
     the abscissa is strictly increasing even when the data step back by noise.
     """
     x = np.asarray(x, dtype=float)
-    y = np.asarray(y, dtype=float)
-    cm = np.maximum.accumulate(x)
+    cm = np.maximum.accumulate(x) if x.size else x
     keep = np.ones(x.size, dtype=bool) if x_max is None else cm <= x_max * (1 + 1e-12)
     n_keep = int(np.sum(keep))
     if points is None:
@@ -243,7 +243,116 @@ def _downsample(x: np.ndarray, y: np.ndarray, *, x_max: float | None, points: in
     if sel.size < 2:
         limit = f" up to {key} = {x_max:g} {unit}" if x_max is not None else ""
         _fail(path, f"only {sel.size} usable data point(s){limit}; the data reach {np.max(x) if x.size else float('nan'):.4g} {unit}")
-    return x[sel], y[sel]
+    return sel
+
+
+def _downsample(x: np.ndarray, y: np.ndarray, *, x_max: float | None, points: int | None, path: str, key: str, unit: str):
+    """``(x[sel], y[sel])`` for the rows :func:`_downsample_rows` keeps."""
+    sel = _downsample_rows(x, x_max=x_max, points=points, path=path, key=key, unit=unit)
+    return np.asarray(x, dtype=float)[sel], np.asarray(y, dtype=float)[sel]
+
+
+# ====================================================================== rows used (provenance)
+#: Depth steps back by more than this fraction of the depth range count as out of order
+#: (smaller ones are noise, which the thinning skips).
+_OUT_OF_ORDER = 0.05
+
+
+def _row_labels(curve) -> tuple[np.ndarray, str]:
+    """How to name the curve's samples to a user: the 1-based file lines when the loader
+    recorded them, else the 0-based data-row indices."""
+    lines = curve.metadata.get("data_lines") if hasattr(curve, "metadata") else None
+    if lines is not None and len(lines) == len(curve):
+        return np.asarray(lines, dtype=int), "file lines"
+    return np.arange(len(curve)), "data rows"
+
+
+def _cite_rows(labels: np.ndarray, idx, kind: str, limit: int = 8) -> str:
+    from .errors import _cite
+
+    return f"{kind} {_cite(np.asarray(labels)[np.asarray(idx, dtype=int)], limit)}"
+
+
+def _out_of_order(x: np.ndarray) -> np.ndarray:
+    """Indices where depth breaks 'rise to the deepest point, then (optionally) fall': a step
+    back of more than :data:`_OUT_OF_ORDER` of the depth range before the deepest point, or a
+    rise after it."""
+    if x.size < 3:
+        return np.array([], dtype=int)
+    tol = _OUT_OF_ORDER * float(np.ptp(x))
+    top = int(np.argmax(x))
+    up, down = x[: top + 1], x[top + 1 :]
+    back = np.flatnonzero(np.maximum.accumulate(up) - up > tol)
+    again = np.flatnonzero(down - np.minimum.accumulate(down) > tol) + top + 1 if down.size else np.array([], dtype=int)
+    return np.concatenate([back, again]).astype(int)
+
+
+def _loading_rows(curve, *, sort: bool, path: str, record: list) -> np.ndarray:
+    """Indices of the curve's loading segment, in loading order; appends what was reordered
+    or left out (and why) to ``record``.
+
+    The loading segment ends at the loader's turnaround (the Chiaro's piezo reversal) or at the
+    deepest point; the rows after it (unloading) are left out. Rows in another order (a depth
+    that falls back before the deepest point or rises after it) are refused
+    (:class:`~difftissue.errors.NonMonotonicError`, naming them) unless ``sort``: then all rows
+    are sorted by depth.
+    """
+    from .errors import NonMonotonicError
+
+    x = np.asarray(curve.depth, dtype=float)
+    labels, kind = _row_labels(curve)
+    if curve.metadata.get("turnaround_index") is None:
+        bad = _out_of_order(x)
+        if bad.size and not sort:
+            top = int(np.argmax(x))
+            raise NonMonotonicError(
+                f"{path}: the depth column is not a loading curve (nor loading then unloading): its rows are out of order at "
+                f"{_cite_rows(labels, bad, kind)}; a fit would keep only the rows up to the deepest point "
+                f"({kind[:-1]} {labels[top]}, {top + 1} of {x.size} rows). Sort the file's rows "
+                f"by depth, or set sort = true in the experiment's data table if they are one loading curve in another order",
+                rows=bad, lines=labels[bad] if kind == "file lines" else ())
+        if sort:
+            order = np.argsort(x, kind="stable")
+            if np.any(order != np.arange(x.size)):
+                record.append({"action": "reordered", "rows": [int(i) for i in labels[order]], "reason": "sorted by depth (data.sort = true)"})
+            return order
+    top = curve.turnaround_index
+    if top + 1 < x.size:
+        rest = np.arange(top + 1, x.size)
+        record.append({"action": "left out", "rows": [int(i) for i in labels[rest]],
+                       "reason": f"after the deepest point ({kind[:-1]} {labels[top]}): the unloading segment"})
+    return np.arange(top + 1)
+
+
+def _record_thinning(labels: np.ndarray, rows: np.ndarray, sel: np.ndarray, depth: np.ndarray, *, x_max, points, record: list) -> None:
+    """Append the loading rows not in ``sel`` to ``record``, by reason: depth <= 0, beyond
+    ``max_depth``, or not among the ``points`` samples kept."""
+    left = np.setdiff1d(np.arange(rows.size), sel)
+    d = depth[rows]
+    cm = np.maximum.accumulate(d) if d.size else d
+    reasons = (
+        (d[left] <= 0, "depth <= 0 (at or before the contact point; the models need depth > 0)"),
+        (cm[left] > (np.inf if x_max is None else x_max * (1 + 1e-12)), f"beyond max_depth = {x_max:.4g} m" if x_max is not None else ""),
+    )
+    done = np.zeros(left.size, dtype=bool)
+    for mask, why in reasons:
+        m = mask & ~done
+        if m.any():
+            record.append({"action": "left out", "rows": [int(i) for i in labels[rows[left[m]]]], "reason": why})
+        done |= m
+    if (~done).any():
+        why = (f"thinned to points = {points} samples evenly spread in depth" if points is not None else "a step back in depth (noise)")
+        record.append({"action": "left out", "rows": [int(i) for i in labels[rows[left[~done]]]], "reason": why})
+
+
+def _provenance_note(path: str, prov: dict) -> str:
+    """One line: how many rows of the file the fit uses, and what was left out and why."""
+    from .errors import _cite
+
+    names = prov["row_names"]
+    parts = [f"{st['action']} {len(st['rows'])} ({names} {_cite(st['rows'], 6)}): {st['reason']}" for st in prov["steps"]]
+    return (f"{path}: the fit uses {prov['rows_used']} of the {prov['rows_loaded']} rows loaded from {Path(prov['file']).name} "
+            f"({prov['loaded']})" + ("; " + "; ".join(parts) if parts else ""))
 
 
 # ============================================================================ result types
@@ -257,6 +366,13 @@ class Experiment:
     scenario: Any
     data_files: tuple[Path, ...]
     notes: tuple[str, ...] = ()
+    #: rows of the data file used by the fit: ``file``, ``rows_loaded`` (by the loader),
+    #: ``loaded`` (which rows the loader returned), ``rows_used``,
+    #: ``row_names`` ("file lines" or "data rows"), ``used`` (their names, in fit order),
+    #: ``steps`` (``{"action": "left out" | "reordered", "rows": [...], "reason": ...}``)
+    provenance: dict | None = None
+    #: plausibility warnings of the data (e.g. :class:`~difftissue.errors.ImplausibleUnitWarning`)
+    warnings: tuple[str, ...] = ()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -292,6 +408,16 @@ class FitConfig:
         return tuple(seen)
 
     @property
+    def data_provenance(self) -> list[dict]:
+        """Per experiment with measured rows: ``{"experiment": name, **Experiment.provenance}``."""
+        return [{"experiment": e.name, **e.provenance} for e in self.experiments if e.provenance is not None]
+
+    @property
+    def data_warnings(self) -> list[str]:
+        """The plausibility warnings of every experiment's data (e.g. a likely unit mistake)."""
+        return [w for e in self.experiments for w in e.warnings]
+
+    @property
     def model_name(self) -> str:
         """The models used, e.g. ``"springs_volume"`` or ``"hertz; springs_volume"``."""
         names = dict.fromkeys(e.model or "analytic" for e in self.experiments)
@@ -315,7 +441,24 @@ class FitConfig:
         opts = {**self.options, **overrides}
         scenarios = self.fit_scenarios(opts.pop("separate_compilation", None))
         object.__setattr__(self, "last_scenarios", scenarios)  # for the failures of SeparatelyCompiled
+        self.check_reaction_signs(scenarios)
         return fit(scenarios, self.parameterization, self.material, **opts)
+
+    def check_reaction_signs(self, scenarios=None) -> None:
+        """Before a fit: raise :class:`~difftissue.errors.ReactionSignError` for a ``fem_field``
+        experiment whose measured reaction force has the opposite sign of the model's reaction
+        at the initial material (one forward solve; with separate compilation it compiles the
+        function the fit then reuses)."""
+        scenarios = self.fit_scenarios() if scenarios is None else scenarios
+        for i, (e, sc) in enumerate(zip(self.experiments, scenarios)):
+            check = getattr(e.scenario, "check_reaction_sign", None)
+            if e.kind != "fem_field" or check is None or getattr(e.scenario, "reaction_mask", None) is None:
+                continue
+            pred = sc.evaluate(self.material) if isinstance(sc, SeparatelyCompiled) else np.asarray(sc.predict(self.material))
+            try:
+                check(pred)
+            except DifftissueError as err:
+                _reraise(f"experiment[{i}]", err)
 
 
 _MATERIAL_LEAVES = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
@@ -385,6 +528,8 @@ class SeparatelyCompiled:
         def host_f(v):
             return guarded(fwd, v)
 
+        self._host_f = host_f
+
         def call_f(v):
             return jax.pure_callback(host_f, out, v, vmap_method="sequential")
 
@@ -422,6 +567,11 @@ class SeparatelyCompiled:
 
             call.defvjp(_fwd, _bwd)
         self._call = call
+
+    def evaluate(self, material) -> np.ndarray:
+        """The prediction at ``material`` on the host, through the same compiled function the
+        fit calls (no extra compilation); NaN where the evaluation fails."""
+        return self._host_f(np.array([float(getattr(material, k)) for k in _MATERIAL_LEAVES]))
 
     def predict(self, material):
         import jax.numpy as jnp
@@ -657,6 +807,11 @@ def _load_data(e: Mapping, path: str, kind: str, base_dir: Path):
             _fail(_join(p, "kind"), f"a {kind} experiment needs a {want!r} table, got {_show(tk)}")
         d["kind"] = want
     d["path"] = str(file)
+    if "sort" in d:
+        if kind not in ("analytic_indentation", "indentation"):
+            _fail(_join(p, "sort"), "only force-depth data (indentation experiments) can be sorted by depth")
+        d["sort"] = _bool(d["sort"], _join(p, "sort"))
+    sort = d.pop("sort", False)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -664,6 +819,8 @@ def _load_data(e: Mapping, path: str, kind: str, base_dir: Path):
     except DifftissueError as err:
         _reraise(p, err)
     notes = tuple(f"{p}: {w.category.__name__}: {' '.join(str(w.message).split())}" for w in caught)
+    if kind in ("analytic_indentation", "indentation"):
+        return dataset, file, notes, sort
     return dataset, file, notes
 
 
@@ -676,19 +833,93 @@ def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path, *, mater
 
 
 def _force_depth(e, path, base_dir, kind):
-    curve, file, notes = _load_data(e, path, kind, base_dir)
-    if getattr(curve, "turnaround_index", None) is not None:
-        try:
-            curve = curve.approach()
-        except DifftissueError:
-            pass
+    """Load an indentation curve and choose the rows the fit uses; returns ``curve, file, notes,
+    depth, force, sigma, unit, provenance`` (see :attr:`Experiment.provenance`)."""
+    curve, file, notes, sort = _load_data(e, path, kind, base_dir)
     unit = _unit_of(e, path)
     max_depth = _length(e["max_depth"], _join(path, "max_depth"), unit) if "max_depth" in e else None
     if np.max(curve.depth) <= 0:
         _fail(_join(path, "data"), "no positive depth in the data; for an AFM file set data.contact = true (depth from the contact point)")
-    depth, force = _downsample(curve.depth, curve.force, x_max=max_depth, points=_points(e, path), path=_join(path, "max_depth" if max_depth else "data"), key="max_depth", unit="m")
+    steps: list[dict] = []
+    rows = _loading_rows(curve, sort=sort, path=_join(path, "data"), record=steps)
+    points = _points(e, path)
+    sel = _downsample_rows(curve.depth[rows], x_max=max_depth, points=points, path=_join(path, "max_depth" if max_depth else "data"), key="max_depth", unit="m")
+    labels, kind_name = _row_labels(curve)
+    _record_thinning(labels, rows, sel, np.asarray(curve.depth, dtype=float), x_max=max_depth, points=points, record=steps)
+    used = rows[sel]
+    loaded = "every data row of the file"
+    if str(curve.metadata.get("segment", "")).startswith("approach from contact"):
+        loaded = f"the approach from the detected contact point ({kind_name[:-1]} {labels[0]}) to the turnaround (data.contact = true)"
+    prov = {"file": str(file), "rows_loaded": len(curve), "loaded": loaded, "rows_used": int(used.size), "row_names": kind_name,
+            "used": [int(i) for i in labels[used]], "steps": steps}
+    depth, force = np.asarray(curve.depth, dtype=float)[used], np.asarray(curve.force, dtype=float)[used]
     sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), force, "N")
-    return curve, file, notes, depth, force, sigma, unit
+    notes = tuple(notes) + (_provenance_note(path, prov),)
+    return curve, file, notes, depth, force, sigma, unit, prov
+
+
+#: Young's moduli [Pa] a soft-tissue indentation can plausibly give (cells ~10 Pa to tendon ~1 GPa);
+#: an effective modulus outside, estimated from the deepest point, points to a unit mistake.
+PLAUSIBLE_MODULUS = (1.0, 1.0e9)
+#: Deepest indentation / indenter radius (sphere, flat punch) considered plausible.
+PLAUSIBLE_DEPTH_OVER_RADIUS = (1.0e-3, 1.0)
+
+
+def _unit_hint(factor: float, declared: str | None) -> str:
+    """'values in m declared as mm'-style hint for a length scale off by ``factor`` (> 1: too large)."""
+    from .data import UNITS, normalize_unit
+
+    d = normalize_unit(declared) if declared else None
+    if d in UNITS:
+        f0 = UNITS[d][1]
+        candidates = [u for u, (dim, f) in UNITS.items() if dim == "length" and u != d and 0.3 < f0 / f / factor < 3.0]
+        if candidates:
+            return f"depths given in {candidates[0]} but declared as {d}"
+    return f"a depth unit off by a factor of about {factor:.3g}"
+
+
+def _effective_modulus(depth: float, force: float, kw: Mapping) -> float:
+    """The effective modulus E/(1 - nu^2) [Pa] of one (depth [m], force [N]) point: Hertz for a
+    sphere, Sneddon for a flat punch or a cone (half-space)."""
+    shape = kw["indenter"]
+    if shape == "sphere":
+        return 3.0 * force / (4.0 * math.sqrt(kw["radius"]) * depth**1.5)
+    if shape == "flat_punch":
+        return force / (2.0 * kw["radius"] * depth)
+    return math.pi * force / (2.0 * math.tan(kw["half_angle"]) * depth**2)
+
+
+def _plausibility(path: str, depth: np.ndarray, force: np.ndarray, kw: Mapping, curve) -> tuple[str, ...]:
+    """Warn (:class:`~difftissue.errors.ImplausibleUnitWarning`) when the depths do not fit the
+    indenter (deepest point beyond the radius, or below 1e-3 of it) or the deepest point implies
+    an effective modulus outside :data:`PLAUSIBLE_MODULUS`: most often a unit mistake. Returns
+    the messages (also emitted as warnings)."""
+    from .errors import ImplausibleUnitWarning
+
+    units = (curve.metadata.get("units") or {}) if hasattr(curve, "metadata") else {}
+    declared = units.get("depth") or units.get("indentation")
+    i = int(np.argmax(depth))
+    dmax, fmax = float(depth[i]), float(force[i])
+    out = []
+    if "radius" in kw:
+        ratio = dmax / kw["radius"]
+        lo, hi = PLAUSIBLE_DEPTH_OVER_RADIUS
+        if not lo <= ratio <= hi:
+            factor = 10.0 ** (3 * round(math.log10(ratio / math.sqrt(lo * hi)) / 3))  # the nearest power of 1000
+            where = "deeper than" if ratio > hi else "below 1e-3 of"
+            out.append(f"{path}: the deepest point {dmax:.4g} m is {ratio:.3g} x the indenter radius {kw['radius']:.4g} m "
+                       f"({where} the radius): most likely {_unit_hint(factor, declared)}; check data.columns.depth.unit "
+                       f"and indenter.length_unit (a wrong unit scales the fitted modulus by a large factor)")
+    if fmax > 0 and dmax > 0:
+        E = _effective_modulus(dmax, fmax, kw)
+        lo, hi = PLAUSIBLE_MODULUS
+        if not lo <= E <= hi:
+            out.append(f"{path}: the deepest point ({dmax:.4g} m, {fmax:.4g} N) implies an effective modulus of {E:.3g} Pa, "
+                       f"outside the {lo:g} Pa .. {hi:g} Pa of soft tissue: check the units of the force and depth columns "
+                       f"(declared: depth in {declared or '?'}, force in {units.get('force', '?')}) and of the indenter")
+    for msg in out:
+        warnings.warn(msg, ImplausibleUnitWarning, stacklevel=3)
+    return tuple(out)
 
 
 def _indenter(e, path, curve, kind):
@@ -730,7 +961,7 @@ def _indenter(e, path, curve, kind):
 def _analytic(e, path, name, base_dir) -> Experiment:
     from .scenarios import AnalyticIndentation
 
-    curve, file, notes, depth, force, sigma, unit = _force_depth(e, path, base_dir, "analytic_indentation")
+    curve, file, notes, depth, force, sigma, unit, prov = _force_depth(e, path, base_dir, "analytic_indentation")
     kw = _indenter(e, path, curve, "analytic_indentation")
     solution = _choice(e.get("solution", "half_space"), _join(path, "solution"), ("half_space", "exact_layer", "dimitriadis"))
     thickness = _length(e["thickness"], _join(path, "thickness"), unit) if "thickness" in e else None
@@ -748,7 +979,7 @@ def _analytic(e, path, name, base_dir) -> Experiment:
     except DifftissueError as err:
         _reraise(path, err)
     model = {"sphere": "hertz", "flat_punch": "sneddon_flat_punch", "cone": "sneddon_cone"}[kw["indenter"]] if solution == "half_space" else f"{solution}_{kw['indenter']}"
-    return Experiment(name, "analytic_indentation", model, sc, (file,), notes)
+    return Experiment(name, "analytic_indentation", model, sc, (file,), notes, prov, _plausibility(path, depth, force, kw, curve))
 
 
 def _compression(e, path, name, base_dir) -> Experiment:
@@ -827,7 +1058,7 @@ def _mesh_file(spec: dict, p: str, base_dir: Path):
 def _indentation(e, path, name, base_dir) -> Experiment:
     from .scenarios import Indentation, indentation_block
 
-    curve, file, notes, depth, force, sigma, unit = _force_depth(e, path, base_dir, "indentation")
+    curve, file, notes, depth, force, sigma, unit, prov = _force_depth(e, path, base_dir, "indentation")
     kw = _indenter(e, path, curve, "indentation")
     model = _model(e, path, "springs_volume")
     base = _choice(e.get("base", "bonded"), _join(path, "base"), ("bonded", "sliding"))
@@ -865,7 +1096,7 @@ def _indentation(e, path, name, base_dir) -> Experiment:
         sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
     except DifftissueError as err:
         _reraise(path, err)
-    return Experiment(name, "indentation", model, sc, tuple(files), notes)
+    return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve))
 
 
 def _node_set_spec(value, path: str):

@@ -297,3 +297,32 @@ class CutError(DifftissueError):
 class DisconnectedCutError(CutError):
     """The cut splits a part off the specimen and ``allow_disconnect`` was not given; the message
     names the part (node count and bounding box)."""
+
+
+# ====================================================================== trustworthy fits
+# (appended block: issue 17 -- no silent wrong answers)
+__all__ += ["OutputLockedError", "ImplausibleUnitWarning", "ReactionSignError"]
+
+
+class OutputLockedError(OutputError):
+    """Another difftissue run holds the output directory's lock file (``DIR/.difftissue.lock``,
+    with its process id); ``pid`` is that process, ``lock`` the lock file."""
+
+    def __init__(self, message: str, pid: int | None = None, lock=None):
+        super().__init__(message)
+        self.pid = pid
+        self.lock = lock
+
+
+class ImplausibleUnitWarning(DifftissueWarning):
+    """Measured values are implausible for the experiment's geometry (e.g. indentation depths
+    larger than the indenter radius, or a thousand times smaller): most often a unit mistake
+    (depths in m declared as mm). The message names the likely mistake and its factor."""
+
+
+class ReactionSignError(DataError):
+    """A measured reaction force has the opposite sign of the model's reaction at the initial
+    material: the data follow another sign convention. difftissue's reaction is the force the
+    supports exert on the prescribed nodes (internal elastic force minus applied force there),
+    negative along an axis the nodes are pushed into the specimen (e.g. ``-z`` for a punch
+    pressed down)."""

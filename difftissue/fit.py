@@ -1177,7 +1177,8 @@ def fit(
                     stopped_by_callback = True
                     break
     except BaseException:
-        save()
+        if step > resumed_from:  # nothing new to save before the first step (a rerun must not find a stale checkpoint)
+            save()
         raise
     finally:
         if bar is not None:
@@ -1479,7 +1480,14 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
             cells = [f"{c:+.3f}" if np.isfinite(c) else "-" for c in result.correlation[i]]
             lines.append(f"| {f} | " + " | ".join(cells) + " |")
     lines += ["", "## Warnings", ""]
-    lines += [f"- {w}" for w in result.warnings] or ["None: every parameter is determined by the data."]
+    data_warnings = [f"- data: {w}" for w in record.get("data_warnings", ())]
+    lines += data_warnings + [f"- {w}" for w in result.warnings] or ["None: every parameter is determined by the data."]
+    if record.get("data_rows"):
+        lines += ["", "## Data rows", "", "| experiment | file | rows used | rows loaded | left out or reordered |", "|---|---|---|---|---|"]
+        for d in record["data_rows"]:
+            steps = "; ".join(f"{st['action']} {len(st['rows'])}: {st['reason']}" for st in d["steps"]) or "-"
+            lines.append(f"| {d['experiment']} | `{Path(d['file']).name}` | {d['rows_used']} | {d['rows_loaded']} ({d['loaded']}) | {steps} |")
+        lines += ["", "The row numbers are in `fit.json` (`data_rows`)."]
     lines += ["", "## Scenarios", "", "| scenario | points | rms residual / sigma |", "|---|---|---|"]
     for s in result.scenarios:
         lines.append(f"| {s.name} | {s.observed.size} | {np.sqrt(np.mean(s.residual ** 2)):.4g} |")
@@ -1501,6 +1509,8 @@ def write_fit_outputs(
     force: bool = False,
     scenario_records: Sequence[dict] | None = None,
     scenarios: Sequence | None = None,
+    data: Sequence[Mapping] = (),
+    data_warnings: Sequence[str] = (),
 ) -> dict[str, Path]:
     """Write ``fit.json``, ``material.json``, ``fit.png``, ``loss.png`` and ``report.md`` into
     ``out_dir``, and ``specimen-<name>.vtu`` for each simulated ``fem_field``, ``compression``
@@ -1528,6 +1538,11 @@ def write_fit_outputs(
             (:func:`difftissue.export_fitted.write_specimen`: mesh, fixed masks, prescribed
             displacements, regions, cut pairs), recorded with its sha256 in its scenario record
             (``specimen_file``), which ``difftissue export --specimen fitted`` reads.
+        data: the rows of each data file the fit used and those it reordered or left out, with
+            why (:attr:`difftissue.config.FitConfig.data_provenance`); recorded as ``data_rows``
+            in ``fit.json`` and in the report's "Data rows" section.
+        data_warnings: plausibility warnings of the data (a likely unit mistake, ...); recorded
+            as ``data_warnings`` in ``fit.json`` and first under the report's "Warnings".
         force: overwrite existing output files. Without it, an existing file among the five
             (or a specimen file to be written) raises :class:`~difftissue.errors.OutputExistsError`
             naming it, before anything is written.
@@ -1566,6 +1581,8 @@ def write_fit_outputs(
             raise OutputError(f"data file {p} does not exist")
     names = list(scenario_names) if scenario_names is not None else list(result.scenario_names)
     record = _fit_json(result, config=config, data_files=data_files, model=model, scenario_names=scenario_names)
+    record["data_warnings"] = [str(w) for w in data_warnings]
+    record["data_rows"] = [dict(d) for d in data]
     out.mkdir(parents=True, exist_ok=True)
     with atomic_output(paths["fit.json"], overwrite=force) as tmp:
         tmp.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n", encoding="utf-8")

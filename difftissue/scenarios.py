@@ -37,7 +37,7 @@ import numpy as np
 from . import analytic
 from .boundary import BoundaryConditions
 from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
-from .errors import BoundaryConditionError, ConfigError, DataError, ModelError
+from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError
 from .materials import Material
 from .mesh import TetMesh, structured_grid
 from .models import ElasticModel, make_model
@@ -832,6 +832,30 @@ class FEMField(eqx.Module):
 
     def _solve_protocol(self, material: Material):
         return _solve(self.model, material, self.bc, None, self.options)
+
+    def check_reaction_sign(self, predicted) -> None:
+        """Raise :class:`~difftissue.errors.ReactionSignError` when a measured reaction component
+        has the opposite sign of ``predicted`` (this scenario's prediction at the fit's initial
+        material): no modulus can fit it, and a fit drives E to zero instead.
+
+        The reaction is the force the supports exert on the prescribed nodes (internal elastic
+        force, summed over ``reaction.set``): negative along an axis the nodes are pushed into
+        the specimen (``-z`` for a punch pressed down), so its sign does not depend on the
+        material. A NaN prediction (a failed solve) is not checked.
+        """
+        if self.reaction_mask is None:
+            return
+        comps = [c for i, c in enumerate("xyz") if self.reaction_mask[:, i].any()]
+        pred = np.asarray(predicted, dtype=float)[-len(comps):]
+        obs = np.asarray(self.observed, dtype=float)[-len(comps):]
+        for c, p, o in zip(comps, pred, obs):
+            if np.isfinite(p) and p != 0.0 and o != 0.0 and np.sign(p) != np.sign(o):
+                raise ReactionSignError(
+                    f"{self.name}: the measured reaction force {c} = {o:+.4g} N has the opposite sign of the model's reaction "
+                    f"at the initial material ({p:+.4g} N); no modulus can fit it (a fit would drive E towards 0). difftissue's "
+                    f"reaction is the force the supports exert on the prescribed nodes, summed over reaction.set: negative along "
+                    f"an axis the nodes are pushed into the specimen (a punch pressed down in -{c} gives a negative {c} reaction). "
+                    f"Give reaction.force = [{-o:.6g}] (N), or flip the sign of the reference's reaction field")
 
     def predict(self, material: Material):
         sol = self.solve(material)

@@ -1,6 +1,7 @@
 """The command line: help, version, mesh generation, info, demo, one-line errors."""
 
 import json
+from pathlib import Path
 import subprocess
 import sys
 
@@ -131,3 +132,268 @@ def test_mesh_skin_to_medit_keeps_geometry_and_says_so(tmp_path, capsys):
     assert read_mesh(out).n_tets > 0
     assert main(["mesh", "block", "--size", "1", "0", "1", "--resolution", "1", "1", "1", "--out", str(tmp_path / "b.vtu")]) == 2
     assert "positive lengths in mm" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------- issue 17: fits a user can trust
+def test_help_and_version_do_not_import_jax():
+    """`difftissue --help` / `--version` parse arguments before any heavy import (no JAX, NumPy)."""
+    code = ("import sys\nfrom difftissue.cli import main\n"
+            "for argv in (['--help'], ['--version'], ['fit', '--help']):\n"
+            "    try:\n        main(argv)\n    except SystemExit:\n        pass\n"
+            "print('HEAVY=' + ','.join(sorted(m for m in sys.modules if m.split('.')[0] in ('jax', 'jaxlib', 'numpy', 'equinox', 'rich'))))")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "HEAVY=\n" in r.stdout, r.stdout[-500:]
+
+
+_AFM = Path(__file__).resolve().parents[1] / "difftissue" / "configs" / "afm_hertz.toml"
+
+
+def _raise_interrupt(*a, **k):
+    raise KeyboardInterrupt
+
+
+@pytest.mark.parametrize("command, target", [
+    ("fit", "difftissue.config.load_config"),          # while reading the config and data
+    ("fit", "difftissue.config.FitConfig.run"),        # while fitting
+    ("fit", "difftissue.fit.write_fit_outputs"),       # while writing the outputs
+    ("simulate", "difftissue.config.load_config"),
+    ("simulate", "difftissue.simulate.simulate_config"),
+    ("demo", "difftissue.config.load_config"),
+    ("demo", "difftissue.config.FitConfig.run"),
+])
+def test_ctrl_c_in_any_phase_exits_130_with_one_line(tmp_path, capsys, monkeypatch, command, target):
+    module, _, attr = target.rpartition(".")
+    if attr == "run":
+        from difftissue.config import FitConfig
+
+        monkeypatch.setattr(FitConfig, "run", _raise_interrupt)
+    else:
+        monkeypatch.setattr(target, _raise_interrupt)
+    if attr == "write_fit_outputs":  # the fit itself must not run for seconds here: stop it at once
+        from difftissue.config import FitConfig
+
+        monkeypatch.setattr(FitConfig, "run", lambda self, **kw: object())
+    out = tmp_path / "out"
+    argv = {"fit": ["fit", str(_AFM), "--out", str(out)], "simulate": ["simulate", str(_AFM), "--out", str(out)],
+            "demo": ["demo", "--quick", "--out", str(out)]}[command]
+    assert main(argv) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and err.startswith("difftissue: interrupted; rerun the same command"), err
+    assert "Traceback" not in err
+    assert not (out / ".difftissue.lock").exists()  # the lock is released
+    if command == "fit":
+        assert not (out / "checkpoint" / "fit.npz").exists() and not (out / "checkpoint").exists()
+    else:  # the folder may hold this run's files: the rerun needs --force
+        assert f"(add --force if {out} holds files of this run)" in err
+
+
+def test_ctrl_c_after_a_checkpoint_says_resume(tmp_path, capsys, monkeypatch):
+    from difftissue.config import FitConfig
+
+    def run(self, **kw):
+        Path(kw["checkpoint"]).write_bytes(b"state")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(FitConfig, "run", run)
+    out = tmp_path / "out"
+    assert main(["fit", str(_AFM), "--out", str(out)]) == 130
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "with --resume to continue from" in err and str(out / "checkpoint" / "fit.npz") in err
+
+
+def test_a_second_run_into_a_locked_out_is_refused_and_a_stale_lock_taken_over(tmp_path, capsys, monkeypatch):
+    import os
+
+    from difftissue.cli import LOCK_NAME
+
+    out = tmp_path / "out"
+    out.mkdir()
+    lock = out / LOCK_NAME
+    lock.write_text(f"{os.getpid()}\n")  # a live process holds it (this one)
+    assert main(["fit", str(_AFM), "--out", str(out)]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "is in use by another difftissue run" in err and f"pid {os.getpid()}" in err
+    assert lock.read_text() == f"{os.getpid()}\n"  # not removed by the refused run
+    for argv in (["demo", "--quick", "--out", str(out)], ["simulate", str(_AFM), "--out", str(out)]):
+        assert main(argv) == 1 and "in use by another difftissue run" in capsys.readouterr().err
+    # a dead process's lock is taken over, with a note
+    child = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    lock.write_text(child.stdout.strip() + "\n")
+    from difftissue.config import FitConfig
+
+    seen = {}
+
+    def run(self, **kw):
+        seen["lock"] = lock.read_text().split()[0]
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(FitConfig, "run", run)
+    assert main(["fit", str(_AFM), "--out", str(out)]) == 130
+    assert seen["lock"] == str(os.getpid()) and not lock.exists()
+
+
+def test_a_fit_that_fails_before_any_step_leaves_nothing_blocking_a_rerun(tmp_path, capsys, monkeypatch):
+    from difftissue.config import FitConfig
+    from difftissue.errors import FitError
+
+    def run(self, **kw):
+        raise FitError("boom")
+
+    out = tmp_path / "out"
+    with monkeypatch.context() as m:
+        m.setattr(FitConfig, "run", run)
+        assert main(["fit", str(_AFM), "--out", str(out)]) == 1
+    assert "boom" in capsys.readouterr().err
+    assert sorted(p.name for p in out.iterdir()) == []
+    assert main(["fit", str(_AFM), "--out", str(out)]) == 0  # the rerun is not refused
+
+
+def test_library_words_become_cli_flags():
+    from difftissue.cli import cli_words
+
+    assert cli_words("x exists; refusing to overwrite it (choose another output directory or pass force=True / --force)") \
+        .endswith("(choose another output directory or pass --force)")
+    assert "--approximate to drop it" in cli_words("b != 0; pass approximate=True (--approximate) to drop it")
+    assert "pass --resume" in cli_words("checkpoint c exists; pass resume=True to continue that fit")
+    msg = "read it with reorient=True (CLI: --reorient)"
+    assert cli_words(msg, "info") == "read it with --reorient"
+    assert "reorient = true" in cli_words(msg, "fit") and "=True" not in cli_words(msg, "fit")
+
+
+# Bad input (docs/fitting.md, "Bad input"): what a user sees for each case. A Hertz curve of
+# E = 5 kPa, nu = 0.45, sphere radius 2 mm, 30 rows, depths 0.02 .. 0.6 mm.
+_E, _NU, _R = 5.0e3, 0.45, 2.0e-3
+
+
+def _hertz_rows(depth_m):
+    d = np.asarray(depth_m, dtype=float)
+    return 4.0 / 3.0 * _E / (1 - _NU**2) * np.sqrt(_R) * np.clip(d, 0, None) ** 1.5
+
+
+def _curve(case):
+    """(depth values as written, force values as written, depth unit, force unit, data extra)."""
+    d = np.linspace(0.02e-3, 0.6e-3, 30)
+    f = _hertz_rows(d)
+    perm = np.random.default_rng(0).permutation(30)
+    return {
+        "unsorted": (d[perm] * 1e3, f[perm], "mm", "N", ""),
+        "unsorted_sort_true": (d[perm] * 1e3, f[perm], "mm", "N", ", sort = true"),
+        "loading_then_unloading": (np.r_[d, d[::-1][1:]] * 1e3, np.r_[f, 0.8 * f[::-1][1:]], "mm", "N", ""),
+        "precontact_rows": (np.r_[-0.1e-3, -0.05e-3, 0.0, d] * 1e3, np.r_[0.0, 0.0, 0.0, f], "mm", "N", ""),
+        "depth_m_declared_mm": (d, f, "mm", "N", ""),
+        "depth_um_declared_mm": (d * 1e6, f, "mm", "N", ""),  # 0.6 m: beyond the loader's 'macro' range
+        "depth_30x_radius": (d * 1e5, f, "mm", "N", ""),  # 0.06 m: in range, but 30 x the radius
+        "force_uN_declared_N": (d * 1e3, f * 1e6, "mm", "N", ""),
+    }[case]
+
+
+def _write_case(tmp_path, case):
+    depth, force, du, fu, extra = _curve(case)
+    (tmp_path / "curve.csv").write_text("depth,force\n" + "".join(f"{a:.9g},{b:.9g}\n" for a, b in zip(depth, force)))
+    (tmp_path / "fit.toml").write_text(f'''
+[material]
+youngs_modulus = 1e3
+poisson_ratio = 0.45
+[fit]
+parameters = ["youngs_modulus"]
+[[experiment]]
+name = "curve"
+scenario = "analytic_indentation"
+data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "{du}" }}, force = {{ name = "force", unit = "{fu}" }} }}{extra} }}
+indenter = {{ shape = "sphere", radius = 2, length_unit = "mm" }}
+''')
+    return tmp_path / "fit.toml"
+
+
+# case, exit status, text the user sees (stderr on errors, stdout otherwise), fitted E [Pa] or None
+BAD_INPUT = [
+    ("unsorted", 1, "rows are out of order at file lines", None),
+    ("unsorted_sort_true", 0, "reordered 30 (file lines", _E),
+    ("loading_then_unloading", 0, "left out 29 (file lines [32, 33", _E),
+    ("precontact_rows", 0, "depth <= 0 (at or before the contact point", _E),
+    ("depth_m_declared_mm", 0, "warning: experiment[0]: the deepest point 6e-07 m is 0.0003 x the indenter radius", None),
+    ("depth_um_declared_mm", 1, "above the plausible range [1e-07, 2e-01] m for 'macro' data; the values would be plausible in 'um' or 'nm'. "
+     "Check the unit, or set plausible = { depth = [lo, hi] } (SI) in the experiment's data table", None),
+    ("depth_30x_radius", 0, "most likely depths given in um but declared as mm", None),
+    ("force_uN_declared_N", 0, "implies an effective modulus of", None),
+]
+
+
+@pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning")
+@pytest.mark.parametrize("case, status, seen, modulus", BAD_INPUT, ids=[b[0] for b in BAD_INPUT])
+def test_bad_input_is_never_a_silent_wrong_modulus(tmp_path, capsys, case, status, seen, modulus):
+    out = tmp_path / "out"
+    assert main(["fit", str(_write_case(tmp_path, case)), "--out", str(out)]) == status
+    cap = capsys.readouterr()
+    text = " ".join((cap.err if status else cap.out).split())
+    assert seen in text, text[-2000:]
+    if status:
+        assert cap.err.count("\n") == 1 and "Traceback" not in cap.err and not (out / "fit.json").exists()
+        return
+    rec = json.loads((out / "fit.json").read_text())
+    report = (out / "report.md").read_text()
+    rows = rec["data_rows"][0]
+    assert rows["rows_used"] == len(rows["used"]) and rows["rows_loaded"] == len(_curve(case)[0])
+    assert rows["rows_used"] + sum(len(st["rows"]) for st in rows["steps"] if st["action"] == "left out") == rows["rows_loaded"]
+    assert "## Data rows" in report and f"| curve | `curve.csv` | {rows['rows_used']} |" in report
+    if modulus is not None:  # the rows were handled correctly: the true modulus comes back
+        assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(modulus, rel=1e-6)
+        assert rec["data_warnings"] == []
+    else:  # a likely unit mistake: named in the output, fit.json and report.md
+        assert len(rec["data_warnings"]) >= 1 and "ImplausibleUnitWarning" not in text
+        assert all(f"- data: {w}" in report for w in rec["data_warnings"])
+
+
+def _punch_reference(tmp_path):
+    """A tiny fem_field reference (2 x 2 x 1 cubes, punch of 4 top nodes pressed down 1 % of the height)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from difftissue import Material, block, write_mesh
+    from difftissue.boundary import BoundaryConditions
+    from difftissue.models import make_model
+    from difftissue.solvers import solve_static
+
+    mesh = block((0.002, 0.002, 0.001), (2, 2, 1))
+    p = np.asarray(mesh.points)
+    bottom, top = np.isclose(p[:, 2], 0.0), np.isclose(p[:, 2], 0.001)
+    punch = top & (np.hypot(p[:, 0] - 0.001, p[:, 1] - 0.001) <= 0.0011)
+    bc = BoundaryConditions.free(mesh).fix(mesh, np.flatnonzero(bottom)).fix(mesh, np.flatnonzero(punch), "z", (0, 0, -1e-5))
+    sol = solve_static(make_model(mesh, "fem_linear"), Material(12e3, 0.42), bc)
+    write_mesh(tmp_path / "ref.vtu", mesh, point_data={"displacement": np.asarray(sol.displacement), "reaction": np.asarray(sol.reaction),
+                                                       "bottom": bottom.astype(np.int32), "punch": punch.astype(np.int32)})
+    return float(np.asarray(sol.reaction)[punch, 2].sum())
+
+
+@pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning")
+def test_fem_field_force_of_the_wrong_sign_is_refused(tmp_path, capsys):
+    """The reaction on the prescribed punch nodes is negative (pressed down in -z); the docs'
+    old comment suggested a positive force, which drove E to 2e-41 Pa with converged: true."""
+    F = _punch_reference(tmp_path)
+    assert F < 0
+    for force, status in ((-F, 1), (F, 0)):
+        (tmp_path / "fit.toml").write_text(f'''
+[material]
+youngs_modulus = 5e3
+poisson_ratio = 0.42
+[fit]
+parameters = ["youngs_modulus"]
+max_steps = 30
+[[experiment]]
+name = "punch"
+scenario = "fem_field"
+data = {{ format = "fem", path = "ref.vtu", field = "displacement" }}
+prescribed = [{{ set = "bottom" }}, {{ set = "punch", components = "z" }}]
+reaction = {{ set = "punch", components = "z", force = [{force!r}] }}
+''')
+        rc = main(["fit", str(tmp_path / "fit.toml"), "--out", str(tmp_path / f"out{status}")])
+        cap = capsys.readouterr()
+        assert rc == status, cap.err
+        if status:
+            err = " ".join(cap.err.split())
+            assert "ReactionSign" not in err and "opposite sign of the model's reaction" in err and f"force = [{F:.6g}]" in err
+            assert "negative along an axis the nodes are pushed into the specimen" in err
+        else:
+            rec = json.loads((tmp_path / "out0" / "fit.json").read_text())
+            assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(12e3, rel=1e-6)

@@ -276,6 +276,44 @@ def test_points_keep_measured_samples_evenly_in_depth(hertz_csv):
     assert sc.abscissa.max() <= 50e-6 and sc.abscissa.max() > 45e-6
 
 
+def test_rows_out_of_order_are_refused_or_sorted_and_every_row_is_accounted_for(hertz_csv, tmp_path):
+    """Issue 17: unsorted rows used to leave a fit with the few rows before the deepest one."""
+    from difftissue.errors import NonMonotonicError
+
+    rows = hertz_csv.read_text().splitlines()
+    order = np.random.default_rng(3).permutation(len(rows) - 1)
+    shuffled = tmp_path / "curve.csv"
+    shuffled.write_text("\n".join([rows[0]] + [rows[1 + i] for i in order]) + "\n")
+    cfg = base_config(shuffled)
+    with pytest.raises(NonMonotonicError, match=r"^experiment\[0\]\.data: the depth column is not a loading curve") as err:
+        parse_config(cfg, base_dir=tmp_path)
+    assert err.value.lines and all(2 <= n <= len(rows) for n in err.value.lines)  # file lines, header = line 1
+    cfg["experiment"][0]["data"]["sort"] = True
+    fc = parse_config(cfg, base_dir=tmp_path)
+    ref = parse_config(base_config(hertz_csv), base_dir=hertz_csv.parent)
+    np.testing.assert_array_equal(fc.scenarios[0].abscissa, ref.scenarios[0].abscissa)
+    np.testing.assert_array_equal(fc.scenarios[0].observed, ref.scenarios[0].observed)
+    prov = fc.data_provenance[0]
+    assert prov["experiment"] == "hertz" and prov["rows_loaded"] == prov["rows_used"] == len(rows) - 1
+    assert [st["action"] for st in prov["steps"]] == ["reordered"]
+    assert prov["steps"][0]["rows"] == [int(2 + i) for i in np.argsort(order)]  # the file lines in depth order
+    assert "reordered 30" in fc.experiments[0].notes[-1] and fc.data_warnings == []
+    comp = {"scenario": "compression", "data": {"format": "instron", "path": "EF10_50T_A1.csv", "sort": True}}
+    with pytest.raises(ConfigError, match=r"data\.sort: only force-depth data"):
+        parse_config({**cfg, "experiment": [comp]}, base_dir=ROOT / "data" / "compression")
+
+
+def test_depths_that_do_not_fit_the_indenter_warn_with_the_likely_unit_mistake(hertz_csv):
+    from difftissue.errors import ImplausibleUnitWarning
+
+    assert parse_config(base_config(hertz_csv), base_dir=hertz_csv.parent).data_warnings == []
+    cfg = base_config(hertz_csv)
+    cfg["experiment"][0]["indenter"]["length_unit"] = "m"  # radius 1 m: the depths are 1e-4 of it
+    with pytest.warns(ImplausibleUnitWarning, match=r"0\.0001 x the indenter radius 1 m .*most likely depths given in mm but declared as um"):
+        fc = parse_config(cfg, base_dir=hertz_csv.parent)
+    assert len(fc.data_warnings) == 1 and fc.data_warnings[0].startswith("experiment[0]: the deepest point 0.0001 m")
+
+
 def _write(tmp_path, cfg, name="fit.toml"):
     p = tmp_path / name
     p.write_text(dump_toml(cfg))
