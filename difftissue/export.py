@@ -46,6 +46,7 @@ __all__ = [
     "write_card",
     "abaqus_name",
     "abaqus_number",
+    "abaqus_reaction_print",
     "febio_material",
     "febio_indenter_cap",
     "febio_prestrain_gradient",
@@ -937,12 +938,22 @@ def _wrap_ids(ids, per_line: int = 16) -> list[str]:
     return [", ".join(ids[i:i + per_line]) for i in range(0, len(ids), per_line)]
 
 
+def abaqus_reaction_print(nset: str) -> list[str]:
+    """Keyword lines that print the summed reaction force [N] of node set ``nset`` to the
+    ``.dat`` file: ``*NODE PRINT, NSET=<nset>, TOTALS=ONLY`` with ``RF``. Accepted by Abaqus and
+    CalculiX (CalculiX writes ``total force (fx,fy,fz) for set <NSET> and time ...`` followed by
+    the three sums); CalculiX ignores history output (``*OUTPUT, HISTORY`` with ``RF1, ...``)."""
+    return [f"*NODE PRINT, NSET={nset}, TOTALS=ONLY", "RF"]
+
+
 def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, approximate: bool = False,
                  displacement: float | None = None) -> str:
     """Abaqus input: the material alone, or with ``mesh`` a complete specimen: ``*NODE``,
-    ``*ELEMENT, TYPE=C3D4``, node sets ``BASE`` (min z, encastre) and ``TOP`` (max z, moved by
-    ``displacement`` [m] in direction 3), ``*SOLID SECTION`` and one ``*STATIC`` step
-    (``NLGEOM=YES`` for the neo-Hookean law)."""
+    ``*ELEMENT, TYPE=C3D4``, node sets ``BASE`` (min z, clamped: ``BASE, 1, 3``, not
+    ``ENCASTRE``, which CalculiX rejects) and ``TOP`` (max z, moved by ``displacement`` [m] in
+    direction 3, free in x and y), ``*SOLID SECTION`` and one ``*STATIC`` step (``NLGEOM=YES``
+    for the neo-Hookean law) that prints the summed ``TOP`` reaction [N] to the ``.dat``
+    (:func:`abaqus_reaction_print`). Runs in CalculiX 2.20 (tests/test_export_calculix.py)."""
     law = _law(card, law)
     mat = abaqus_material(card, law=law, approximate=approximate)
     if mesh is None:
@@ -963,8 +974,9 @@ def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, appro
     lines += [f"*SOLID SECTION, ELSET=TISSUE, MATERIAL={mname}", ","]
     lines += mat
     lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}", "*STATIC", "0.1, 1.0, 1e-05, 0.1",
-              "*BOUNDARY", "BASE, ENCASTRE", "*BOUNDARY", f"TOP, 3, 3, {abaqus_number(d)}",
-              "*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E", "*END STEP"]
+              "*BOUNDARY", "BASE, 1, 3", "*BOUNDARY", f"TOP, 3, 3, {abaqus_number(d)}",
+              "*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
+    lines += abaqus_reaction_print("TOP") + ["*END STEP"]
     return "\n".join(lines) + "\n"
 
 
@@ -1550,7 +1562,7 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
     lines += [f"*STEP, NLGEOM={'YES' if (law == 'neo_hookean' or contact) else 'NO'}", "*STATIC",
               f"{abaqus_number(1.0 / spec.steps)}, 1.0, 1e-05, {abaqus_number(1.0 / spec.steps)}", "*BOUNDARY"]
     if spec.base == "bonded":
-        lines.append("BASE, ENCASTRE")
+        lines.append("BASE, 1, 3")
     else:
         lines += ["BASE, 3, 3, 0.0", "BASE_ANCHOR, 1, 2, 0.0", "BASE_OTHER, 2, 2, 0.0"]
     if contact:
@@ -1560,8 +1572,7 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
         if spec.bonded_punch:
             lines.append("PUNCH, 1, 2, 0.0")
     lines += ["*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
-    if contact:
-        lines += ["*OUTPUT, HISTORY", "*NODE OUTPUT, NSET=RP", "U3, RF3"]
+    lines += abaqus_reaction_print("RP" if contact else "PUNCH")
     lines.append("*END STEP")
     return "\n".join(lines) + "\n"
 

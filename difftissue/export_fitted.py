@@ -610,7 +610,7 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     value``), ramped over the step (the default amplitude of a ``*STATIC`` step), with initial and
     largest increment ``1 /`` :func:`load_steps` of the step. A pre-stretched specimen (an incision) is refused: Abaqus has no prestrain
     gradient here, and without it the cut does not open."""
-    from .export import _abaqus_comment, _law, _wrap_ids, abaqus_material, abaqus_name, abaqus_number
+    from .export import _abaqus_comment, _law, _wrap_ids, abaqus_material, abaqus_name, abaqus_number, abaqus_reaction_print
 
     law = _law(card, law)
     cards = spec.region_cards(card)
@@ -662,7 +662,7 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
             lines.append(f"{int(n) + 1}, {d}, {d}, {abaqus_number(spec.prescribed[n, ci])}")
     lines += ["*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
     if spec.reaction is not None:
-        lines += ["*OUTPUT, HISTORY", "*NODE OUTPUT, NSET=REACTION", "RF1, RF2, RF3"]
+        lines += abaqus_reaction_print("REACTION")
     lines.append("*END STEP")
     return "\n".join(lines) + "\n"
 
