@@ -1508,7 +1508,14 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
     ``*CONTACT PAIR`` of the node-based top surface ``TOP_SURF`` with ``INDENTER`` (Abaqus's
     default hard contact: no penalty), and ``*BOUNDARY`` on the reference node (dofs 1, 2,
     4-6 zero, dof 3 = -depth). Flat punch: ``*BOUNDARY`` ``PUNCH, 3, 3, -depth`` (plus
-    ``PUNCH, 1, 2`` for a bonded punch).
+    ``PUNCH, 1, 2`` for a bonded punch). A bonded base is ``BASE, 1, 3``. The summed reaction
+    [N] of ``PUNCH`` (flat punch) or ``RP`` (sphere, cone) is printed to the ``.dat``
+    (:func:`abaqus_reaction_print`).
+
+    CalculiX: the flat-punch deck runs in CalculiX 2.20 (tests/test_export_calculix.py). The
+    sphere and cone decks are Abaqus-only: CalculiX has no analytical rigid surface and stops
+    on them ("unknown surface type" for ``*SURFACE, TYPE=REVOLUTION``, an error on
+    ``*RIGID BODY, ANALYTICAL SURFACE``); for CalculiX they would need a meshed indenter.
     """
     from .export_indentation import indentation_sets
 

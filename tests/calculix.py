@@ -6,6 +6,7 @@ read it (tests/test_export_calculix.py).
   broken CI, not a reason to skip).
 * :func:`run_deck`: run a deck in a fresh directory with a timeout; returns the summed reactions
   [N] that the deck prints (``*NODE PRINT, ..., TOTALS=ONLY``) and every node's displacement [m].
+  :func:`run_ccx`: the bare run (exit status and output), for decks expected to fail.
 
 The displacements come from one probe added to a copy of the deck: ``*NSET, NSET=DT_PROBE_ALL,
 GENERATE`` (all nodes, before the first ``*STEP``) and ``*NODE PRINT, NSET=DT_PROBE_ALL`` with
@@ -102,22 +103,28 @@ def parse_dat(text: str, n_nodes: int) -> tuple[dict, np.ndarray, float]:
     return totals, u, t_end
 
 
-def run_deck(deck: Path, workdir: Path, *, timeout: float = 120.0) -> CalculixRun:
-    """Run ``deck`` (an ``.inp`` file) with ccx in ``workdir`` (created; one thread) after
-    :func:`with_displacement_probe`. Fails the test on a timeout, a nonzero exit, an
-    ``*ERROR`` in ccx's output or a step that did not reach time 1."""
+def run_ccx(text: str, workdir: Path, *, timeout: float = 120.0) -> tuple[int, str]:
+    """Run the deck ``text`` as ``workdir/job.inp`` (``workdir`` created; one thread); returns
+    ccx's exit status and output. Fails the test on a timeout."""
     exe = ccx_or_skip()
     workdir.mkdir(parents=True, exist_ok=True)
-    text = with_displacement_probe(Path(deck).read_text())
     (workdir / "job.inp").write_text(text)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "CCX_NPROC_EQUATION_SOLVER": "1"}
     try:
         r = subprocess.run([exe, "-i", "job"], cwd=workdir, capture_output=True, text=True, timeout=timeout, env=env)
     except subprocess.TimeoutExpired:
-        pytest.fail(f"ccx did not finish {deck.name} within {timeout:g} s")
-    out = r.stdout + r.stderr
-    if r.returncode != 0 or "*ERROR" in out or "Job finished" not in out:
-        pytest.fail(f"ccx failed on {deck.name} (exit {r.returncode}):\n{out[-3000:]}")
+        pytest.fail(f"ccx did not finish {workdir / 'job.inp'} within {timeout:g} s")
+    return r.returncode, r.stdout + r.stderr
+
+
+def run_deck(deck: Path, workdir: Path, *, timeout: float = 120.0) -> CalculixRun:
+    """Run ``deck`` (an ``.inp`` file) with ccx in ``workdir`` after
+    :func:`with_displacement_probe`. Fails the test on a timeout, a nonzero exit, an
+    ``*ERROR`` in ccx's output or a step that did not reach time 1."""
+    text = with_displacement_probe(Path(deck).read_text())
+    rc, out = run_ccx(text, workdir, timeout=timeout)
+    if rc != 0 or "*ERROR" in out or "Job finished" not in out:
+        pytest.fail(f"ccx failed on {deck.name} (exit {rc}):\n{out[-3000:]}")
     totals, u, t = parse_dat((workdir / "job.dat").read_text(), _node_count(text.splitlines()))
     assert t == pytest.approx(1.0, abs=1e-9), f"the step stopped at time {t}"
     assert np.isfinite(u).all(), "the .dat lacks some nodes' displacements"
