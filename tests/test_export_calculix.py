@@ -17,9 +17,11 @@ checks that ccx stops on them with the errors docs/export.md quotes.
 Linear: same P1 tetrahedra and energy, so the reaction and the displacement field agree to
 CalculiX's 7 printed digits (tolerance 1e-6 relative). Neo-Hookean: CalculiX's ``NEO HOOKE`` is
 ``C10 (I1bar - 3) + (J - 1)^2 / D1``, difftissue's ``fem_neo_hookean`` is
-``mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``: equal at small strain, not at 10 %; tolerance
-1 %, and the frictionless case is also checked against the homogeneous uniaxial solution of
-CalculiX's own energy (1e-4), so the 1 % is the model-form difference, not a solver error.
+``mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``: equal at small strain, not at 10 %. So the
+same problem is difftissue's static solver with CalculiX's energy (:class:`AbaqusNeoHookeModel`,
+tolerance 1e-4; the issue asks 1 %), and the frictionless case is also checked against that
+energy's homogeneous uniaxial solution; the difference to ``fem_neo_hookean`` is reported and
+checked to be the two energies' analytic difference (1.43 % in force at 10 %).
 
 Material values with more than 20 characters as ``repr`` (E = 12345.678901234567 Pa,
 nu = 0.4234567890123457, D1 = 2/K) make the decks fail without abaqus_number.
@@ -122,8 +124,9 @@ def _block_solution(mesh, model, d):
     disp[top, 2] = d
     bc = BoundaryConditions(fixed, disp, np.zeros_like(disp))
     sol = solve_static(_model(mesh, model), Material(E, NU), bc)
-    u_fem = None if model == "fem_linear" else np.asarray(solve_static(make_model(mesh, model), Material(E, NU), bc).displacement)
-    return np.asarray(sol.displacement), float(np.asarray(sol.reaction)[top, 2].sum()), u_fem
+    fem = None if model == "fem_linear" else solve_static(make_model(mesh, model), Material(E, NU), bc)
+    fem = None if fem is None else (np.asarray(fem.displacement), float(np.asarray(fem.reaction)[top, 2].sum()))
+    return np.asarray(sol.displacement), float(np.asarray(sol.reaction)[top, 2].sum()), fem
 
 
 @pytest.mark.parametrize("model", ["fem_linear", "fem_neo_hookean"])
@@ -133,14 +136,14 @@ def test_card_block_specimen(model, tmp_path):
     deck = write_abaqus(_card(model), tmp_path / "block.inp", mesh=mesh)
     assert "BASE, 1, 3" in deck.read_text()
     run = run_deck(deck, tmp_path / "ccx")
-    u, f, u_fem = _block_solution(mesh, model, -0.1 * 5 * MM)
+    u, f, fem = _block_solution(mesh, model, -0.1 * 5 * MM)
     f_ccx = run.totals["TOP"][2]
     du, df = _rel_u(run.displacement, u), abs(f_ccx - f) / abs(f)
     _report(f"card block {model}", du, df)
-    if u_fem is not None:  # the model-form difference at 10 %, bonded: measured 1.3 % of max |u|
-        gap = _rel_u(run.displacement, u_fem)
-        print(f"CALCULIX card block vs fem_neo_hookean: max|du|/max|u| = {gap:.2e}")
-        assert 1e-3 < gap < 0.03
+    if fem is not None:  # the model-form difference at 10 %, bonded: measured 1.3 % of max |u|
+        gap_u, gap_f = _rel_u(run.displacement, fem[0]), abs(f_ccx - fem[1]) / abs(fem[1])
+        print(f"CALCULIX card block vs fem_neo_hookean: max|du|/max|u| = {gap_u:.2e}, reaction {gap_f:.2e}")
+        assert 1e-3 < gap_u < 0.03 and gap_f < 0.01
     assert f < 0 and abs(run.totals["TOP"][:2]).max() <= 1e-9 * abs(f)  # compressive, no net shear
     tol = LINEAR_TOL if model == "fem_linear" else NEO_TOL
     assert du <= tol and df <= tol
