@@ -858,10 +858,8 @@ def _number_forms(x: float, digits: int | None) -> list[str]:
     prec = None if unique else digits - 1
     sci = np.format_float_scientific(x, precision=prec, unique=unique, trim="-", exp_digits=1)
     pos = np.format_float_positional(x, precision=None if unique else digits, unique=unique, fractional=False, trim="-")
-    neg = pos.startswith("-")
-    pos = ("-" if neg else "") + _strip_zero(pos.lstrip("-"))
-    forms = [repr(x)] if unique else []
-    return forms + [sci, pos]
+    sign = "-" if pos.startswith("-") else ""
+    return [sci, sign + _strip_zero(pos.lstrip("-"))]
 
 
 def abaqus_number(x: float, width: int = ABAQUS_FIELD_WIDTH) -> str:
@@ -880,7 +878,10 @@ def abaqus_number(x: float, width: int = ABAQUS_FIELD_WIDTH) -> str:
     x = float(x)
     if not math.isfinite(x):
         raise ExportError(f"cannot write the non-finite number {x!r} into an Abaqus deck")
-    fits = [s for s in _number_forms(x, None) if len(s) <= width]
+    text = repr(x)  # the shortest round-trip spelling, most often short enough
+    if len(text) <= width:
+        return text
+    fits = sorted((s for s in _number_forms(x, None) if len(s) <= width), key=len)
     if fits:
         return fits[0]
     for digits in range(17, 0, -1):
