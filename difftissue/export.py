@@ -45,6 +45,8 @@ __all__ = [
     "read_card",
     "write_card",
     "abaqus_name",
+    "abaqus_number",
+    "abaqus_reaction_print",
     "febio_material",
     "febio_indenter_cap",
     "febio_prestrain_gradient",
@@ -841,6 +843,52 @@ def write_sofa(card: MaterialCard, path, *, mesh=None, law: str | None = None, a
 
 # =========================================================================== Abaqus
 _ABAQUS_BAD = re.compile(r"[^A-Za-z0-9_-]")
+ABAQUS_FIELD_WIDTH = 20  # characters of a numeric data field that CalculiX reads (Abaqus reads more)
+
+
+def _strip_zero(s: str) -> str:
+    """``0.0035`` -> ``.0035`` (one character less; Fortran and Python read both)."""
+    return s[1:] if s.startswith("0.") and len(s) > 2 else s
+
+
+def _number_forms(x: float, digits: int | None) -> list[str]:
+    """Decimal spellings of ``x``: shortest round-trip (``digits=None``) or ``digits``
+    significant digits, positional and scientific with a one-digit minimum exponent."""
+    unique = digits is None
+    prec = None if unique else digits - 1
+    sci = np.format_float_scientific(x, precision=prec, unique=unique, trim="-", exp_digits=1)
+    pos = np.format_float_positional(x, precision=None if unique else digits, unique=unique, fractional=False, trim="-")
+    sign = "-" if pos.startswith("-") else ""
+    return [sci, sign + _strip_zero(pos.lstrip("-"))]
+
+
+def abaqus_number(x: float, width: int = ABAQUS_FIELD_WIDTH) -> str:
+    """One number as an Abaqus / CalculiX data field of at most ``width`` (20) characters.
+
+    CalculiX reads only the first 20 characters of a numeric field (``7.575610012003474e-06``,
+    21 characters, was read as 7.58), so every number in an ``.inp`` deck goes through here.
+    The spelling is exact when the shortest round-trip spelling fits (Python ``repr``, or the
+    same digits positional without the leading ``0`` or scientific with a one-digit exponent:
+    ``float(abaqus_number(x)) == x``); otherwise it keeps the most significant digits that fit,
+    correctly rounded. For a finite double at least 13 significant digits always fit
+    (``-d.dddddddddddde-308``), so the relative error is at most ``5e-13``; at most ``5e-15``
+    for ``1e-9 <= |x| < 1e10`` (15 digits fit). Units are those of the caller (SI here).
+    Raises ExportError for non-finite values.
+    """
+    x = float(x)
+    if not math.isfinite(x):
+        raise ExportError(f"cannot write the non-finite number {x!r} into an Abaqus deck")
+    text = repr(x)  # the shortest round-trip spelling, most often short enough
+    if len(text) <= width:
+        return text
+    fits = sorted((s for s in _number_forms(x, None) if len(s) <= width), key=len)
+    if fits:
+        return fits[0]
+    for digits in range(17, 0, -1):
+        fits = sorted((s for s in _number_forms(x, digits) if len(s) <= width), key=len)
+        if fits:
+            return fits[0]
+    raise ExportError(f"{x!r} does not fit in {width} characters")  # unreachable for width >= 7
 
 
 def abaqus_name(name: str) -> str:
@@ -877,12 +925,12 @@ def abaqus_material(card: MaterialCard, *, law: str | None = None, approximate: 
         lines.append(_abaqus_comment(f"material name sanitised from {card.name!r}"))
     lines.append(f"*MATERIAL, NAME={abaqus_name(card.name)}")
     if law == "linear":
-        lines += ["*ELASTIC", f"{_fmt(card.youngs_modulus)}, {_fmt(card.poisson_ratio)}"]
+        lines += ["*ELASTIC", f"{abaqus_number(card.youngs_modulus)}, {abaqus_number(card.poisson_ratio)}"]
     else:
         c10 = card.shear_modulus / 2.0
         d1 = 2.0 / card.bulk_modulus
-        lines += ["*HYPERELASTIC, NEO HOOKE", f"{_fmt(c10)}, {_fmt(d1)}"]
-    lines += ["*DENSITY", _fmt(card.density)]
+        lines += ["*HYPERELASTIC, NEO HOOKE", f"{abaqus_number(c10)}, {abaqus_number(d1)}"]
+    lines += ["*DENSITY", abaqus_number(card.density)]
     return lines
 
 
@@ -891,12 +939,22 @@ def _wrap_ids(ids, per_line: int = 16) -> list[str]:
     return [", ".join(ids[i:i + per_line]) for i in range(0, len(ids), per_line)]
 
 
+def abaqus_reaction_print(nset: str) -> list[str]:
+    """Keyword lines that print the summed reaction force [N] of node set ``nset`` to the
+    ``.dat`` file: ``*NODE PRINT, NSET=<nset>, TOTALS=ONLY`` with ``RF``. Accepted by Abaqus and
+    CalculiX (CalculiX writes ``total force (fx,fy,fz) for set <NSET> and time ...`` followed by
+    the three sums); CalculiX ignores history output (``*OUTPUT, HISTORY`` with ``RF1, ...``)."""
+    return [f"*NODE PRINT, NSET={nset}, TOTALS=ONLY", "RF"]
+
+
 def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, approximate: bool = False,
                  displacement: float | None = None) -> str:
     """Abaqus input: the material alone, or with ``mesh`` a complete specimen: ``*NODE``,
-    ``*ELEMENT, TYPE=C3D4``, node sets ``BASE`` (min z, encastre) and ``TOP`` (max z, moved by
-    ``displacement`` [m] in direction 3), ``*SOLID SECTION`` and one ``*STATIC`` step
-    (``NLGEOM=YES`` for the neo-Hookean law)."""
+    ``*ELEMENT, TYPE=C3D4``, node sets ``BASE`` (min z, clamped: ``BASE, 1, 3``, not
+    ``ENCASTRE``, which CalculiX rejects) and ``TOP`` (max z, moved by ``displacement`` [m] in
+    direction 3, free in x and y), ``*SOLID SECTION`` and one ``*STATIC`` step (``NLGEOM=YES``
+    for the neo-Hookean law) that prints the summed ``TOP`` reaction [N] to the ``.dat``
+    (:func:`abaqus_reaction_print`). Runs in CalculiX 2.20 (tests/test_export_calculix.py)."""
     law = _law(card, law)
     mat = abaqus_material(card, law=law, approximate=approximate)
     if mesh is None:
@@ -906,7 +964,7 @@ def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, appro
     mname = abaqus_name(card.name)
     lines = ["*HEADING", f"difftissue specimen for material {mname} (SI units: m, N, Pa, kg)", "*NODE"]
     for i, p in enumerate(np.asarray(mesh.points, dtype=float), start=1):
-        lines.append(f"{i}, " + ", ".join(_fmt(c) for c in p))
+        lines.append(f"{i}, " + ", ".join(abaqus_number(c) for c in p))
     lines.append("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")
     for i, t in enumerate(np.asarray(mesh.tets), start=1):
         lines.append(f"{i}, " + ", ".join(str(int(n) + 1) for n in t))
@@ -917,8 +975,9 @@ def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, appro
     lines += [f"*SOLID SECTION, ELSET=TISSUE, MATERIAL={mname}", ","]
     lines += mat
     lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}", "*STATIC", "0.1, 1.0, 1e-05, 0.1",
-              "*BOUNDARY", "BASE, ENCASTRE", "*BOUNDARY", f"TOP, 3, 3, {_fmt(d)}",
-              "*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E", "*END STEP"]
+              "*BOUNDARY", "BASE, 1, 3", "*BOUNDARY", f"TOP, 3, 3, {abaqus_number(d)}",
+              "*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
+    lines += abaqus_reaction_print("TOP") + ["*END STEP"]
     return "\n".join(lines) + "\n"
 
 
@@ -1450,7 +1509,14 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
     ``*CONTACT PAIR`` of the node-based top surface ``TOP_SURF`` with ``INDENTER`` (Abaqus's
     default hard contact: no penalty), and ``*BOUNDARY`` on the reference node (dofs 1, 2,
     4-6 zero, dof 3 = -depth). Flat punch: ``*BOUNDARY`` ``PUNCH, 3, 3, -depth`` (plus
-    ``PUNCH, 1, 2`` for a bonded punch).
+    ``PUNCH, 1, 2`` for a bonded punch). A bonded base is ``BASE, 1, 3``. The summed reaction
+    [N] of ``PUNCH`` (flat punch) or ``RP`` (sphere, cone) is printed to the ``.dat``
+    (:func:`abaqus_reaction_print`).
+
+    CalculiX: the flat-punch deck runs in CalculiX 2.20 (tests/test_export_calculix.py). The
+    sphere and cone decks are Abaqus-only: CalculiX has no analytical rigid surface and stops
+    on them ("unknown surface type" for ``*SURFACE, TYPE=REVOLUTION``, an error on
+    ``*RIGID BODY, ANALYTICAL SURFACE``); for CalculiX they would need a meshed indenter.
     """
     from .export_indentation import indentation_sets
 
@@ -1466,12 +1532,12 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
     lines += [_abaqus_comment(t) for t in spec.describe()]
     lines.append("*NODE")
     for i, p in enumerate(pts, start=1):
-        lines.append(f"{i}, " + ", ".join(_fmt(c) for c in p))
+        lines.append(f"{i}, " + ", ".join(abaqus_number(c) for c in p))
     contact = spec.indenter in ("sphere", "cone")
     ref = len(pts) + 1
     if contact:
         zr = H + spec.radius if spec.indenter == "sphere" else H
-        lines.append(f"{ref}, 0.0, 0.0, {_fmt(zr)}")
+        lines.append(f"{ref}, 0.0, 0.0, {abaqus_number(zr)}")
     lines.append("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")
     for i, t in enumerate(np.asarray(mesh.tets), start=1):
         lines.append(f"{i}, " + ", ".join(str(int(n) + 1) for n in t))
@@ -1487,35 +1553,34 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
     lines += mat
     if contact:
         lines += ["*NSET, NSET=RP", str(ref), "*SURFACE, TYPE=NODE, NAME=TOP_SURF", "TOP,",
-                  "*SURFACE, TYPE=REVOLUTION, NAME=INDENTER", f"0.0, 0.0, {_fmt(zr)}, 0.0, 0.0, {_fmt(zr + 1.0)}"]
+                  "*SURFACE, TYPE=REVOLUTION, NAME=INDENTER", f"0.0, 0.0, {abaqus_number(zr)}, 0.0, 0.0, {abaqus_number(zr + 1.0)}"]
         if spec.indenter == "sphere":
             R = spec.radius
             lines += [_abaqus_comment(f"sphere: local origin at the centre (0, 0, H + R = {zr:.10g}), profile from the equator (R, 0) to the tip (0, -R)"),
-                      f"START, {_fmt(R)}, 0.0", f"CIRCL, 0.0, {_fmt(-R)}, 0.0, 0.0"]
+                      f"START, {abaqus_number(R)}, 0.0", f"CIRCL, 0.0, {abaqus_number(-R)}, 0.0, 0.0"]
         else:
             rmax = 0.5 * math.hypot(spec.size[0], spec.size[1])
             lines += [_abaqus_comment(f"cone: local origin at the tip (0, 0, H), half-angle {spec.half_angle:.10g} rad, profile from r = {rmax:.10g} m to the tip"),
-                      f"START, {_fmt(rmax)}, {_fmt(rmax / math.tan(spec.half_angle))}", "LINE, 0.0, 0.0"]
+                      f"START, {abaqus_number(rmax)}, {abaqus_number(rmax / math.tan(spec.half_angle))}", "LINE, 0.0, 0.0"]
         lines += [_abaqus_comment("contact: Abaqus's default hard (Lagrange) normal contact, frictionless: the penalty -> infinity "
                                   "limit of difftissue's penalty contact (docs/export.md, Indentation specimens)"),
                   "*RIGID BODY, ANALYTICAL SURFACE=INDENTER, REF NODE=RP",
                   "*SURFACE INTERACTION, NAME=FRICTIONLESS", "*FRICTION", "0.0",
                   "*CONTACT PAIR, INTERACTION=FRICTIONLESS", "TOP_SURF, INDENTER"]
     lines += [f"*STEP, NLGEOM={'YES' if (law == 'neo_hookean' or contact) else 'NO'}", "*STATIC",
-              f"{_fmt(1.0 / spec.steps)}, 1.0, 1e-05, {_fmt(1.0 / spec.steps)}", "*BOUNDARY"]
+              f"{abaqus_number(1.0 / spec.steps)}, 1.0, 1e-05, {abaqus_number(1.0 / spec.steps)}", "*BOUNDARY"]
     if spec.base == "bonded":
-        lines.append("BASE, ENCASTRE")
+        lines.append("BASE, 1, 3")
     else:
         lines += ["BASE, 3, 3, 0.0", "BASE_ANCHOR, 1, 2, 0.0", "BASE_OTHER, 2, 2, 0.0"]
     if contact:
-        lines += ["RP, 1, 2, 0.0", "RP, 4, 6, 0.0", f"RP, 3, 3, {_fmt(-spec.depth)}"]
+        lines += ["RP, 1, 2, 0.0", "RP, 4, 6, 0.0", f"RP, 3, 3, {abaqus_number(-spec.depth)}"]
     else:
-        lines.append(f"PUNCH, 3, 3, {_fmt(-spec.depth)}")
+        lines.append(f"PUNCH, 3, 3, {abaqus_number(-spec.depth)}")
         if spec.bonded_punch:
             lines.append("PUNCH, 1, 2, 0.0")
     lines += ["*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
-    if contact:
-        lines += ["*OUTPUT, HISTORY", "*NODE OUTPUT, NSET=RP", "U3, RF3"]
+    lines += abaqus_reaction_print("RP" if contact else "PUNCH")
     lines.append("*END STEP")
     return "\n".join(lines) + "\n"
 

@@ -610,7 +610,7 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     value``), ramped over the step (the default amplitude of a ``*STATIC`` step), with initial and
     largest increment ``1 /`` :func:`load_steps` of the step. A pre-stretched specimen (an incision) is refused: Abaqus has no prestrain
     gradient here, and without it the cut does not open."""
-    from .export import _abaqus_comment, _fmt, _law, _wrap_ids, abaqus_material, abaqus_name
+    from .export import _abaqus_comment, _law, _wrap_ids, abaqus_material, abaqus_name, abaqus_number, abaqus_reaction_print
 
     law = _law(card, law)
     cards = spec.region_cards(card)
@@ -619,7 +619,7 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     lines += [_abaqus_comment(t) for t in spec.describe()]
     lines.append("*NODE")
     for i, p in enumerate(spec.points, start=1):
-        lines.append(f"{i}, " + ", ".join(_fmt(v) for v in p))
+        lines.append(f"{i}, " + ", ".join(abaqus_number(v) for v in p))
     eid = 0
     elsets = {}
     for r, rname in enumerate(spec.region_names):
@@ -650,7 +650,7 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
         if mname not in done:
             lines += abaqus_material(cards[r], law=law, approximate=approximate)
             done.add(mname)
-    inc = _fmt(1.0 / load_steps(spec))
+    inc = abaqus_number(1.0 / load_steps(spec))
     lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}", "*STATIC", f"{inc}, 1.0, 1e-05, {inc}", "*BOUNDARY"]
     for c, (zero, nz) in zip("XYZ", sets):
         if zero.size:
@@ -659,10 +659,10 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     for ci, (zero, nz) in enumerate(sets):
         d = ci + 1
         for n in nz:
-            lines.append(f"{int(n) + 1}, {d}, {d}, {_fmt(spec.prescribed[n, ci])}")
+            lines.append(f"{int(n) + 1}, {d}, {d}, {abaqus_number(spec.prescribed[n, ci])}")
     lines += ["*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
     if spec.reaction is not None:
-        lines += ["*OUTPUT, HISTORY", "*NODE OUTPUT, NSET=REACTION", "RF1, RF2, RF3"]
+        lines += abaqus_reaction_print("REACTION")
     lines.append("*END STEP")
     return "\n".join(lines) + "\n"
 

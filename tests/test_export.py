@@ -16,6 +16,7 @@ from difftissue.export import (
     MaterialCard,
     abaqus_material,
     abaqus_name,
+    abaqus_number,
     card_from_fit_json,
     export,
     read_card,
@@ -301,6 +302,79 @@ def test_abaqus_specimen(tmp_path, mesh):
     k = lines.index("*NODE")
     assert all(len(lines[k + 1 + n].split(",")) == 4 for n in range(mesh.n_nodes))
     assert "TOP, 3, 3, -0.0005" in text
+
+
+def _random_doubles(n, seed=0):
+    """Finite doubles of both signs: n from raw bit patterns, n spread over the whole exponent
+    range (subnormals to 1.8e308), the same n rounded to 7 digits, and edge values."""
+    rng = np.random.default_rng(seed)
+    bits = rng.integers(0, 0x7FF0000000000000, size=n, dtype=np.int64).view(np.float64) * rng.choice([-1.0, 1.0], size=n)
+    logs = rng.uniform(-323.0, 308.0, size=n)
+    spread = rng.choice([-1.0, 1.0], size=n) * 10.0 ** (logs - 1) * rng.uniform(1.0, 10.0, size=n)
+    edges = [0.0, -0.0, 5e-324, -5e-324, 2.2250738585072014e-308, 1.7976931348623157e308, -1.7976931348623157e308,
+             7.575610012003474e-06, -0.0035355339059327377, 1 / 3, -2 / 3, 0.1, 12_000.0, 0.42, 1e-5]
+    short = np.array([float(f"{v:.6e}") for v in spread])  # 7 significant digits: always exact in 20 characters
+    x = np.concatenate([bits, spread, short, edges])
+    return x[np.isfinite(x)]
+
+
+def test_abaqus_number_fits_20_characters_and_round_trips():
+    """<= 20 characters always; exact when the shortest round-trip digits fit, else at most
+    5e-13 relative (5e-15 for 1e-9 <= |x| < 1e10, the docstring's bounds)."""
+    exact = rounded = 0
+    x = _random_doubles(20_000)
+    for v in x:
+        s = abaqus_number(v)
+        assert len(s) <= 20, (v, s)
+        back = float(s)
+        if len(repr(float(v))) <= 20:  # repr fits, so must be reproduced exactly
+            assert back == v, (v, s)
+        if back == v:
+            exact += 1
+            continue
+        rounded += 1
+        rel = abs(back - v) / abs(v)
+        assert rel <= 5e-13, (v, s, rel)
+        if 1e-9 <= abs(v) < 1e10:
+            assert rel <= 5e-15, (v, s, rel)
+    assert exact > 0.25 * len(x) and rounded > 0.25 * len(x)  # both branches exercised
+    # the reported failure: 21 characters of repr, exact in 20 with a one-digit exponent
+    assert abaqus_number(7.575610012003474e-06) == "7.575610012003474e-6"
+    assert float(abaqus_number(0.0035355339059327377)) == 0.0035355339059327377  # ".0035355339059327377"
+    assert abaqus_number(0.42) == "0.42" and abaqus_number(-0.0) == "-0.0"
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        with pytest.raises(ExportError, match="non-finite"):
+            abaqus_number(bad)
+
+
+def _numeric_fields(text):
+    """Every comma-separated data field of a deck that parses as a number."""
+    out = []
+    for ln in text.splitlines():
+        if ln.startswith("*"):
+            continue
+        for f in ln.split(","):
+            try:
+                float(f)
+            except ValueError:
+                continue
+            out.append(f.strip())
+    return out
+
+
+def test_abaqus_decks_have_no_number_over_20_characters(tmp_path):
+    """A mesh whose coordinates and material need > 20 characters as repr: every field fits."""
+    from difftissue.mesh import TetMesh
+
+    m = block((1.0, 1.0, 1.0), (1, 1, 1))
+    pts = np.asarray(m.points) * 7.575610012003474e-03 - 1.234567890123457e-4  # long negative coordinates
+    card = MaterialCard(model="fem_neo_hookean", name="eco", parameters={
+        "youngs_modulus": {"value": 7.575610012003474e+04 / 3}, "poisson_ratio": {"value": 0.4999 / 1.0000001},
+        "density": {"value": 1070.123456789012}})
+    text = write_abaqus(card, tmp_path / "long.inp", mesh=TetMesh(pts, np.asarray(m.tets))).read_text()
+    fields = _numeric_fields(text)
+    assert any(len(repr(float(f))) > 20 for f in fields)  # the case the formatter exists for
+    assert max(len(f) for f in fields) <= 20
 
 
 def test_hostile_names_are_escaped(tmp_path, mesh):

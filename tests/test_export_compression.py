@@ -13,6 +13,7 @@ and with frictionless platens (true strain and stress).
 
 import json
 import math
+from functools import partial
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -118,10 +119,13 @@ def test_compression_round_trip_through_skfem(case, target, tmp_path):
     assert main(["export", str(case["card_path"]), "--to", target, "--specimen", "fitted", "--out", str(out)]) == 0
     parsed = {"febio": parse_febio, "abaqus": parse_abaqus, "sofa": parse_sofa_ramped}[target](out)
     fixed, presc, top, e = _reference(case)
-    np.testing.assert_array_equal(parsed["points"], np.asarray(sc.model.rest_points))
+    # Abaqus data fields are at most 20 characters (abaqus_number): exact where the shortest
+    # round-trip spelling fits, else within its stated 5e-15 relative for these magnitudes
+    same = np.testing.assert_array_equal if target != "abaqus" else partial(np.testing.assert_allclose, rtol=5e-15, atol=0)
+    same(parsed["points"], np.asarray(sc.model.rest_points))
     np.testing.assert_array_equal(parsed["tets"], np.asarray(sc.model.tets))
     np.testing.assert_array_equal(parsed["fixed"], fixed)
-    np.testing.assert_array_equal(parsed["prescribed"], presc)  # the top platen at -e H, bit-exact
+    same(parsed["prescribed"], presc)  # the top platen at -e H, bit-exact (Abaqus: see above)
     if case["bonded"]:
         assert fixed[top].all()
     else:  # u_z of both faces, plus the rigid-body pins of Platens.apply: 3 in-plane components in all

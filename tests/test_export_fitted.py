@@ -12,6 +12,7 @@ by difftissue's static solver: the opened widths equal Incision's.
 """
 
 import json
+from functools import partial
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -262,14 +263,17 @@ def test_fem_field_round_trip_through_skfem(fem_fit, target, tmp_path):
     assert main(["export", str(paths["material.json"]), "--to", target, "--specimen", "fitted", "--out", str(out)]) == 0
     card = read_card(paths["material.json"])
     parsed = {"febio": parse_febio, "abaqus": parse_abaqus, "sofa": parse_sofa}[target](out)
-    np.testing.assert_array_equal(parsed["points"], np.asarray(sc.model.rest_points))
+    # Abaqus data fields are at most 20 characters (abaqus_number): exact where the shortest
+    # round-trip spelling fits, else within its stated 5e-15 relative for these magnitudes
+    same = np.testing.assert_array_equal if target != "abaqus" else partial(np.testing.assert_allclose, rtol=5e-15, atol=0)
+    same(parsed["points"], np.asarray(sc.model.rest_points))
     np.testing.assert_array_equal(parsed["tets"], np.asarray(sc.model.tets))
     np.testing.assert_array_equal(parsed["fixed"], np.asarray(sc.bc.fixed))
     presc = np.where(sc.bc.fixed, np.asarray(sc.bc.displacement), 0.0)
     if target == "sofa":  # position = rest + u: the prescribed value comes back up to the rounding of the sum
         np.testing.assert_allclose(parsed["prescribed"], presc, rtol=0, atol=1e-15)
     else:
-        np.testing.assert_array_equal(parsed["prescribed"], presc)
+        same(parsed["prescribed"], presc)
     if target == "sofa":
         (E_, nu_), = parsed["materials"]
         react = np.flatnonzero(np.asarray(sc.reaction_mask)[:, 2])  # SOFA has no node-set output; the record's set
@@ -282,7 +286,7 @@ def test_fem_field_round_trip_through_skfem(fem_fit, target, tmp_path):
     else:
         (E_, nu_), = parsed["materials"]
         react = parsed["sets"]["REACTION"]
-    assert E_ == card.youngs_modulus and nu_ == card.poisson_ratio
+    same([E_, nu_], [card.youngs_modulus, card.poisson_ratio])
     np.testing.assert_array_equal(np.sort(react), np.flatnonzero(np.asarray(sc.reaction_mask)[:, 2]))
     u_sk, r_sk = _skfem_solve(parsed, E_, nu_, react)
     sol = sc.solve(card.material())

@@ -1,0 +1,287 @@
+"""Exported Abaqus decks run in CalculiX (issue 16, docs/export.md "Abaqus decks in CalculiX").
+
+Each test writes a deck with the exporter, runs it in ``ccx`` unchanged (tests/calculix.py adds
+only a displacement print) and compares with difftissue's own solution of the same problem:
+
+* (a) the material card with a block specimen (:func:`abaqus_model`: base clamped, top moved
+  down 10 %), linear;
+* (b) a fitted compression block (:func:`abaqus_fitted_model`), linear, bonded and frictionless
+  platens;
+* (c) flat-punch indentation (:func:`abaqus_indentation_model`), linear, bonded punch on a
+  bonded base and frictionless punch on a sliding base;
+* (d) the neo-Hookean variant of (b) (frictionless, 10 %) and of (a).
+
+Sphere and cone decks (analytical rigid surfaces) do not run in CalculiX: the last test
+checks that ccx stops on them with the errors docs/export.md quotes.
+
+Linear: same P1 tetrahedra and energy, so the reaction and the displacement field agree to
+CalculiX's 7 printed digits (tolerance 1e-6 relative). Neo-Hookean: CalculiX's ``NEO HOOKE`` is
+``C10 (I1bar - 3) + (J - 1)^2 / D1``, difftissue's ``fem_neo_hookean`` is
+``mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``: equal at small strain, not at 10 %. So the
+same problem is difftissue's static solver with CalculiX's energy (:class:`AbaqusNeoHookeModel`,
+tolerance 1e-4; the issue asks 1 %), and the frictionless case is also checked against that
+energy's homogeneous uniaxial solution; the difference to ``fem_neo_hookean`` is reported and
+checked to be the two energies' analytic difference (1.43 % in force at 10 %).
+
+Material values with more than 20 characters as ``repr`` (E = 12345.678901234567 Pa,
+nu = 0.4234567890123457, D1 = 2/K) make the decks fail without abaqus_number.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from calculix import ccx_or_skip, run_ccx, run_deck
+from scipy.optimize import brentq
+
+from difftissue.boundary import BoundaryConditions
+from difftissue.export import MaterialCard, abaqus_number, export, write_abaqus
+from difftissue.export_fitted import fitted_specimen
+from difftissue.export_indentation import indentation_sets, indentation_specimen
+from difftissue.materials import Material
+from difftissue.mesh import block
+from difftissue.energies.neo_hookean import deformation_gradient, det3
+from difftissue.models import ElementTerm, FEMModel, make_model
+from difftissue.scenarios import Compression, Indentation
+from difftissue.solvers.static import solve_static
+
+E, NU = 12345.678901234567, 0.4234567890123457  # Pa, 1: repr 18 characters, D1 = 2/K needs 21
+MM = 1e-3
+LINEAR_TOL = 1e-6  # relative: CalculiX prints 7 significant digits (5e-7)
+NEO_TOL = 1e-4  # relative, same energy (asked: 1 %); measured ~1e-7, left for the Newton tolerance
+
+
+def _card(model):
+    return MaterialCard(model=model, name=f"ccx_{model}",
+                        parameters={"youngs_modulus": {"value": E}, "poisson_ratio": {"value": NU}})
+
+
+def _rel_u(u_ccx, u_ours):
+    """max |u_ccx - u_ours| / max |u_ours| over all node components."""
+    return float(np.abs(u_ccx - u_ours).max() / np.abs(u_ours).max())
+
+
+def _report(case, du, df):
+    print(f"\nCALCULIX {case}: max|du|/max|u| = {du:.2e}, reaction rel. diff = {df:.2e}")
+
+
+def test_absent_ccx_skips_locally_and_fails_in_ci(monkeypatch, tmp_path):
+    """No ccx on PATH: a skip with the reason outside CI, a failure when CI=true."""
+    monkeypatch.setenv("PATH", str(tmp_path))
+    monkeypatch.delenv("CI", raising=False)
+    with pytest.raises(pytest.skip.Exception, match="calculix-ccx"):
+        ccx_or_skip()
+    monkeypatch.setenv("CI", "true")
+    with pytest.raises(pytest.fail.Exception, match="CI=true"):
+        ccx_or_skip()
+
+
+def test_long_numbers_need_the_formatter():
+    """The chosen material is one that the old repr writer broke (a field > 20 characters)."""
+    K = E / (3 * (1 - 2 * NU))
+    assert len(repr(2 / K)) > 20 and len(abaqus_number(2 / K)) <= 20
+
+
+# ---------------------------------------------- CalculiX's neo-Hookean energy in difftissue
+def abaqus_neo_hooke_density(F, mu, K):
+    """Abaqus / CalculiX ``NEO HOOKE`` density [Pa]: ``C10 (I1bar - 3) + (J - 1)^2 / D1`` with
+    ``C10 = mu / 2``, ``D1 = 2 / K`` (abaqus_material's conversion), ``I1bar = J^(-2/3) tr(F^T F)``."""
+    J = det3(F)
+    i1bar = J ** (-2.0 / 3.0) * jnp.sum(F * F, axis=(-2, -1))
+    return 0.5 * mu * (i1bar - 3.0) + 0.5 * K * (J - 1.0) ** 2
+
+
+class AbaqusNeoHookeModel(FEMModel):
+    """difftissue's FEM on the same P1 tets with CalculiX's energy (for the mesh's one region;
+    mu and K from the module's E, NU): the same problem as the exported neo-Hookean deck."""
+
+    def __init__(self, mesh):
+        super().__init__(mesh, "fem_neo_hookean")
+
+    def terms(self, material):
+        mu, K = E / (2 * (1 + NU)), E / (3 * (1 - 2 * NU))
+        fn = lambda x, Dm_inv, V0: V0 * abaqus_neo_hooke_density(deformation_gradient(x, Dm_inv), mu, K)  # noqa: E731
+        return (ElementTerm("tets", self.tets, fn, (jnp.asarray(self.tet_Dm_inv), jnp.asarray(self.tet_volumes))),)
+
+
+def _model(mesh, model):
+    """difftissue's model of the exported law: fem_linear, or CalculiX's neo-Hookean energy."""
+    return make_model(mesh, "fem_linear") if model == "fem_linear" else AbaqusNeoHookeModel(mesh)
+
+
+# -------------------------------------------------------------- (a) card + block specimen
+def _block_solution(mesh, model, d):
+    """difftissue's static solution of abaqus_model's specimen: base clamped, top u_z = d."""
+    p = np.asarray(mesh.points)
+    base, top = np.isclose(p[:, 2], p[:, 2].min()), np.isclose(p[:, 2], p[:, 2].max())
+    fixed = np.zeros(p.shape, dtype=bool)
+    disp = np.zeros(p.shape)
+    fixed[base] = True
+    fixed[top, 2] = True
+    disp[top, 2] = d
+    bc = BoundaryConditions(fixed, disp, np.zeros_like(disp))
+    sol = solve_static(_model(mesh, model), Material(E, NU), bc)
+    fem = None if model == "fem_linear" else solve_static(make_model(mesh, model), Material(E, NU), bc)
+    fem = None if fem is None else (np.asarray(fem.displacement), float(np.asarray(fem.reaction)[top, 2].sum()))
+    return np.asarray(sol.displacement), float(np.asarray(sol.reaction)[top, 2].sum()), fem
+
+
+@pytest.mark.parametrize("model", ["fem_linear", "fem_neo_hookean"])
+def test_card_block_specimen(model, tmp_path):
+    """(a) / (d): write_abaqus(card, mesh=block) run in CalculiX = difftissue's solution."""
+    mesh = block((10 * MM, 10 * MM, 5 * MM), (2, 2, 2))
+    deck = write_abaqus(_card(model), tmp_path / "block.inp", mesh=mesh)
+    assert "BASE, 1, 3" in deck.read_text()
+    run = run_deck(deck, tmp_path / "ccx")
+    u, f, fem = _block_solution(mesh, model, -0.1 * 5 * MM)
+    f_ccx = run.totals["TOP"][2]
+    du, df = _rel_u(run.displacement, u), abs(f_ccx - f) / abs(f)
+    _report(f"card block {model}", du, df)
+    if fem is not None:  # the model-form difference at 10 %, bonded: measured 1.3 % of max |u|
+        gap_u, gap_f = _rel_u(run.displacement, fem[0]), abs(f_ccx - fem[1]) / abs(fem[1])
+        print(f"CALCULIX card block vs fem_neo_hookean: max|du|/max|u| = {gap_u:.2e}, reaction {gap_f:.2e}")
+        assert 1e-3 < gap_u < 0.03 and gap_f < 0.01
+    assert f < 0 and abs(run.totals["TOP"][:2]).max() <= 1e-9 * abs(f)  # compressive, no net shear
+    tol = LINEAR_TOL if model == "fem_linear" else NEO_TOL
+    assert du <= tol and df <= tol
+
+
+# ---------------------------------------------------------- (b) fitted compression block
+def _compression(model, bonded, strains=(0.05, 0.1)):
+    mesh = block((10 * MM, 10 * MM, 5 * MM), (2, 2, 2))
+    return Compression(mesh, list(strains), model=model, bonded=bonded, measure="engineering", name=f"c_{model}_{bonded}")
+
+
+def _run_compression(sc, model, tmp_path):
+    """The fitted deck run in CalculiX; difftissue's solution of the specimen's boundary
+    conditions with the exported law's energy (:func:`_model`); Compression.solve's last
+    displacement and top force [N, compressive positive] (the fitted model's prediction)."""
+    spec = fitted_specimen(sc)
+    deck = export(_card(model), "abaqus", tmp_path / "compression.inp", fitted=spec)
+    run = run_deck(deck, tmp_path / "ccx")
+    bc = BoundaryConditions(spec.fixed, spec.prescribed, np.zeros(spec.prescribed.shape))
+    sol = solve_static(_model(spec.mesh(), model), Material(E, NU), bc)
+    react = np.flatnonzero(spec.reaction[:, 2])
+    stress, us = sc.solve(_card(model).material())
+    return run, np.asarray(sol.displacement), -float(np.asarray(sol.reaction)[react, 2].sum()), np.asarray(us)[-1], \
+        float(np.asarray(stress)[-1]) * sc.area
+
+
+@pytest.mark.parametrize("bonded", [True, False], ids=["bonded", "frictionless"])
+def test_fitted_compression_linear(bonded, tmp_path):
+    """(b): the fitted compression deck (REACTION = the top face) = difftissue's solution,
+    which is Compression.solve's (the fit's prediction)."""
+    sc = _compression("fem_linear", bonded)
+    run, u, force, u_sc, force_sc = _run_compression(sc, "fem_linear", tmp_path)
+    assert _rel_u(u, u_sc) <= 1e-10 and force == pytest.approx(force_sc, rel=1e-10)
+    f_ccx = -run.totals["REACTION"][2]
+    du, df = _rel_u(run.displacement, u), abs(f_ccx - force) / force
+    _report(f"fitted compression linear {'bonded' if bonded else 'frictionless'}", du, df)
+    if not bonded:  # homogeneous uniaxial stress: E e exactly
+        assert f_ccx / sc.area == pytest.approx(E * 0.1, rel=LINEAR_TOL)
+    else:  # the platens restrain the lateral expansion
+        assert f_ccx / sc.area > 1.05 * E * 0.1
+    assert du <= LINEAR_TOL and df <= LINEAR_TOL
+
+
+# ------------------------------------------------------------------ (d) neo-Hookean
+def _abaqus_neo_hooke_uniaxial(stretch):
+    """Nominal stress [Pa] of CalculiX's NEO HOOKE (mu = 2 C10, K = 2 / D1) in homogeneous
+    uniaxial stress at axial stretch ``stretch``: lateral stretch from sigma_lateral = 0."""
+    mu, K = E / (2 * (1 + NU)), E / (3 * (1 - 2 * NU))
+
+    def cauchy(l1, l2):  # principal Cauchy stresses (axial, lateral)
+        J = l1 * l2 * l2
+        b1, b2 = J ** (-2 / 3) * l1 ** 2, J ** (-2 / 3) * l2 ** 2
+        ib = (b1 + 2 * b2) / 3
+        return mu / J * (b1 - ib) + K * (J - 1), mu / J * (b2 - ib) + K * (J - 1)
+
+    l2 = brentq(lambda x: cauchy(stretch, x)[1], 0.5, 2.0, xtol=1e-15)
+    return cauchy(stretch, l2)[0] * l2 * l2  # force / A0 = sigma * current area / A0 = sigma l2^2
+
+
+def _fem_neo_hookean_uniaxial(stretch):
+    """The same for difftissue's fem_neo_hookean, ``mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2``:
+    Cauchy stress ``mu (b - I) / J + lambda ln J / J``."""
+    mu = E / (2 * (1 + NU))
+    lam = E * NU / ((1 + NU) * (1 - 2 * NU))
+
+    def cauchy(l1, l2):
+        J = l1 * l2 * l2
+        return (mu * (l1 ** 2 - 1) + lam * math.log(J)) / J, (mu * (l2 ** 2 - 1) + lam * math.log(J)) / J
+
+    l2 = brentq(lambda x: cauchy(stretch, x)[1], 0.5, 2.0, xtol=1e-15)
+    return cauchy(stretch, l2)[0] * l2 * l2
+
+
+def test_fitted_compression_neo_hookean(tmp_path):
+    """(d): neo-Hookean frictionless compression to 10 %: CalculiX = difftissue with CalculiX's
+    energy, and = that energy's homogeneous uniaxial solution; difftissue's own fem_neo_hookean
+    (Compression.solve, a different energy at finite strain) differs by the model form."""
+    sc = _compression("fem_neo_hookean", bonded=False)
+    run, u, force, u_sc, force_sc = _run_compression(sc, "fem_neo_hookean", tmp_path)
+    f_ccx = -run.totals["REACTION"][2]
+    exact = -_abaqus_neo_hooke_uniaxial(0.9) * sc.area
+    assert abs(f_ccx - exact) <= NEO_TOL * exact and abs(force - exact) <= 1e-9 * exact
+    du, df = _rel_u(run.displacement, u), abs(f_ccx - force) / force
+    _report("fitted compression neo-Hookean frictionless", du, df)
+    gap_u, gap_f = _rel_u(run.displacement, u_sc), abs(f_ccx - force_sc) / force_sc
+    print(f"CALCULIX fitted compression vs fem_neo_hookean: max|du|/max|u| = {gap_u:.2e}, force {gap_f:.2e}")
+    assert du <= NEO_TOL and df <= NEO_TOL
+    # the gap is the model form: the two energies' homogeneous answers differ by the same 1.4 %
+    fem = -_fem_neo_hookean_uniaxial(0.9) * sc.area
+    assert force_sc == pytest.approx(fem, rel=1e-9)
+    assert abs(gap_f - abs(exact - fem) / fem) <= NEO_TOL and 0.005 < gap_f < 0.03
+
+
+# ------------------------------------------------------------- (c) flat-punch indentation
+@pytest.mark.parametrize("base, bonded", [("bonded", True), ("sliding", False)])
+def test_flat_punch_linear(base, bonded, tmp_path):
+    """(c): the flat-punch deck (PUNCH moved down, bonded or frictionless) = difftissue's
+    Indentation force and static displacement field."""
+    card = _card("fem_linear")
+    depth = 1e-4
+    spec = indentation_specimen(card, indenter="flat_punch", radius=2 * MM, depth=depth, size=(10 * MM, 10 * MM, 5 * MM),
+                                cells=(4, 4, 2), base=base, bonded_punch=bonded, steps=1)
+    deck = export(card, "abaqus", tmp_path / "punch.inp", indentation=spec)
+    run = run_deck(deck, tmp_path / "ccx")
+    mesh = spec.mesh()
+    s = indentation_sets(spec, mesh, card)
+    f_ours = float(np.asarray(Indentation(mesh, [depth], model="fem_linear", indenter="flat_punch", radius=spec.radius,
+                                          bonded_punch=bonded, base=base).predict(card.material()))[0])
+    p = np.asarray(mesh.points)
+    fixed, disp = np.zeros(p.shape, dtype=bool), np.zeros(p.shape)
+    if base == "bonded":
+        fixed[s["base"]] = True
+    else:
+        fixed[s["base"], 2] = True
+        fixed[s["anchor"], :2] = True
+        fixed[s["other"], 1] = True
+    fixed[s["punch"], 2] = True
+    disp[s["punch"], 2] = -depth
+    if bonded:
+        fixed[s["punch"], :2] = True
+    sol = solve_static(make_model(mesh, "fem_linear"), card.material(), BoundaryConditions(fixed, disp, np.zeros_like(disp)))
+    f_static = -float(np.asarray(sol.reaction)[s["punch"], 2].sum())
+    assert f_static == pytest.approx(f_ours, rel=1e-9)  # the same problem as Indentation's
+    f_ccx = -run.totals["PUNCH"][2]
+    du, df = _rel_u(run.displacement, np.asarray(sol.displacement)), abs(f_ccx - f_ours) / f_ours
+    _report(f"flat punch {base} base, {'bonded' if bonded else 'frictionless'} punch", du, df)
+    assert f_ours > 1e-3 and du <= LINEAR_TOL and df <= LINEAR_TOL
+
+
+# ------------------------------------------------------- sphere / cone: Abaqus only
+@pytest.mark.parametrize("indenter, geometry", [("sphere", {"radius": 2 * MM}), ("cone", {"half_angle": 1.0})])
+def test_sphere_and_cone_decks_do_not_run_in_calculix(indenter, geometry, tmp_path):
+    """The analytical rigid indenters are Abaqus keywords CalculiX 2.20 does not have: it stops
+    (exit 201) on ``*SURFACE, TYPE=REVOLUTION`` ("unknown surface type") and on the rigid body.
+    If a CalculiX ever runs them, this fails and the docs' table needs the case."""
+    card = _card("fem_linear")
+    spec = indentation_specimen(card, indenter=indenter, depth=1e-4, size=(10 * MM, 10 * MM, 5 * MM), cells=(2, 2, 1),
+                                steps=1, **geometry)
+    deck = export(card, "abaqus", tmp_path / f"{indenter}.inp", indentation=spec)
+    rc, out = run_ccx(deck.read_text(), tmp_path / "ccx")
+    assert rc != 0 and "*ERROR reading *SURFACE" in out and "*ERROR reading *RIGID BODY" in out  # 2.20: "unknown surface type"
