@@ -2,7 +2,9 @@
 
 Every command is a thin shell over public functions of the package. Errors print one
 line ``error: ...`` on stderr and exit with status 1 (2 for usage errors); ``--debug``
-shows the traceback instead.
+shows the traceback instead. ``fit`` (and ``demo``) exit with status 3 when the fit finished
+but its answer is unusable (a quality flag of severity "error": a parameter at a bound, an
+implausible value, non-finite, not converged); the outputs are written all the same.
 """
 
 from __future__ import annotations
@@ -466,7 +468,7 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
         with atomic_output(out / "config.toml", overwrite=True) as tmp:
             tmp.write_bytes(Path(cfg.path).read_bytes())
     notes = [n for e in cfg.experiments for n in e.notes] + list(extra_notes)
-    notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ != "IdentifiabilityWarning"]
+    notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ not in ("IdentifiabilityWarning", "FitQualityWarning")]
     for sc in getattr(cfg, "last_scenarios", ()):
         fails = getattr(sc, "failures", None)
         if fails:
@@ -494,9 +496,33 @@ def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
     console.print(f"loss {result.loss:.6g}, {state} after {result.steps} steps ({result.reason}); rms residual/sigma: {rms}; {elapsed:.1f} s", markup=False, highlight=False)
     for w in [*cfg.data_warnings, *result.warnings]:
         console.print(f"warning: {_one_line(w)}", markup=False, highlight=False)
+    _print_quality(result.quality, console)
     for n in notes:
         console.print(f"note: {cli_words(n, 'fit')}", markup=False, highlight=False)
     console.print(f"wrote {out}/: fit.json, fit.png, loss.png, report.md" + (", config.toml" if cfg.path else ""), markup=False, highlight=False)
+
+
+#: Exit status of ``fit`` / ``demo`` when the fit's answer is unusable (quality error flags).
+EXIT_UNUSABLE = 3
+
+
+def _print_quality(quality, console) -> None:
+    """``quality: ...`` then one ``error:`` / ``warning:`` line per quality flag."""
+    if quality is None:
+        return
+    console.print(f"quality: {quality.summary()}", markup=False, highlight=False)
+    for f in quality.flags:
+        console.print(f"  {f.severity}: {_one_line(f.message)}", markup=False, highlight=False)
+
+
+def _unusable_status(results) -> int:
+    """0, or :data:`EXIT_UNUSABLE` (with a line on stderr) when a fit's answer is unusable."""
+    bad = [r for r in results if r.quality is not None and not r.quality.usable]
+    for r in bad:
+        names = ", ".join(f.name + (f" ({f.subject})" if f.subject else "") for f in r.quality.errors)
+        print(f"difftissue: error: the fit finished but its answer is unusable ({names}); the outputs are written "
+              f"for inspection (report.md, section Quality); exit status {EXIT_UNUSABLE}", file=sys.stderr)
+    return EXIT_UNUSABLE if bad else 0
 
 
 def _progress_default(args) -> bool:
@@ -515,11 +541,11 @@ def _cmd_fit(args) -> int:
     out = Path(args.out)
     with _OutputLock(out) as lock:
         try:
-            _run_config(cfg, out, force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts,
-                        checkpoint=True, console=Console(highlight=False), extra_notes=[lock.note] if lock.note else ())
+            result, _ = _run_config(cfg, out, force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts,
+                                    checkpoint=True, console=Console(highlight=False), extra_notes=[lock.note] if lock.note else ())
         finally:
             _remove_if_empty(out / _CHECKPOINT.parent)
-    return 0
+    return _unusable_status([result])
 
 
 def _remove_if_empty(folder: Path) -> None:
@@ -624,7 +650,7 @@ def _demo(args, out: Path, t0: float, notes) -> int:
                       f"(authors: 16.29 kPa, {100 * (E / 16290.0 - 1):+.1f} %), cubic coefficient b = {comp.values['cubic_coefficient']:.3f}; "
                       f"model within {100 * dev:.2f} % of the peak stress up to {sc.abscissa.max():.0%} strain", markup=False)
     console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {out}/ (fit.json, fit.png, loss.png, report.md, config.toml per fit)", markup=False)
-    return 0
+    return _unusable_status(summary.values())
 
 
 # ------------------------------------------------------------------------------ parser

@@ -61,6 +61,7 @@ _TOP_KEYS = ("title", "description", "material", "fit", "experiment")
 _FIT_KEYS = (
     "parameters", "bounds", "method", "loss", "f_scale", "starts", "seed", "start_spread", "max_steps",
     "rtol", "atol", "learning_rate", "jac", "absolute_sigma", "checkpoint_every", "separate_compilation",
+    "plausible",
 )
 _COMMON_EXPERIMENT_KEYS = ("name", "scenario", "data", "sigma", "points", "length_unit")
 _EXPERIMENT_KEYS = {
@@ -750,7 +751,22 @@ def _parse_fit(value, material):
         opts["checkpoint_every"] = _integer(t["checkpoint_every"], "fit.checkpoint_every", minimum=1)
     if "separate_compilation" in t:
         opts["separate_compilation"] = _bool(t["separate_compilation"], "fit.separate_compilation")
+    if "plausible" in t:
+        opts["plausible"] = _plausible_ranges(t["plausible"], params)
     return param, opts
+
+
+def _plausible_ranges(value, params) -> dict:
+    """``fit.plausible = { youngs_modulus = [lo, hi] }`` (SI): the range outside which a fitted
+    value is flagged ``implausible_value`` (default E in [1 Pa, 1 GPa])."""
+    t = _table(value, "fit.plausible", tuple(FIELDS))
+    out = {}
+    for f, b in t.items():
+        p = f"fit.plausible.{f}"
+        if not isinstance(b, list) or len(b) != 2 or not all(_is_number(v) for v in b) or not float(b[0]) < float(b[1]):
+            _fail(p, f"must be [lower, upper] with lower < upper ({FIELDS[f] if FIELDS[f] != '1' else 'dimensionless'}), got {_show(b)}")
+        out[f] = (float(b[0]), float(b[1]))
+    return out
 
 
 def _solver_options(e: Mapping, path: str):

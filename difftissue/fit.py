@@ -50,6 +50,7 @@ from .errors import (
     CheckpointError,
     CheckpointMismatchError,
     FitError,
+    FitQualityWarning,
     IdentifiabilityWarning,
     OutputError,
     OutputExistsError,
@@ -65,6 +66,10 @@ __all__ = [
     "fit",
     "parameter_statistics",
     "identifiability_diagnostics",
+    "assess_quality",
+    "FitQuality",
+    "QualityFlag",
+    "PLAUSIBLE",
     "write_fit_outputs",
     "package_versions",
     "UNITS",
@@ -454,6 +459,9 @@ class FitResult:
         unconstrained: the optimiser's vector ``u`` of the best start.
         compilations: how many times the step function was traced (1 in a healthy fit).
         resumed_from: step count read from a checkpoint (0 for a fresh fit).
+        quality: the quality gates (:func:`assess_quality`): flags such as ``at_bound``,
+            ``not_converged`` (errors: the answer is unusable) or ``systematic_residuals``
+            (warnings), each also emitted as :class:`~difftissue.errors.FitQualityWarning`.
     """
 
     material: Material
@@ -488,6 +496,7 @@ class FitResult:
     unconstrained: np.ndarray
     compilations: int
     resumed_from: int = 0
+    quality: "FitQuality | None" = None
 
     @property
     def scenario_names(self) -> tuple[str, ...]:
@@ -502,6 +511,8 @@ class FitResult:
             lines.append(f"{f} = {self.values[f]:.6g} ± {se:.3g}{unit}")
         lines.append(f"loss = {self.loss:.6g}; {'converged' if self.converged else 'NOT converged'} after {self.steps} steps ({self.reason})")
         lines.extend(f"warning: {w}" for w in self.warnings)
+        if self.quality is not None:
+            lines.append(f"quality: {self.quality.summary()}")
         return "\n".join(lines)
 
 
@@ -657,6 +668,201 @@ def identifiability_diagnostics(stats: Mapping, values, fields) -> list[tuple[st
                 add(fields[i], f"corr-{fields[j]}", msg)
                 add(fields[j], f"corr-{fields[i]}", msg)
     return out
+
+
+# ============================================================================ quality gates
+#: Plausible range of a fitted field (SI) unless :func:`fit`'s ``plausible`` (config:
+#: ``fit.plausible``) widens it: outside it the fit is flagged ``implausible_value`` (an error).
+PLAUSIBLE: dict[str, tuple[float, float]] = {"youngs_modulus": (1.0, 1e9)}
+#: rms of the scaled residuals above this is flagged ``poor_fit`` (a warning) [-].
+RMS_LIMIT = 3.0
+#: lag-1 autocorrelation of a scenario's residuals above this is flagged ``systematic_residuals``.
+AUTOCORRELATION_LIMIT = 0.5
+#: Wald--Wolfowitz runs-test p-value below this is flagged ``systematic_residuals``.
+RUNS_P_LIMIT = 0.01
+#: A parameter closer to a transform bound than this fraction of its range (ScaledLogit) or of
+#: its scale (Log) is flagged ``at_bound`` (an error).
+BOUND_FRACTION = 1e-4
+#: Residual structure is judged only where the rms residual/sigma reaches this: below it the
+#: model lies within the stated noise level and the residuals' pattern is numerical noise.
+STRUCTURE_MIN_RMS = 0.5
+#: Minimum points of a scenario for the structure tests.
+STRUCTURE_MIN_POINTS = 10
+#: Quality flags that make the fit's answer unusable (severity "error"; CLI exit status 3).
+QUALITY_ERRORS = ("non_finite", "not_converged", "at_bound", "implausible_value")
+
+
+@dataclasses.dataclass(frozen=True)
+class QualityFlag:
+    """One finding of :func:`assess_quality`.
+
+    Attributes:
+        name: ``non_finite``, ``not_converged``, ``at_bound``, ``implausible_value`` (errors:
+            the answer is unusable), ``poor_fit`` or ``systematic_residuals`` (warnings).
+        severity: ``"error"`` or ``"warning"``.
+        subject: the field or scenario it concerns (None for the whole fit).
+        message: one line for people.
+        numbers: the quantities behind it (SI units or dimensionless).
+    """
+
+    name: str
+    severity: str
+    subject: str | None
+    message: str
+    numbers: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class FitQuality:
+    """Quality gates of a fit: the flags and, per scenario, the residual statistics
+    (``rms`` of residual/sigma, ``lag1_autocorrelation``, ``runs``, ``runs_expected``, ``runs_p``)."""
+
+    flags: tuple[QualityFlag, ...]
+    scenarios: dict
+
+    @property
+    def usable(self) -> bool:
+        """False when a flag of severity "error" is raised."""
+        return not any(f.severity == "error" for f in self.flags)
+
+    @property
+    def errors(self) -> tuple[QualityFlag, ...]:
+        return tuple(f for f in self.flags if f.severity == "error")
+
+    @property
+    def verdict(self) -> str:
+        """``"ok"``, ``"warnings"`` or ``"unusable"``."""
+        return "unusable" if not self.usable else ("warnings" if self.flags else "ok")
+
+    def summary(self) -> str:
+        """One line: the verdict and the flag names with their subjects."""
+        if not self.flags:
+            return "ok"
+        names = ", ".join(f.name + (f" ({f.subject})" if f.subject else "") for f in self.flags)
+        return f"{self.verdict}: {names}"
+
+    def to_json(self) -> dict:
+        return {
+            "verdict": self.verdict,
+            "usable": self.usable,
+            "flags": [{"name": f.name, "severity": f.severity, "subject": f.subject, "message": f.message, "numbers": _jsonable(f.numbers)} for f in self.flags],
+            "scenarios": _jsonable(self.scenarios),
+            "thresholds": {"rms": RMS_LIMIT, "lag1_autocorrelation": AUTOCORRELATION_LIMIT, "runs_p": RUNS_P_LIMIT,
+                           "bound_fraction": BOUND_FRACTION, "structure_min_rms": STRUCTURE_MIN_RMS},
+        }
+
+
+def lag1_autocorrelation(r) -> float:
+    """Lag-1 autocorrelation of a residual sequence ``r`` [-] (NaN for fewer than 3 points or zero variance)."""
+    r = np.asarray(r, dtype=float)
+    if r.size < 3:
+        return float("nan")
+    d = r - r.mean()
+    den = float(np.sum(d * d))
+    return float(np.sum(d[:-1] * d[1:]) / den) if den > 0 else float("nan")
+
+
+def runs_test(r) -> tuple[int, float, float]:
+    """Wald--Wolfowitz runs test on the signs of ``r`` (zeros dropped).
+
+    Returns ``(runs, expected runs, two-sided p-value)`` from the normal approximation; the
+    p-value is NaN when all signs agree or fewer than 2 points remain. Too few runs means
+    residuals of one sign cluster: the model misses a trend of the data.
+    """
+    s = np.sign(np.asarray(r, dtype=float))
+    s = s[s != 0]
+    n1, n2 = int(np.sum(s > 0)), int(np.sum(s < 0))
+    n = n1 + n2
+    runs = int(1 + np.sum(s[1:] != s[:-1])) if n else 0
+    if n1 == 0 or n2 == 0 or n < 2:
+        return runs, float("nan"), float("nan")
+    mu = 2.0 * n1 * n2 / n + 1.0
+    var = (mu - 1.0) * (mu - 2.0) / (n - 1.0)
+    if var <= 0:
+        return runs, mu, float("nan")
+    z = (runs - mu) / math.sqrt(var)
+    return runs, mu, math.erfc(abs(z) / math.sqrt(2.0))
+
+
+def _bound_flags(parameterization, u, values) -> list[QualityFlag]:
+    """``at_bound`` for each field whose transform is saturated (within :data:`BOUND_FRACTION`)."""
+    from .materials import Log, ScaledLogit
+
+    out = []
+    for i, (f, t) in enumerate(zip(parameterization.fields, parameterization.transforms)):
+        ui = float(u[i])
+        unit = _unit_text(UNITS.get(f, ""))
+        if isinstance(t, ScaledLogit):
+            frac = 1.0 / (1.0 + math.exp(-ui)) if ui > -700 else 0.0
+            for side, dist, b in (("lower", frac, t.lower), ("upper", 1.0 - frac, t.upper)):
+                if dist < BOUND_FRACTION:
+                    out.append(QualityFlag("at_bound", "error", f, f"{f} = {values[f]:.6g} {unit} sits at its {side} bound {b:g}: the optimum lies outside "
+                                           f"[{t.lower:g}, {t.upper:g}] (widen fit.bounds, or the model does not describe the data)".replace("  ", " "),
+                                           {"value": values[f], "bound": b, "side": side, "fraction_of_range": dist}))
+        elif isinstance(t, Log) and ui < math.log(BOUND_FRACTION):
+            out.append(QualityFlag("at_bound", "error", f, f"{f} = {values[f]:.6g} {unit} collapsed onto its lower limit {t.lower:g} "
+                                   f"({math.exp(ui):.2g} of its start scale {t.scale:g})".replace("  ", " "),
+                                   {"value": values[f], "bound": t.lower, "side": "lower", "fraction_of_scale": math.exp(ui)}))
+    return out
+
+
+def _residual_flags(scenarios) -> tuple[list[QualityFlag], dict]:
+    """``poor_fit`` and ``systematic_residuals`` per scenario, and each scenario's statistics."""
+    flags, stats = [], {}
+    for s in scenarios:
+        r = np.asarray(s.residual, dtype=float)
+        rms = float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+        rho = lag1_autocorrelation(r)
+        runs, expected, p = runs_test(r)
+        stats[s.name] = {"points": int(r.size), "rms": rms, "lag1_autocorrelation": rho, "runs": runs, "runs_expected": expected, "runs_p": p,
+                         "max_abs": float(np.max(np.abs(r))) if r.size else float("nan")}
+        if np.isfinite(rms) and rms > RMS_LIMIT:
+            flags.append(QualityFlag("poor_fit", "warning", s.name, f"{s.name}: rms residual/sigma {rms:.3g} > {RMS_LIMIT:g}: the model misses the data "
+                                     "by more than the stated noise (or sigma is too small)", {"rms": rms}))
+        if r.size >= STRUCTURE_MIN_POINTS and np.isfinite(rms) and rms >= STRUCTURE_MIN_RMS:
+            why = []
+            if np.isfinite(rho) and rho > AUTOCORRELATION_LIMIT:
+                why.append(f"lag-1 autocorrelation {rho:.2f} > {AUTOCORRELATION_LIMIT:g}")
+            if np.isfinite(p) and p < RUNS_P_LIMIT:
+                why.append(f"{runs} sign runs where {expected:.1f} are expected (runs test p = {p:.2g} < {RUNS_P_LIMIT:g})")
+            if why:
+                flags.append(QualityFlag("systematic_residuals", "warning", s.name,
+                                         f"{s.name}: systematic residuals ({'; '.join(why)}; largest abs(residual)/sigma {stats[s.name]['max_abs']:.2g}): "
+                                         "the model's shape does not follow the data; the standard errors are optimistic",
+                                         {"lag1_autocorrelation": rho, "runs": runs, "runs_expected": expected, "runs_p": p}))
+    return flags, stats
+
+
+def assess_quality(result: "FitResult", parameterization=None, *, plausible: Mapping[str, Sequence[float]] | None = None) -> FitQuality:
+    """Quality gates of a fit (see ``docs/fitting.md``, "Quality").
+
+    Errors (the answer is unusable): a non-finite value or loss (``non_finite``), a fit that did
+    not converge (``not_converged``), a parameter at a transform bound (``at_bound``, needs
+    ``parameterization``), a value outside its plausible range (``implausible_value``:
+    :data:`PLAUSIBLE` updated by ``plausible``, ``{field: (lo, hi)}`` SI). Warnings: rms
+    residual/sigma above :data:`RMS_LIMIT` (``poor_fit``), structured residuals: lag-1
+    autocorrelation above :data:`AUTOCORRELATION_LIMIT` or runs-test p below
+    :data:`RUNS_P_LIMIT` (``systematic_residuals``).
+    """
+    ranges = {**PLAUSIBLE, **{k: (float(v[0]), float(v[1])) for k, v in (plausible or {}).items()}}
+    flags: list[QualityFlag] = []
+    bad = [f for f in result.fields if not math.isfinite(result.values[f])]
+    if bad or not math.isfinite(result.loss) or any(not np.all(np.isfinite(s.predicted)) for s in result.scenarios):
+        flags.append(QualityFlag("non_finite", "error", ", ".join(bad) or None, f"non-finite result ({', '.join(bad) or 'loss or predictions'})", {"loss": result.loss}))
+    if not result.converged:
+        flags.append(QualityFlag("not_converged", "error", None, f"the fit did not converge ({result.reason}) after {result.steps} steps", {"steps": result.steps}))
+    if parameterization is not None:
+        flags += _bound_flags(parameterization, result.unconstrained, result.values)
+    for f in result.fields:
+        v = result.values[f]
+        if f in ranges and math.isfinite(v) and not ranges[f][0] <= v <= ranges[f][1]:
+            lo, hi = ranges[f]
+            unit = _unit_text(UNITS.get(f, ""))
+            flags.append(QualityFlag("implausible_value", "error", f, f"{f} = {v:.4g} {unit} lies outside the plausible range [{lo:g}, {hi:g}] {unit} "
+                                     "(most often a unit mistake or a diverged fit; widen it with fit.plausible if the material really is so)".replace("  ", " "),
+                                     {"value": v, "range": [lo, hi]}))
+    res_flags, stats = _residual_flags(result.scenarios)
+    return FitQuality(tuple(flags + res_flags), stats)
 
 
 # ============================================================================ optimisers
@@ -1054,6 +1260,7 @@ def fit(
     resume: bool = False,
     progress: bool = False,
     callback: Callable[[FitProgress], bool | None] | None = None,
+    plausible: Mapping[str, Sequence[float]] | None = None,
 ) -> FitResult:
     """Fit the fields of ``parameterization`` to one or more scenarios (weighted least squares).
 
@@ -1091,10 +1298,13 @@ def fit(
         callback: called with a :class:`FitProgress` after every step; returning ``True``
             stops the fit (reason "stopped by callback"). An exception (e.g. KeyboardInterrupt)
             propagates after the checkpoint is written.
+        plausible: ``{field: (lo, hi)}`` (SI) widening or narrowing :data:`PLAUSIBLE` (default
+            E in [1 Pa, 1 GPa]) for the ``implausible_value`` quality gate.
 
     Returns:
         A :class:`FitResult`. Identifiability problems are also emitted as
-        :class:`~difftissue.errors.IdentifiabilityWarning`.
+        :class:`~difftissue.errors.IdentifiabilityWarning`, quality flags (:func:`assess_quality`)
+        as :class:`~difftissue.errors.FitQualityWarning`.
     """
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}; choose one of {METHODS}")
@@ -1202,13 +1412,13 @@ def fit(
     return _fit_result(
         problem, engine, U, all_values, final, all_J, all_preds, done, status, history, step,
         stop_reason=stop_reason, absolute_sigma=absolute_sigma, method=method, loss=loss, f_scale=f_scale,
-        compilations=engine.traces - traces_before, resumed_from=resumed_from, stacklevel=3,
+        compilations=engine.traces - traces_before, resumed_from=resumed_from, stacklevel=3, plausible=plausible,
     )
 
 
 def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_J, all_preds, done, status, history, step, *,
                 stop_reason: str, absolute_sigma: bool, method: str, loss: str, f_scale: float, compilations: int,
-                resumed_from: int = 0, warning_prefix: str = "", stacklevel: int = 2) -> FitResult:
+                resumed_from: int = 0, warning_prefix: str = "", stacklevel: int = 2, plausible=None) -> FitResult:
     """The :class:`FitResult` of one problem from the final state of its starts: best start,
     covariance, identifiability diagnostics (emitted as warnings, prefixed by
     ``warning_prefix``) and per-scenario outputs. ``history`` is a list of ``(S,)`` loss rows."""
@@ -1253,7 +1463,7 @@ def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_
         residuals[sc.name] = res
         scen_fits.append(ScenarioFit(sc.name, absc, obs, sig, pred, res, str(getattr(sc, "x_label", "index")), str(getattr(sc, "y_label", "observed"))))
     start_vals = np.asarray(all_values)
-    return FitResult(
+    result = FitResult(
         material=material,
         fields=fields,
         values={f: float(values_vec[i]) for i, f in enumerate(fields)},
@@ -1287,6 +1497,10 @@ def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_
         compilations=int(compilations),
         resumed_from=resumed_from,
     )
+    quality = assess_quality(result, problem.parameterization, plausible=plausible)
+    for flag in quality.flags:
+        warnings.warn(f"{warning_prefix}{flag.severity}: {flag.message}", FitQualityWarning, stacklevel=stacklevel)
+    return dataclasses.replace(result, quality=quality)
 
 
 # ============================================================================ outputs
@@ -1383,6 +1597,7 @@ def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -
         "degrees_of_freedom": result.dof,
         "condition_number": _num(result.condition_number),
         "identifiability_warnings": list(result.warnings),
+        "quality": result.quality.to_json() if result.quality is not None else None,
         "unidentified": list(result.unidentified),
         "model": model_name,
         "scenarios": [
@@ -1455,6 +1670,29 @@ def _unit_text(unit: str) -> str:
     return "" if unit == "1" else unit
 
 
+def _quality_md(quality: "FitQuality | None") -> list[str]:
+    """The report's "Quality" section: verdict, flags, residual statistics per scenario."""
+    if quality is None:
+        return []
+    verdict = {"ok": "**OK**: no quality flag raised.",
+               "warnings": "**Usable, with warnings** (see below).",
+               "unusable": "**UNUSABLE**: do not use these values (the CLI exits with status 3)."}[quality.verdict]
+    lines = ["", "## Quality", "", verdict]
+    if quality.flags:
+        lines += ["", "| flag | severity | subject | finding |", "|---|---|---|---|"]
+        lines += [f"| {f.name} | {f.severity} | {f.subject or '-'} | {f.message} |" for f in quality.flags]
+    lines += ["", "| scenario | points | rms residual/sigma | lag-1 autocorrelation | sign runs (expected) | runs test p |", "|---|---|---|---|---|---|"]
+    fmt = lambda x, spec: "-" if x is None or not np.isfinite(x) else format(x, spec)  # noqa: E731
+    for name, st in quality.scenarios.items():
+        lines.append(f"| {name} | {st['points']} | {fmt(st['rms'], '.3g')} | {fmt(st['lag1_autocorrelation'], '.2f')} | "
+                     f"{st['runs']} ({fmt(st['runs_expected'], '.1f')}) | {fmt(st['runs_p'], '.2g')} |")
+    lines += ["", f"Thresholds: errors for a parameter within {BOUND_FRACTION:g} of a transform bound, a value outside its plausible range "
+              f"(E in [{PLAUSIBLE['youngs_modulus'][0]:g}, {PLAUSIBLE['youngs_modulus'][1]:g}] Pa unless fit.plausible says otherwise), "
+              f"non-finite values, no convergence; warnings for rms residual/sigma > {RMS_LIMIT:g}, lag-1 autocorrelation > "
+              f"{AUTOCORRELATION_LIMIT:g} or runs test p < {RUNS_P_LIMIT:g} (judged where rms >= {STRUCTURE_MIN_RMS:g})."]
+    return lines
+
+
 def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines = ["# Fit report", ""]
     lines.append(f"Model: {record['model'] or '(not given)'}; scenarios: {', '.join(names)}.")
@@ -1463,7 +1701,8 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
         + (f" (f_scale {result.f_scale:g})" if result.loss_function != "linear" else "")
         + f", {int(result.start_losses.size)} start(s) (best: {result.best_start})."
     )
-    lines.append(f"**{'Converged' if result.converged else 'Not converged'}** after {result.steps} steps: {result.reason}. Final loss {result.loss:.6g}.")
+    lines.append(f"**{'Converged' if result.converged else 'Not converged'}** after {result.steps} steps: {result.reason}. Final loss {result.loss:.6g}."
+                 + (f" Quality: {result.quality.summary()}." if result.quality is not None else ""))
     lines += ["", "## Parameters", "", "| parameter | value | standard error | relative | unit |", "|---|---|---|---|---|"]
     for f in result.fields:
         v, se = result.values[f], result.standard_errors[f]
@@ -1474,6 +1713,7 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines += ["", f"Standard errors from the Gauss-Newton covariance {cov_txt}; condition number of J^T J (scaled) {result.condition_number:.3g}."]
     if record["fixed_parameters"]:
         lines += ["", "Fixed: " + ", ".join(f"{k} = {d['value']:g}{' ' + _unit_text(d['unit']) if _unit_text(d['unit']) else ''}" for k, d in record["fixed_parameters"].items()) + "."]
+    lines += _quality_md(result.quality)
     if len(result.fields) > 1:
         lines += ["", "## Correlations", "", "| | " + " | ".join(result.fields) + " |", "|---" * (len(result.fields) + 1) + "|"]
         for i, f in enumerate(result.fields):
@@ -1481,7 +1721,7 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
             lines.append(f"| {f} | " + " | ".join(cells) + " |")
     lines += ["", "## Warnings", ""]
     data_warnings = [f"- data: {w}" for w in record.get("data_warnings", ())]
-    lines += data_warnings + [f"- {w}" for w in result.warnings] or ["None: every parameter is determined by the data."]
+    lines += data_warnings + [f"- {w}" for w in result.warnings] or ["None from the data or identifiability checks (every parameter is determined by the data); the fit's quality flags are under Quality."]
     if record.get("data_rows"):
         lines += ["", "## Data rows", "", "| experiment | file | rows used | rows loaded | left out or reordered |", "|---|---|---|---|---|"]
         for d in record["data_rows"]:

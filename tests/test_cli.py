@@ -103,6 +103,12 @@ def test_demo_quick_fits_the_bundled_afm_curve(tmp_path, capsys):
     e_eff = rec["parameters"]["youngs_modulus"]["value"]  # nu is fixed at 0: E is E_eff
     assert rec["fixed_parameters"]["poisson_ratio"]["value"] == 0.0 and rec["converged"]
     assert e_eff == pytest.approx(156.0, rel=0.05)  # the instrument's own Hertz fit
+    # the +-5 sigma residual waves of the Hertz fit are named, not "Warnings: None" (issue 17)
+    q = rec["quality"]
+    assert q["verdict"] == "warnings" and [f["name"] for f in q["flags"]] == ["systematic_residuals"]
+    assert q["scenarios"]["afm"]["rms"] == pytest.approx(2.13, abs=0.01) and q["scenarios"]["afm"]["lag1_autocorrelation"] > 0.5
+    assert "quality: warnings: systematic_residuals (afm)" in " ".join(text.split())
+    assert "## Quality" in (out / "afm_hertz" / "report.md").read_text()
     assert rec["parameters"]["youngs_modulus"]["unit"] == "Pa" and rec["parameters"]["youngs_modulus"]["standard_error"] > 0
     assert len(rec["data_files"]) == 1 and len(rec["data_files"][0]["sha256"]) == 64
     for name in ("material.json", "fit.png", "loss.png", "report.md", "config.toml"):
@@ -397,3 +403,18 @@ reaction = {{ set = "punch", components = "z", force = [{force!r}] }}
         else:
             rec = json.loads((tmp_path / "out0" / "fit.json").read_text())
             assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(12e3, rel=1e-6)
+
+
+def test_an_unusable_fit_writes_its_outputs_and_exits_3(tmp_path, capsys):
+    """Not converged (max_steps = 1) or E outside fit.plausible: the answer is unusable."""
+    base = _AFM.read_text().replace('path = "data/', f'path = "{_AFM.parent}/data/')
+    for extra, flag in (("max_steps = 1", "not_converged"), ("plausible = { youngs_modulus = [1e3, 1e9] }", "implausible_value")):
+        cfg = tmp_path / f"{flag}.toml"
+        cfg.write_text(base.replace('method = "levenberg_marquardt"', 'method = "levenberg_marquardt"\n' + extra))
+        rc = main(["fit", str(cfg), "--out", str(tmp_path / flag)])
+        cap = capsys.readouterr()
+        assert rc == 3, cap.err
+        assert "answer is unusable" in cap.err and flag in cap.err and f"error: " in cap.out
+        rec = json.loads((tmp_path / flag / "fit.json").read_text())
+        assert rec["quality"]["usable"] is False and flag in [f["name"] for f in rec["quality"]["flags"] if f["severity"] == "error"]
+        assert "UNUSABLE" in (tmp_path / flag / "report.md").read_text()
