@@ -463,11 +463,12 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
 
     paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name,
                               force=force or resume, scenario_records=[scenario_record(s) for s in cfg.scenarios],
-                              scenarios=cfg.scenarios, data=cfg.data_provenance, data_warnings=cfg.data_warnings)
+                              scenarios=cfg.scenarios, data=cfg.data_provenance, data_warnings=cfg.data_warnings,
+                              start=getattr(cfg, "start", None))
     if cfg.path is not None:
         with atomic_output(out / "config.toml", overwrite=True) as tmp:
             tmp.write_bytes(Path(cfg.path).read_bytes())
-    notes = [n for e in cfg.experiments for n in e.notes] + list(extra_notes)
+    notes = [n for e in cfg.experiments for n in e.notes] + _start_notes(getattr(cfg, "start", None)) + list(extra_notes)
     notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ not in ("IdentifiabilityWarning", "FitQualityWarning")]
     for sc in getattr(cfg, "last_scenarios", ()):
         fails = getattr(sc, "failures", None)
@@ -475,6 +476,12 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
             notes.append(f"{sc.name}: {len(fails)} model evaluation(s) failed at trial parameters and were rejected (last: {fails[-1]})")
     _print_fit(result, cfg, out, elapsed, console, notes)
     return result, paths
+
+
+def _start_notes(start) -> list[str]:
+    """One note per field whose start came from the data (``fit.start = "data"``)."""
+    return [f"start: {f} = {d['value']:.4g} from the data ({d['from']}); the config's material.{f} = {d['config_value']:.4g} "
+            f"is not the start (fit.start = \"material\" pins it)" for f, d in (start or {}).items()]
 
 
 def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:

@@ -1751,6 +1751,7 @@ def write_fit_outputs(
     scenarios: Sequence | None = None,
     data: Sequence[Mapping] = (),
     data_warnings: Sequence[str] = (),
+    start: Mapping | None = None,
 ) -> dict[str, Path]:
     """Write ``fit.json``, ``material.json``, ``fit.png``, ``loss.png`` and ``report.md`` into
     ``out_dir``, and ``specimen-<name>.vtu`` for each simulated ``fem_field``, ``compression``
@@ -1783,6 +1784,8 @@ def write_fit_outputs(
             in ``fit.json`` and in the report's "Data rows" section.
         data_warnings: plausibility warnings of the data (a likely unit mistake, ...); recorded
             as ``data_warnings`` in ``fit.json`` and first under the report's "Warnings".
+        start: where the initial values came from when the data chose them
+            (:attr:`difftissue.config.FitConfig.start`); recorded as ``start`` in ``fit.json``.
         force: overwrite existing output files. Without it, an existing file among the five
             (or a specimen file to be written) raises :class:`~difftissue.errors.OutputExistsError`
             naming it, before anything is written.
@@ -1823,6 +1826,7 @@ def write_fit_outputs(
     record = _fit_json(result, config=config, data_files=data_files, model=model, scenario_names=scenario_names)
     record["data_warnings"] = [str(w) for w in data_warnings]
     record["data_rows"] = [dict(d) for d in data]
+    record["start"] = _jsonable(start) if start else None
     out.mkdir(parents=True, exist_ok=True)
     with atomic_output(paths["fit.json"], overwrite=force) as tmp:
         tmp.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n", encoding="utf-8")
