@@ -224,7 +224,7 @@ def _cmd_export(args) -> int:
     disp = None if args.displacement is None else args.displacement * f
     path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
                   dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp,
-                  constraints=args.constraints, indentation=indentation, fitted=fitted)
+                  constraints=args.constraints, indentation=indentation, fitted=fitted, nu=args.nu)
     what = ("complete specimen model" if mesh is not None else
             f"fitted {fitted.experiment} specimen of scenario {fitted.scenario!r}" if fitted is not None else
             f"{indentation.indenter} indentation specimen, depth {indentation.depth:.6g} m" if indentation is not None else "material")
@@ -496,6 +496,10 @@ def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
         se = result.standard_errors[f]
         t.add_row(f, f"{result.values[f]:.6g}", f"{se:.3g}", result.units[f])
     console.print(t)
+    if getattr(result, "effective_modulus", None) is not None:
+        from .fit import effective_modulus_line
+
+        console.print(effective_modulus_line(result.effective_modulus), markup=False, highlight=False)
     fixed = {k: v for k, v in result.material.to_dict().items() if k not in result.fields}
     console.print("fixed: " + ", ".join(f"{k} = {v:g}" for k, v in fixed.items()), markup=False, highlight=False)
     state = "converged" if result.converged else "NOT converged"
@@ -724,6 +728,9 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     x.add_argument("--approximate", action="store_true",
                    help="drop what the target cannot represent (cubic stiffening, pre-stretch) and record the approximation in the file")
+    x.add_argument("--nu", type=float, default=None, metavar="NU",
+                   help="for a card holding an effective modulus E* = E/(1-nu^2) (a Hertz/Sneddon fit with nu fixed): the tissue's "
+                        "Poisson ratio; exports E = E* (1 - nu^2) and this nu (without it a card fitted at nu = 0 is refused)")
     x.add_argument("--law", choices=("linear", "neo_hookean", "springs"), default=None,
                    help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
     x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|indentation|fitted",
@@ -799,6 +806,7 @@ _CLI_WORDS = (
     ("overwrite/--force", "--force"),
     ("pass resume=True", "pass --resume"),
     ("approximate=True (--approximate)", "--approximate"),
+    ("nu=0.45 / --nu 0.45", "--nu 0.45"),
     ("bonded_punch=True (--bonded-punch)", "--bonded-punch"),
 )
 

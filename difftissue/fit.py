@@ -67,6 +67,7 @@ __all__ = [
     "parameter_statistics",
     "identifiability_diagnostics",
     "assess_quality",
+    "effective_modulus",
     "FitQuality",
     "QualityFlag",
     "PLAUSIBLE",
@@ -462,6 +463,9 @@ class FitResult:
         quality: the quality gates (:func:`assess_quality`): flags such as ``at_bound``,
             ``not_converged`` (errors: the answer is unusable) or ``systematic_residuals``
             (warnings), each also emitted as :class:`~difftissue.errors.FitQualityWarning`.
+        effective_modulus: for a half-space indentation fit (Hertz/Sneddon) with nu not
+            fitted, what the data determine: ``E* = E / (1 - nu^2)`` [Pa] with its standard
+            error, the assumed nu and the meaning (:func:`effective_modulus`); else None.
     """
 
     material: Material
@@ -497,6 +501,7 @@ class FitResult:
     compilations: int
     resumed_from: int = 0
     quality: "FitQuality | None" = None
+    effective_modulus: dict | None = None
 
     @property
     def scenario_names(self) -> tuple[str, ...]:
@@ -511,6 +516,8 @@ class FitResult:
             lines.append(f"{f} = {self.values[f]:.6g} ± {se:.3g}{unit}")
         lines.append(f"loss = {self.loss:.6g}; {'converged' if self.converged else 'NOT converged'} after {self.steps} steps ({self.reason})")
         lines.extend(f"warning: {w}" for w in self.warnings)
+        if self.effective_modulus is not None:
+            lines.append(effective_modulus_line(self.effective_modulus))
         if self.quality is not None:
             lines.append(f"quality: {self.quality.summary()}")
         return "\n".join(lines)
@@ -863,6 +870,50 @@ def assess_quality(result: "FitResult", parameterization=None, *, plausible: Map
                                      {"value": v, "range": [lo, hi]}))
     res_flags, stats = _residual_flags(result.scenarios)
     return FitQuality(tuple(flags + res_flags), stats)
+
+
+# ============================================================================ effective modulus
+#: Half-space closed forms whose force is proportional to E / (1 - nu^2), by indenter.
+_HALF_SPACE_LAWS = {"sphere": "Hertz", "flat_punch": "Sneddon flat punch", "cone": "Sneddon cone"}
+
+
+def effective_modulus(result: "FitResult", scenarios) -> dict | None:
+    """What a half-space indentation fit with nu fixed determines: ``E* = E / (1 - nu^2)`` [Pa].
+
+    Every scenario must be a half-space analytic indentation (``solution == "half_space"``:
+    Hertz, Sneddon), E fitted and nu not: such a curve determines E* only, and the fitted E is
+    E* (1 - nu^2) at the assumed nu. Returns ``{"value", "standard_error", "unit",
+    "poisson_ratio_assumed", "law", "meaning"}`` or None for any other fit.
+    """
+    if "youngs_modulus" not in result.fields or "poisson_ratio" in result.fields or not scenarios:
+        return None
+    laws = []
+    for sc in scenarios:
+        if getattr(sc, "solution", None) != "half_space" or getattr(sc, "indenter", None) not in _HALF_SPACE_LAWS:
+            return None
+        laws.append(_HALF_SPACE_LAWS[sc.indenter])
+    nu = float(result.material.poisson_ratio)
+    k = 1.0 - nu**2
+    se = result.standard_errors["youngs_modulus"]
+    return {
+        "value": result.values["youngs_modulus"] / k,
+        "standard_error": se / k if math.isfinite(se) else float("inf"),
+        "unit": "Pa",
+        "poisson_ratio_assumed": nu,
+        "law": ", ".join(dict.fromkeys(laws)),
+        "meaning": (f"E* = E / (1 - nu^2), the effective (indentation) modulus: what a half-space {laws[0]} fit determines. "
+                    f"youngs_modulus = E* (1 - nu^2) holds only for the assumed poisson_ratio = {nu:g}, which the data do not determine"
+                    + (" (nu = 0 is the indentation-modulus convention E = E*, not a tissue's nu)" if nu == 0 else "")),
+    }
+
+
+def effective_modulus_line(rec: Mapping) -> str:
+    """One line for people: the effective modulus, its standard error and what it means."""
+    se = rec["standard_error"]
+    se_txt = f" ± {se:.3g}" if se is not None and math.isfinite(se) else ""
+    nu = rec["poisson_ratio_assumed"]
+    return (f"effective modulus E* = E/(1-nu^2) = {rec['value']:.6g}{se_txt} Pa ({rec['law']}): what the data determine; "
+            f"E = {rec['value'] * (1 - nu**2):.6g} Pa only at the assumed nu = {nu:g}")
 
 
 # ============================================================================ optimisers
@@ -1497,6 +1548,7 @@ def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_
         compilations=int(compilations),
         resumed_from=resumed_from,
     )
+    result = dataclasses.replace(result, effective_modulus=effective_modulus(result, problem.scenarios))
     quality = assess_quality(result, problem.parameterization, plausible=plausible)
     for flag in quality.flags:
         warnings.warn(f"{warning_prefix}{flag.severity}: {flag.message}", FitQualityWarning, stacklevel=stacklevel)
@@ -1598,6 +1650,7 @@ def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -
         "condition_number": _num(result.condition_number),
         "identifiability_warnings": list(result.warnings),
         "quality": result.quality.to_json() if result.quality is not None else None,
+        "effective_modulus": _jsonable(result.effective_modulus),
         "unidentified": list(result.unidentified),
         "model": model_name,
         "scenarios": [
@@ -1709,6 +1762,11 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
         rel = f"{100 * se / abs(v):.3g} %" if v != 0 and math.isfinite(se) else "-"
         se_txt = f"{se:.4g}" if math.isfinite(se) else "not determined"
         lines.append(f"| {f} | {v:.6g} | {se_txt} | {rel} | {_unit_text(result.units[f]) or '-'} |")
+    if result.effective_modulus is not None:
+        em = result.effective_modulus
+        se = em["standard_error"]
+        lines += ["", f"**Effective modulus E\\* = E/(1-nu^2) = {em['value']:.6g}"
+                  + (f" ± {se:.4g}" if math.isfinite(se) else "") + f" Pa** ({em['law']}). {em['meaning']}."]
     cov_txt = "(J^T J)^-1 (absolute sigma)" if result.absolute_sigma else f"s^2 (J^T J)^-1 with s^2 = SSE/(n-p) = {result.residual_variance:.4g} (n-p = {result.dof})"
     lines += ["", f"Standard errors from the Gauss-Newton covariance {cov_txt}; condition number of J^T J (scaled) {result.condition_number:.3g}."]
     if record["fixed_parameters"]:
