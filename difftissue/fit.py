@@ -420,6 +420,22 @@ class ScenarioFit:
     residual: np.ndarray
     x_label: str
     y_label: str
+    #: for plots of scenarios that are not one curve: a ``fem_field``'s
+    #: ``{"kind": "fem_field", "points": (nd, 3) [m], "components": (nd,), "force_components": "z"}``
+    layout: dict | None = None
+
+
+def _plot_layout(scenario) -> dict | None:
+    """The :attr:`ScenarioFit.layout` of a scenario (unwrapping a separately compiled one)."""
+    sc = getattr(scenario, "inner", scenario)
+    dofs = getattr(sc, "observe_dofs", None)
+    model = getattr(sc, "model", None)
+    if dofs is None or getattr(model, "rest_points", None) is None:
+        return None
+    dofs = np.asarray(dofs)
+    mask = getattr(sc, "reaction_mask", None)
+    forces = "" if mask is None else "".join(c for i, c in enumerate("xyz") if np.asarray(mask)[:, i].any())
+    return {"kind": "fem_field", "points": np.asarray(model.rest_points)[dofs // 3], "components": dofs % 3, "force_components": forces}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -1279,7 +1295,7 @@ def _progress_bar(enabled: bool, total: int):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     return Progress(
-        TextColumn("fit"),
+        TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("loss {task.fields[loss]}"),
@@ -1417,7 +1433,7 @@ def fit(
     task = None
     if bar is not None:
         bar.start()
-        task = bar.add_task("fit", total=max_steps, completed=step, loss=f"{np.nanmin(history[-1]):.6g}" if history else "-")
+        task = bar.add_task("compiling + first step", total=max_steps, completed=step, loss=f"{np.nanmin(history[-1]):.6g}" if history else "-")
     try:
         while step < max_steps and not bool(np.all(np.asarray(done))):
             U, dyn, done, new_status, losses = step_fn(U, dyn, done, data)
@@ -1428,7 +1444,7 @@ def fit(
                 history.append(losses)
             history.append(losses)
             if bar is not None:
-                bar.update(task, completed=step, loss=f"{np.nanmin(losses):.6g}")
+                bar.update(task, completed=step, loss=f"{np.nanmin(losses):.6g}", description="fitting")
             if ckpt is not None and step % checkpoint_every == 0:
                 save()
             if callback is not None:
@@ -1512,7 +1528,8 @@ def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_
         absc = np.arange(obs.size, dtype=float) if absc is None else np.asarray(absc, dtype=float)
         predictions[sc.name] = pred
         residuals[sc.name] = res
-        scen_fits.append(ScenarioFit(sc.name, absc, obs, sig, pred, res, str(getattr(sc, "x_label", "index")), str(getattr(sc, "y_label", "observed"))))
+        scen_fits.append(ScenarioFit(sc.name, absc, obs, sig, pred, res, str(getattr(sc, "x_label", "index")), str(getattr(sc, "y_label", "observed")),
+                                     _plot_layout(sc)))
     start_vals = np.asarray(all_values)
     result = FitResult(
         material=material,
@@ -1666,6 +1683,123 @@ def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -
     }
 
 
+#: SI prefixes for plot axes, by unit: (factor, label).
+_PREFIXES = {
+    "m": ((1e-9, "nm"), (1e-6, "µm"), (1e-3, "mm"), (1.0, "m")),
+    "N": ((1e-9, "nN"), (1e-6, "µN"), (1e-3, "mN"), (1.0, "N")),
+    "Pa": ((1.0, "Pa"), (1e3, "kPa"), (1e6, "MPa"), (1e9, "GPa")),
+}
+
+
+def human_unit(values, unit: str) -> tuple[float, str]:
+    """``(factor, label)`` such that ``values / factor`` reads well in ``label``: the largest
+    prefix of ``unit`` (m, N, Pa; strain ``-``/``1`` as %) not above max|values|; other units as given."""
+    v = np.asarray(values, dtype=float)
+    peak = float(np.nanmax(np.abs(v))) if v.size and np.any(np.isfinite(v)) else 0.0
+    if unit in ("-", "1"):
+        return 0.01, "%"
+    choices = _PREFIXES.get(unit)
+    if not choices:
+        return 1.0, unit
+    best = choices[0]
+    for f, label in choices:
+        if peak >= f:
+            best = (f, label)
+    return best
+
+
+def _split_label(label: str) -> tuple[str, str]:
+    """``"depth [m]"`` -> ``("depth", "m")``; no unit -> ``(label, "")``."""
+    import re
+
+    m = re.match(r"^(.*?)\s*\[([^\]]*)\]\s*$", label)
+    return (m.group(1), m.group(2)) if m else (label, "")
+
+
+def _value_text(value: float, se: float, unit: str) -> str:
+    """``"158.5 ± 0.96 Pa"`` in a human prefix of ``unit`` (SI value and standard error)."""
+    f, u = human_unit([value], unit) if unit in _PREFIXES else (1.0, _unit_text(unit))
+    se_txt = f" ± {se / f:.2g}" if se is not None and math.isfinite(se) else " (se not determined)"
+    return f"{value / f:.4g}{se_txt} {u}".rstrip()
+
+
+def _fit_title(result: FitResult) -> str:
+    """The figure's title: each fitted value with its standard error, E* where named, the quality verdict."""
+    parts = [f"{f} = {_value_text(result.values[f], result.standard_errors[f], result.units[f])}" for f in result.fields]
+    em = result.effective_modulus
+    if em is not None:
+        parts.append(f"E* = E/(1-ν²) = {_value_text(em['value'], em['standard_error'], 'Pa')} (ν = {em['poisson_ratio_assumed']:g} assumed)")
+    if result.quality is not None:
+        parts.append(f"quality: {result.quality.summary()}")
+    return "\n".join(parts)
+
+
+def _plot_curve(top, bottom, s: ScenarioFit) -> None:
+    """Data with sigma bars and the model against the abscissa, in human units; residuals below."""
+    xname, xunit = _split_label(s.x_label)
+    yname, yunit = _split_label(s.y_label)
+    fx, ux = human_unit(s.abscissa, xunit)
+    fy, uy = human_unit(s.observed, yunit)
+    x = np.asarray(s.abscissa) / fx
+    top.errorbar(x, s.observed / fy, yerr=s.sigma / fy, fmt="o", ms=3, lw=0.8, color="0.3", label="data")
+    # the model as lines along each increasing run of the abscissa (a scenario may concatenate
+    # several outputs or loading segments); as markers when the points are not ordered
+    runs = np.split(np.arange(x.size), np.nonzero(np.diff(x) < 0)[0] + 1)
+    if min(len(r) for r in runs) >= 2:
+        for i, run in enumerate(runs):
+            top.plot(x[run], s.predicted[run] / fy, "-", color="C0", lw=1.6, label="model" if i == 0 else None)
+    else:
+        top.plot(x, s.predicted / fy, "x", color="C0", ms=5, label="model")
+    top.set_ylabel(f"{yname} [{uy}]" if uy else yname)
+    top.legend(frameon=False)
+    bottom.plot(x, s.residual, "o", ms=3, color="C3")
+    bottom.set_xlabel(f"{xname} [{ux}]" if ux else xname)
+
+
+def _plot_fem_field(axes, s: ScenarioFit) -> None:
+    """A fem_field scenario: displacement profile (each observed component against the node's
+    distance from the most displaced node, data dots, model crosses), its residuals, and the
+    reaction force in its own panel (magnitude, with the direction said in the label)."""
+    top, bottom, side = axes
+    lay = s.layout
+    nd = len(lay["components"])
+    pts = np.asarray(lay["points"], dtype=float)
+    comp = np.asarray(lay["components"], dtype=int)
+    obs_u, pred_u, res_u = s.observed[:nd], s.predicted[:nd], s.residual[:nd]
+    centre = pts[int(np.argmax(np.abs(obs_u)))]
+    r = np.linalg.norm((pts - centre)[:, :2], axis=1)
+    fr, ur = human_unit(r, "m")
+    fu, uu = human_unit(obs_u, "m")
+    for c in np.unique(comp):
+        k = comp == c
+        top.plot(r[k] / fr, obs_u[k] / fu, "o", ms=3.5, color=f"C{c}", alpha=0.8, label=f"u{'xyz'[c]} data")
+        top.plot(r[k] / fr, pred_u[k] / fu, "x", ms=5, mew=1.4, color=f"C{c}", label=f"u{'xyz'[c]} model")
+        bottom.plot(r[k] / fr, res_u[k], "o", ms=3, color=f"C{c}")
+    top.set_ylabel(f"displacement [{uu}]")
+    top.set_title(f"{s.name}: displacement profile")
+    top.legend(frameon=False, fontsize=8, ncol=2)
+    bottom.set_xlabel(f"lateral distance from the most displaced node [{ur}]")
+    forces = lay["force_components"]
+    if side is None:
+        return
+    if not forces:
+        side.set_axis_off()
+        return
+    F_obs, F_pred, F_sig = s.observed[nd:], s.predicted[nd:], s.sigma[nd:]
+    ff, uf = human_unit(F_obs, "N")
+    idx = np.arange(len(forces))
+    side.bar(idx - 0.15, np.abs(F_obs) / ff, 0.3, yerr=F_sig / ff, color="0.6", label="measured")
+    side.bar(idx + 0.15, np.abs(F_pred) / ff, 0.3, color="C0", label="model")
+    side.set_xlim(-0.75, len(forces) - 0.25)
+    side.set_xticks(idx, [f"{'-' if o < 0 else '+'}{c}" for c, o in zip(forces, F_obs)])
+    side.set_ylabel(f"reaction force magnitude [{uf}]")
+    side.set_xlabel("direction of the reaction on the loaded nodes (-z: pushed into the specimen)")
+    side.set_title("reaction force")
+    for i, (o, p) in enumerate(zip(F_obs, F_pred)):
+        side.annotate(f"{abs(o) / ff:.4g} / {abs(p) / ff:.4g}", (i, max(abs(o), abs(p)) / ff), ha="center", va="bottom", fontsize=8)
+    side.legend(frameon=True, fontsize=8, loc="lower center")
+
+
 def _plot_fit(result: FitResult, path: Path):
     import matplotlib
 
@@ -1673,29 +1807,26 @@ def _plot_fit(result: FitResult, path: Path):
     from matplotlib.figure import Figure
 
     k = len(result.scenarios)
-    fig = Figure(figsize=(5.0 * k, 5.5), layout="constrained")
-    axes = fig.subplots(2, k, sharex="col", height_ratios=[3, 1], squeeze=False)
-    for j, s in enumerate(result.scenarios):
+    fem = [s.layout is not None and s.layout.get("kind") == "fem_field" for s in result.scenarios]
+    cols = k + sum(fem)  # a fem_field scenario gets a second column for its force
+    fig = Figure(figsize=(5.0 * cols, 6.0), layout="constrained")
+    axes = fig.subplots(2, cols, height_ratios=[3, 1], squeeze=False)
+    j = 0
+    for s, is_fem in zip(result.scenarios, fem):
         top, bottom = axes[0, j], axes[1, j]
-        top.errorbar(s.abscissa, s.observed, yerr=s.sigma, fmt="o", ms=3, lw=0.8, color="0.3", label="data")
-        # the model as lines along each increasing run of the abscissa (a scenario may concatenate
-        # several outputs or loading segments); as markers when the points are not ordered
-        x = np.asarray(s.abscissa)
-        runs = np.split(np.arange(x.size), np.nonzero(np.diff(x) < 0)[0] + 1)
-        if min(len(r) for r in runs) >= 2:
-            for i, run in enumerate(runs):
-                top.plot(x[run], s.predicted[run], "-", color="C0", lw=1.6, label="model" if i == 0 else None)
+        bottom.sharex(top)
+        if is_fem:
+            side = axes[0, j + 1]
+            axes[1, j + 1].set_axis_off()
+            _plot_fem_field((top, bottom, side), s)
+            j += 2
         else:
-            top.plot(x, s.predicted, "x", color="C0", ms=5, label="model")
-        for ax in (top, bottom):
-            ax.ticklabel_format(style="sci", scilimits=(-3, 4), useMathText=True)
-        top.set_ylabel(s.y_label)
-        top.set_title(s.name)
-        top.legend(frameon=False)
+            _plot_curve(top, bottom, s)
+            top.set_title(s.name)
+            j += 1
         bottom.axhline(0.0, color="0.6", lw=0.8)
-        bottom.plot(s.abscissa, s.residual, "o", ms=3, color="C3")
         bottom.set_ylabel("residual / sigma")
-        bottom.set_xlabel(s.x_label)
+    fig.suptitle(_fit_title(result), fontsize=9)
     fig.savefig(path, format="png", dpi=110)
 
 

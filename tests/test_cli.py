@@ -406,6 +406,11 @@ reaction = {{ set = "punch", components = "z", force = [{force!r}] }}
         else:
             rec = json.loads((tmp_path / "out0" / "fit.json").read_text())
             assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(12e3, rel=1e-6)
+            # the plot: a displacement profile and a separate force panel (not one axis vs observation index)
+            import matplotlib.image
+
+            img = matplotlib.image.imread(tmp_path / "out0" / "fit.png")
+            assert img.shape[1] > 1.5 * img.shape[0]
 
 
 def test_an_unusable_fit_writes_its_outputs_and_exits_3(tmp_path, capsys):
@@ -479,3 +484,19 @@ def test_shipped_compression_config_fits_a_10x_stiffer_silicone(tmp_path, capsys
     assert rec["method"] == "levenberg_marquardt" and rec["converged"] and rec["quality"]["usable"]
     assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(158403, rel=0.01)  # bundled curve: 15.84 kPa
     assert rec["parameters"]["cubic_coefficient"]["value"] == pytest.approx(-1.643, abs=0.01)
+
+
+def test_progress_lines_off_a_terminal_for_fit_and_simulate(tmp_path, capsys, monkeypatch):
+    """stderr is not a terminal under pytest: plain 'difftissue: [t s] phase' lines every
+    PROGRESS_EVERY seconds (10 s by default; shortened here), for fit and simulate; none with --no-progress."""
+    import difftissue.cli as cli
+
+    monkeypatch.setattr(cli, "PROGRESS_EVERY", 0.02)
+    assert main(["fit", str(_AFM), "--out", str(tmp_path / "fit")]) == 0
+    err = capsys.readouterr().err
+    assert "difftissue: [" in err and ("fitting: step" in err or "compiling the model" in err), err
+    assert main(["simulate", str(_AFM), "--out", str(tmp_path / "sim")]) == 0
+    err = capsys.readouterr().err
+    assert "simulating experiment 1/1 (afm" in err or "writing simulation.json" in err or "loading" in err, err
+    assert main(["fit", str(_AFM), "--out", str(tmp_path / "quiet"), "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""

@@ -593,3 +593,26 @@ def test_quality_is_written_to_fit_json_and_report(tmp_path):
     assert rec["quality"]["scenarios"]["stress_strain"]["runs_p"] < 0.01
     report = (tmp_path / "report.md").read_text()
     assert "## Quality" in report and "systematic_residuals" in report and "Usable, with warnings" in report
+
+
+# ------------------------------------------------------------------ plots people read (issue 17)
+def test_plot_units_are_chosen_by_magnitude():
+    from difftissue.fit import human_unit
+
+    assert human_unit([4.8e-8, 1e-9], "N") == (1e-9, "nN")
+    assert human_unit([1.2e-5], "m") == (1e-6, "µm")
+    assert human_unit([-0.0137], "N") == (1e-3, "mN")
+    assert human_unit([15840.0], "Pa") == (1e3, "kPa") and human_unit([2e6], "Pa") == (1e6, "MPa")
+    assert human_unit([0.4], "-") == (0.01, "%") and human_unit([3.0], "s") == (1.0, "s")
+
+
+def test_fit_plot_title_has_values_uncertainty_and_quality(tmp_path):
+    from difftissue.fit import _fit_title
+
+    r = fit(stress_strain_data(), P_E_B, Material(2e3, 0.3))
+    title = _fit_title(r)
+    assert re.search(r"youngs_modulus = 5\.\d+ ± 0\.\d+ kPa", title) and "cubic_coefficient = " in title and "quality: ok" in title
+    write_fit_outputs(r, tmp_path)
+    import matplotlib.image
+
+    assert matplotlib.image.imread(tmp_path / "fit.png").shape[0] > 500
