@@ -428,15 +428,19 @@ def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
     return ckpt
 
 
-def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, starts, checkpoint: bool, console, extra_notes=()):
+def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, starts, checkpoint: bool, console, extra_notes=(), phases=None):
     """Fit a loaded config and write DIR/{fit.json, fit.png, loss.png, report.md, config.toml}."""
     from ._io import atomic_output
     from .fit import write_fit_outputs
 
+    phases = phases or _Phases(enabled=False)
     ckpt = _prepare_out(out, force=force, resume=resume) if checkpoint else None
     if not checkpoint:
         out.mkdir(parents=True, exist_ok=True)
-    overrides = {"progress": progress}
+    overrides = {"progress": progress and phases.tty}
+    if phases.enabled and not phases.tty:
+        overrides["callback"] = phases.fit_callback(int(cfg.options.get("max_steps", 200)))
+    phases.phase("compiling the model and taking the first fit step", live=False)
     if starts is not None:
         overrides["starts"] = starts
     if ckpt is not None:
@@ -459,6 +463,7 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
             raise FitError(f"the fit stopped: a model evaluation failed at trial parameters: {_runtime_message(e)} "
                            f"(narrow fit.bounds or change the initial material; --debug shows the traceback){hint}") from e
     elapsed = time.perf_counter() - t0
+    phases.phase("writing fit.json, material.json, plots and report.md")
     from .export_indentation import scenario_record
 
     paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name,
@@ -468,6 +473,7 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
     if cfg.path is not None:
         with atomic_output(out / "config.toml", overwrite=True) as tmp:
             tmp.write_bytes(Path(cfg.path).read_bytes())
+    phases.phase("done", live=False)
     notes = [n for e in cfg.experiments for n in e.notes] + _start_notes(getattr(cfg, "start", None)) + list(extra_notes)
     notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ not in ("IdentifiabilityWarning", "FitQualityWarning")]
     for sc in getattr(cfg, "last_scenarios", ()):
@@ -540,22 +546,90 @@ def _progress_default(args) -> bool:
     return sys.stderr.isatty() if args.progress is None else bool(args.progress)
 
 
+#: Seconds between the plain progress lines of a run whose stderr is not a terminal.
+PROGRESS_EVERY = 10.0
+
+
+class _Phases:
+    """What a long run is doing, on stderr: on a terminal a rich status line per phase (the
+    fit's own bar shows step k/n and the loss); otherwise one plain line every ``every``
+    seconds while a phase lasts (``difftissue: [40 s] fitting: step 12/200, loss 3.2``), so a
+    log or CI job shows the run is alive. Nothing is printed for a phase shorter than ``every``
+    off a terminal; ``enabled=False`` prints nothing at all."""
+
+    def __init__(self, *, enabled: bool = True, tty: bool | None = None, every: float | None = None):
+        import threading
+
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty() if tty is None else tty
+        self.every = float(PROGRESS_EVERY if every is None else every)
+        self.text = "starting"
+        self._t0 = time.perf_counter()
+        self._stop = threading.Event()
+        self._thread = None
+        self._status = None
+
+    def __enter__(self) -> "_Phases":
+        import threading
+
+        if self.enabled and not self.tty:
+            self._thread = threading.Thread(target=self._beat, name="difftissue-progress", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self._stop.set()
+        self._end_status()
+        return False
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.every):
+            print(f"difftissue: [{time.perf_counter() - self._t0:.0f} s] {self.text}", file=sys.stderr, flush=True)
+
+    def _end_status(self) -> None:
+        if self._status is not None:
+            self._status.stop()
+            self._status = None
+
+    def phase(self, text: str, *, live: bool = True) -> None:
+        """Enter a phase (``loading``, ``compiling``, ``writing``, ...). ``live=False``: another
+        display (the fit's bar) shows this phase on a terminal."""
+        self.text = text
+        if not (self.enabled and self.tty):
+            return
+        self._end_status()
+        if live:
+            from rich.console import Console
+
+            self._status = Console(stderr=True).status(text)
+            self._status.start()
+
+    def fit_callback(self, total: int):
+        """A :func:`difftissue.fit.fit` callback that keeps the phase text at ``fitting: step k/n, loss L``."""
+        def cb(info) -> None:
+            self.text = f"fitting: step {info.step}/{total}, loss {info.loss:.6g}"
+        return cb
+
+
 def _cmd_fit(args) -> int:
     """Fit a TOML config and write the outputs."""
     from rich.console import Console
 
 
     _enable_float64()
-    cfg = _load_config(args.config)
     if args.starts is not None and args.starts < 1:
         raise _UsageError(f"--starts must be >= 1, got {args.starts}")
-    out = Path(args.out)
-    with _OutputLock(out) as lock:
-        try:
-            result, _ = _run_config(cfg, out, force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts,
-                                    checkpoint=True, console=Console(highlight=False), extra_notes=[lock.note] if lock.note else ())
-        finally:
-            _remove_if_empty(out / _CHECKPOINT.parent)
+    with _Phases(enabled=args.progress is not False) as phases:
+        phases.phase(f"loading {args.config} and its data")
+        cfg = _load_config(args.config)
+        out = Path(args.out)
+        with _OutputLock(out) as lock:
+            try:
+                result, _ = _run_config(cfg, out, force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts,
+                                        checkpoint=True, console=Console(highlight=False), extra_notes=[lock.note] if lock.note else (), phases=phases)
+            finally:
+                phases.phase("done", live=False)
+                _remove_if_empty(out / _CHECKPOINT.parent)
     return _unusable_status([result])
 
 
@@ -588,17 +662,24 @@ def _cmd_simulate(args) -> int:
 
     _enable_float64()
     overrides = _parse_overrides(args.set)
-    cfg = _load_config(args.config)
-    out = Path(args.out)
-    with _OutputLock(out) as lock:
-        try:
-            with _quiet_callback_logs():
-                material, sims = simulate_config(cfg, overrides=overrides)
-        except Exception as e:
-            if _is_runtime_error(e) and "KeyboardInterrupt" in str(e):  # Ctrl-C inside a model callback
-                raise KeyboardInterrupt from e
-            raise
-        paths = write_simulation_outputs(material, sims, out, config=cfg.path, force=args.force)
+    with _Phases(enabled=args.progress is not False) as phases:
+        phases.phase(f"loading {args.config} and its data")
+        cfg = _load_config(args.config)
+        out = Path(args.out)
+        with _OutputLock(out) as lock:
+            try:
+                with _quiet_callback_logs():
+                    material, sims = simulate_config(cfg, overrides=overrides, on_experiment=lambda i, n, name: phases.phase(
+                        f"simulating experiment {i + 1}/{n} ({name}; compiles its model on first use)"))
+            except Exception as e:
+                if _is_runtime_error(e) and "KeyboardInterrupt" in str(e):  # Ctrl-C inside a model callback
+                    raise KeyboardInterrupt from e
+                raise
+            finally:
+                phases.phase("writing", live=False)
+            phases.phase("writing simulation.json, simulation.png and the CSV files")
+            paths = write_simulation_outputs(material, sims, out, config=cfg.path, force=args.force)
+            phases.phase("done", live=False)
     if lock.note:
         print(f"note: {lock.note}")
     for w in cfg.data_warnings:
@@ -628,10 +709,11 @@ def _cmd_demo(args) -> int:
     with _OutputLock(out) as lock:
         if any(p.name != LOCK_NAME for p in out.iterdir()) and not args.force:
             raise OutputExistsError(f"{out} exists and is not empty; choose another --out or pass --force")
-        return _demo(args, out, t0, [lock.note] if lock.note else [])
+        with _Phases() as phases:
+            return _demo(args, out, t0, [lock.note] if lock.note else [], phases)
 
 
-def _demo(args, out: Path, t0: float, notes) -> int:
+def _demo(args, out: Path, t0: float, notes, phases=None) -> int:
     """The demo's fits into ``out`` (locked by the caller)."""
     import numpy as np
     from rich.console import Console
@@ -641,8 +723,11 @@ def _demo(args, out: Path, t0: float, notes) -> int:
     chosen = DEMO_CONFIGS[:1] if args.quick else DEMO_CONFIGS
     summary = {}
     for name, sub in chosen:
+        if phases is not None:
+            phases.phase(f"loading {name} and its data")
         cfg = _load_config(here / name)
-        result, _ = _run_config(cfg, out / sub, force=True, resume=False, progress=False, starts=None, checkpoint=False, console=console, extra_notes=notes)
+        result, _ = _run_config(cfg, out / sub, force=True, resume=False, progress=True, starts=None, checkpoint=False, console=console,
+                                extra_notes=notes, phases=phases)
         notes = []
         summary[sub] = result
         console.print("")
@@ -685,7 +770,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--out", required=True, help="output directory: fit.json, fit.png, loss.png, report.md, config.toml, checkpoint/")
     f.add_argument("--force", action="store_true", help="overwrite the outputs in --out (and discard its checkpoint)")
     f.add_argument("--resume", action="store_true", help="continue the fit from --out/checkpoint/fit.npz (same config) and replace its outputs")
-    f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="show a progress bar on stderr (default: when stderr is a terminal)")
+    f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="show the phases and fit steps on stderr (default: a status line and progress bar on a terminal, else a line every 10 s)")
     f.add_argument("--starts", type=int, default=None, metavar="N", help="number of starts (overrides fit.starts)")
     f.set_defaults(func=_cmd_fit)
 
@@ -695,6 +781,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                      help="replace a material field, SI units (youngs_modulus, poisson_ratio, cubic_coefficient, density, pre_stretch); repeatable")
     sim.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
+    sim.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                     help="show the phases on stderr (default: a status line on a terminal, else a line every 10 s)")
     sim.set_defaults(func=_cmd_simulate)
 
     m = sub.add_parser("mesh", help="generate a specimen mesh")

@@ -409,6 +409,16 @@ class FitConfig:
         return tuple(e.scenario for e in self.experiments)
 
     @property
+    def config_material(self):
+        """``[material]`` as written in the config (:attr:`material` is the fit's start, whose E
+        may come from the data: :attr:`start`)."""
+        if not self.start:
+            return self.material
+        from .materials import Material
+
+        return Material(**{**self.material.to_dict(), **{f: d["config_value"] for f, d in self.start.items()}})
+
+    @property
     def data_files(self) -> tuple[Path, ...]:
         seen: dict[Path, None] = {}
         for e in self.experiments:
