@@ -988,8 +988,11 @@ def _data_start(experiments, material, options: Mapping) -> tuple[Any, dict | No
     vals = [v * (1.0 - nu**2) if kind == "effective" else v for _, v, kind, _ in ests]
     E0 = float(np.exp(np.mean(np.log(vals))))
     lo, hi = options.get("_bounds", {}).get("youngs_modulus", (0.0, math.inf))
-    if not lo < E0 < hi:  # outside the config's bounds: the nearest point inside them
-        E0 = float(min(max(E0, lo * 1.01 if lo > 0 else E0), hi / 1.01))
+    if not lo < E0 < hi:  # outside the config's bounds: a point well inside them
+        if lo > 0 and math.isfinite(hi):
+            E0 = math.sqrt(lo * hi)
+        else:
+            E0 = 2.0 * lo if E0 <= lo else 0.5 * hi
     from .materials import Material
 
     start = Material(**{**material.to_dict(), "youngs_modulus": E0})

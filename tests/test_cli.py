@@ -500,3 +500,14 @@ def test_progress_lines_off_a_terminal_for_fit_and_simulate(tmp_path, capsys, mo
     assert "simulating experiment 1/1 (afm" in err or "writing simulation.json" in err or "loading" in err, err
     assert main(["fit", str(_AFM), "--out", str(tmp_path / "quiet"), "--no-progress"]) == 0
     assert capsys.readouterr().err == ""
+
+
+def test_data_start_stays_inside_the_bounds_of_E(tmp_path):
+    """A data estimate outside fit.bounds.youngs_modulus starts at the bounds' geometric mean."""
+    from difftissue.config import load_config
+
+    text = _AFM.read_text().replace('path = "data/', f'path = "{_AFM.parent}/data/').replace(
+        'method = "levenberg_marquardt"', 'method = "levenberg_marquardt"\nbounds = { youngs_modulus = [10.0, 40.0] }').replace("youngs_modulus = 100.0", "youngs_modulus = 20.0")
+    (tmp_path / "b.toml").write_text(text)
+    cfg = load_config(tmp_path / "b.toml")  # the Hertz slope, 158.5 Pa, lies above the bounds
+    assert cfg.material.youngs_modulus == pytest.approx(20.0) and cfg.start["youngs_modulus"]["config_value"] == 20.0
