@@ -1793,7 +1793,7 @@ def _plot_fem_field(axes, s: ScenarioFit) -> None:
     side.set_xlim(-0.75, len(forces) - 0.25)
     side.set_xticks(idx, [f"{'-' if o < 0 else '+'}{c}" for c, o in zip(forces, F_obs)])
     side.set_ylabel(f"reaction force magnitude [{uf}]")
-    side.set_xlabel("direction of the reaction on the loaded nodes (-z: pushed into the specimen)")
+    side.set_xlabel("reaction direction (-z: pushed into the specimen)")
     side.set_title("reaction force")
     for i, (o, p) in enumerate(zip(F_obs, F_pred)):
         side.annotate(f"{abs(o) / ff:.4g} / {abs(p) / ff:.4g}", (i, max(abs(o), abs(p)) / ff), ha="center", va="bottom", fontsize=8)
