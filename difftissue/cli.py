@@ -2,7 +2,9 @@
 
 Every command is a thin shell over public functions of the package. Errors print one
 line ``error: ...`` on stderr and exit with status 1 (2 for usage errors); ``--debug``
-shows the traceback instead.
+shows the traceback instead. ``fit`` (and ``demo``) exit with status 3 when the fit finished
+but its answer is unusable (a quality flag of severity "error": a parameter at a bound, an
+implausible value, non-finite, not converged); the outputs are written all the same.
 """
 
 from __future__ import annotations
@@ -222,7 +224,7 @@ def _cmd_export(args) -> int:
     disp = None if args.displacement is None else args.displacement * f
     path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
                   dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp,
-                  constraints=args.constraints, indentation=indentation, fitted=fitted)
+                  constraints=args.constraints, indentation=indentation, fitted=fitted, nu=args.nu)
     what = ("complete specimen model" if mesh is not None else
             f"fitted {fitted.experiment} specimen of scenario {fitted.scenario!r}" if fitted is not None else
             f"{indentation.indenter} indentation specimen, depth {indentation.depth:.6g} m" if indentation is not None else "material")
@@ -426,15 +428,19 @@ def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
     return ckpt
 
 
-def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, starts, checkpoint: bool, console, extra_notes=()):
+def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, starts, checkpoint: bool, console, extra_notes=(), phases=None):
     """Fit a loaded config and write DIR/{fit.json, fit.png, loss.png, report.md, config.toml}."""
     from ._io import atomic_output
     from .fit import write_fit_outputs
 
+    phases = phases or _Phases(enabled=False)
     ckpt = _prepare_out(out, force=force, resume=resume) if checkpoint else None
     if not checkpoint:
         out.mkdir(parents=True, exist_ok=True)
-    overrides = {"progress": progress}
+    overrides = {"progress": progress and phases.tty}
+    if phases.enabled and not phases.tty:
+        overrides["callback"] = phases.fit_callback(int(cfg.options.get("max_steps", 200)))
+    phases.phase("compiling the model and taking the first fit step", live=False)
     if starts is not None:
         overrides["starts"] = starts
     if ckpt is not None:
@@ -457,22 +463,31 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
             raise FitError(f"the fit stopped: a model evaluation failed at trial parameters: {_runtime_message(e)} "
                            f"(narrow fit.bounds or change the initial material; --debug shows the traceback){hint}") from e
     elapsed = time.perf_counter() - t0
+    phases.phase("writing fit.json, material.json, plots and report.md")
     from .export_indentation import scenario_record
 
     paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name,
                               force=force or resume, scenario_records=[scenario_record(s) for s in cfg.scenarios],
-                              scenarios=cfg.scenarios, data=cfg.data_provenance, data_warnings=cfg.data_warnings)
+                              scenarios=cfg.scenarios, data=cfg.data_provenance, data_warnings=cfg.data_warnings,
+                              start=getattr(cfg, "start", None))
     if cfg.path is not None:
         with atomic_output(out / "config.toml", overwrite=True) as tmp:
             tmp.write_bytes(Path(cfg.path).read_bytes())
-    notes = [n for e in cfg.experiments for n in e.notes] + list(extra_notes)
-    notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ != "IdentifiabilityWarning"]
+    phases.phase("done", live=False)
+    notes = [n for e in cfg.experiments for n in e.notes] + _start_notes(getattr(cfg, "start", None)) + list(extra_notes)
+    notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ not in ("IdentifiabilityWarning", "FitQualityWarning")]
     for sc in getattr(cfg, "last_scenarios", ()):
         fails = getattr(sc, "failures", None)
         if fails:
             notes.append(f"{sc.name}: {len(fails)} model evaluation(s) failed at trial parameters and were rejected (last: {fails[-1]})")
     _print_fit(result, cfg, out, elapsed, console, notes)
     return result, paths
+
+
+def _start_notes(start) -> list[str]:
+    """One note per field whose start came from the data (``fit.start = "data"``)."""
+    return [f"start: {f} = {d['value']:.4g} from the data ({d['from']}); the config's material.{f} = {d['config_value']:.4g} "
+            f"is not the start (fit.start = \"material\" pins it)" for f, d in (start or {}).items()]
 
 
 def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
@@ -487,6 +502,10 @@ def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
         se = result.standard_errors[f]
         t.add_row(f, f"{result.values[f]:.6g}", f"{se:.3g}", result.units[f])
     console.print(t)
+    if getattr(result, "effective_modulus", None) is not None:
+        from .fit import effective_modulus_line
+
+        console.print(effective_modulus_line(result.effective_modulus), markup=False, highlight=False)
     fixed = {k: v for k, v in result.material.to_dict().items() if k not in result.fields}
     console.print("fixed: " + ", ".join(f"{k} = {v:g}" for k, v in fixed.items()), markup=False, highlight=False)
     state = "converged" if result.converged else "NOT converged"
@@ -494,13 +513,102 @@ def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
     console.print(f"loss {result.loss:.6g}, {state} after {result.steps} steps ({result.reason}); rms residual/sigma: {rms}; {elapsed:.1f} s", markup=False, highlight=False)
     for w in [*cfg.data_warnings, *result.warnings]:
         console.print(f"warning: {_one_line(w)}", markup=False, highlight=False)
+    _print_quality(result.quality, console)
     for n in notes:
         console.print(f"note: {cli_words(n, 'fit')}", markup=False, highlight=False)
     console.print(f"wrote {out}/: fit.json, fit.png, loss.png, report.md" + (", config.toml" if cfg.path else ""), markup=False, highlight=False)
 
 
+#: Exit status of ``fit`` / ``demo`` when the fit's answer is unusable (quality error flags).
+EXIT_UNUSABLE = 3
+
+
+def _print_quality(quality, console) -> None:
+    """``quality: ...`` then one ``error:`` / ``warning:`` line per quality flag."""
+    if quality is None:
+        return
+    console.print(f"quality: {quality.summary()}", markup=False, highlight=False)
+    for f in quality.flags:
+        console.print(f"  {f.severity}: {_one_line(f.message)}", markup=False, highlight=False)
+
+
+def _unusable_status(results) -> int:
+    """0, or :data:`EXIT_UNUSABLE` (with a line on stderr) when a fit's answer is unusable."""
+    bad = [r for r in results if r.quality is not None and not r.quality.usable]
+    for r in bad:
+        names = ", ".join(f.name + (f" ({f.subject})" if f.subject else "") for f in r.quality.errors)
+        print(f"difftissue: error: the fit finished but its answer is unusable ({names}); the outputs are written "
+              f"for inspection (report.md, section Quality); exit status {EXIT_UNUSABLE}", file=sys.stderr)
+    return EXIT_UNUSABLE if bad else 0
+
+
 def _progress_default(args) -> bool:
     return sys.stderr.isatty() if args.progress is None else bool(args.progress)
+
+
+#: Seconds between the plain progress lines of a run whose stderr is not a terminal.
+PROGRESS_EVERY = 10.0
+
+
+class _Phases:
+    """What a long run is doing, on stderr: on a terminal a rich status line per phase (the
+    fit's own bar shows step k/n and the loss); otherwise one plain line every ``every``
+    seconds while a phase lasts (``difftissue: [40 s] fitting: step 12/200, loss 3.2``), so a
+    log or CI job shows the run is alive. Nothing is printed for a phase shorter than ``every``
+    off a terminal; ``enabled=False`` prints nothing at all."""
+
+    def __init__(self, *, enabled: bool = True, tty: bool | None = None, every: float | None = None):
+        import threading
+
+        self.enabled = enabled
+        self.tty = sys.stderr.isatty() if tty is None else tty
+        self.every = float(PROGRESS_EVERY if every is None else every)
+        self.text = "starting"
+        self._t0 = time.perf_counter()
+        self._stop = threading.Event()
+        self._thread = None
+        self._status = None
+
+    def __enter__(self) -> "_Phases":
+        import threading
+
+        if self.enabled and not self.tty:
+            self._thread = threading.Thread(target=self._beat, name="difftissue-progress", daemon=True)
+            self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        self._stop.set()
+        self._end_status()
+        return False
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.every):
+            print(f"difftissue: [{time.perf_counter() - self._t0:.0f} s] {self.text}", file=sys.stderr, flush=True)
+
+    def _end_status(self) -> None:
+        if self._status is not None:
+            self._status.stop()
+            self._status = None
+
+    def phase(self, text: str, *, live: bool = True) -> None:
+        """Enter a phase (``loading``, ``compiling``, ``writing``, ...). ``live=False``: another
+        display (the fit's bar) shows this phase on a terminal."""
+        self.text = text
+        if not (self.enabled and self.tty):
+            return
+        self._end_status()
+        if live:
+            from rich.console import Console
+
+            self._status = Console(stderr=True).status(text)
+            self._status.start()
+
+    def fit_callback(self, total: int):
+        """A :func:`difftissue.fit.fit` callback that keeps the phase text at ``fitting: step k/n, loss L``."""
+        def cb(info) -> None:
+            self.text = f"fitting: step {info.step}/{total}, loss {info.loss:.6g}"
+        return cb
 
 
 def _cmd_fit(args) -> int:
@@ -509,17 +617,20 @@ def _cmd_fit(args) -> int:
 
 
     _enable_float64()
-    cfg = _load_config(args.config)
     if args.starts is not None and args.starts < 1:
         raise _UsageError(f"--starts must be >= 1, got {args.starts}")
-    out = Path(args.out)
-    with _OutputLock(out) as lock:
-        try:
-            _run_config(cfg, out, force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts,
-                        checkpoint=True, console=Console(highlight=False), extra_notes=[lock.note] if lock.note else ())
-        finally:
-            _remove_if_empty(out / _CHECKPOINT.parent)
-    return 0
+    with _Phases(enabled=args.progress is not False) as phases:
+        phases.phase(f"loading {args.config} and its data")
+        cfg = _load_config(args.config)
+        out = Path(args.out)
+        with _OutputLock(out) as lock:
+            try:
+                result, _ = _run_config(cfg, out, force=args.force, resume=args.resume, progress=_progress_default(args), starts=args.starts,
+                                        checkpoint=True, console=Console(highlight=False), extra_notes=[lock.note] if lock.note else (), phases=phases)
+            finally:
+                phases.phase("done", live=False)
+                _remove_if_empty(out / _CHECKPOINT.parent)
+    return _unusable_status([result])
 
 
 def _remove_if_empty(folder: Path) -> None:
@@ -551,17 +662,24 @@ def _cmd_simulate(args) -> int:
 
     _enable_float64()
     overrides = _parse_overrides(args.set)
-    cfg = _load_config(args.config)
-    out = Path(args.out)
-    with _OutputLock(out) as lock:
-        try:
-            with _quiet_callback_logs():
-                material, sims = simulate_config(cfg, overrides=overrides)
-        except Exception as e:
-            if _is_runtime_error(e) and "KeyboardInterrupt" in str(e):  # Ctrl-C inside a model callback
-                raise KeyboardInterrupt from e
-            raise
-        paths = write_simulation_outputs(material, sims, out, config=cfg.path, force=args.force)
+    with _Phases(enabled=args.progress is not False) as phases:
+        phases.phase(f"loading {args.config} and its data")
+        cfg = _load_config(args.config)
+        out = Path(args.out)
+        with _OutputLock(out) as lock:
+            try:
+                with _quiet_callback_logs():
+                    material, sims = simulate_config(cfg, overrides=overrides, on_experiment=lambda i, n, name: phases.phase(
+                        f"simulating experiment {i + 1}/{n} ({name}; compiles its model on first use)"))
+            except Exception as e:
+                if _is_runtime_error(e) and "KeyboardInterrupt" in str(e):  # Ctrl-C inside a model callback
+                    raise KeyboardInterrupt from e
+                raise
+            finally:
+                phases.phase("writing", live=False)
+            phases.phase("writing simulation.json, simulation.png and the CSV files")
+            paths = write_simulation_outputs(material, sims, out, config=cfg.path, force=args.force)
+            phases.phase("done", live=False)
     if lock.note:
         print(f"note: {lock.note}")
     for w in cfg.data_warnings:
@@ -591,10 +709,11 @@ def _cmd_demo(args) -> int:
     with _OutputLock(out) as lock:
         if any(p.name != LOCK_NAME for p in out.iterdir()) and not args.force:
             raise OutputExistsError(f"{out} exists and is not empty; choose another --out or pass --force")
-        return _demo(args, out, t0, [lock.note] if lock.note else [])
+        with _Phases() as phases:
+            return _demo(args, out, t0, [lock.note] if lock.note else [], phases)
 
 
-def _demo(args, out: Path, t0: float, notes) -> int:
+def _demo(args, out: Path, t0: float, notes, phases=None) -> int:
     """The demo's fits into ``out`` (locked by the caller)."""
     import numpy as np
     from rich.console import Console
@@ -604,8 +723,11 @@ def _demo(args, out: Path, t0: float, notes) -> int:
     chosen = DEMO_CONFIGS[:1] if args.quick else DEMO_CONFIGS
     summary = {}
     for name, sub in chosen:
+        if phases is not None:
+            phases.phase(f"loading {name} and its data")
         cfg = _load_config(here / name)
-        result, _ = _run_config(cfg, out / sub, force=True, resume=False, progress=False, starts=None, checkpoint=False, console=console, extra_notes=notes)
+        result, _ = _run_config(cfg, out / sub, force=True, resume=False, progress=True, starts=None, checkpoint=False, console=console,
+                                extra_notes=notes, phases=phases)
         notes = []
         summary[sub] = result
         console.print("")
@@ -624,7 +746,7 @@ def _demo(args, out: Path, t0: float, notes) -> int:
                       f"(authors: 16.29 kPa, {100 * (E / 16290.0 - 1):+.1f} %), cubic coefficient b = {comp.values['cubic_coefficient']:.3f}; "
                       f"model within {100 * dev:.2f} % of the peak stress up to {sc.abscissa.max():.0%} strain", markup=False)
     console.print(f"demo finished in {time.perf_counter() - t0:.1f} s; outputs in {out}/ (fit.json, fit.png, loss.png, report.md, config.toml per fit)", markup=False)
-    return 0
+    return _unusable_status(summary.values())
 
 
 # ------------------------------------------------------------------------------ parser
@@ -648,7 +770,8 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--out", required=True, help="output directory: fit.json, fit.png, loss.png, report.md, config.toml, checkpoint/")
     f.add_argument("--force", action="store_true", help="overwrite the outputs in --out (and discard its checkpoint)")
     f.add_argument("--resume", action="store_true", help="continue the fit from --out/checkpoint/fit.npz (same config) and replace its outputs")
-    f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None, help="show a progress bar on stderr (default: when stderr is a terminal)")
+    f.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                   help="show the phases and fit steps on stderr (default: a status line and progress bar on a terminal, else a line every 10 s)")
     f.add_argument("--starts", type=int, default=None, metavar="N", help="number of starts (overrides fit.starts)")
     f.set_defaults(func=_cmd_fit)
 
@@ -658,6 +781,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
                      help="replace a material field, SI units (youngs_modulus, poisson_ratio, cubic_coefficient, density, pre_stretch); repeatable")
     sim.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
+    sim.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
+                     help="show the phases on stderr (default: a status line on a terminal, else a line every 10 s)")
     sim.set_defaults(func=_cmd_simulate)
 
     m = sub.add_parser("mesh", help="generate a specimen mesh")
@@ -691,6 +816,9 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--force", action="store_true", help="overwrite --out if it exists")
     x.add_argument("--approximate", action="store_true",
                    help="drop what the target cannot represent (cubic stiffening, pre-stretch) and record the approximation in the file")
+    x.add_argument("--nu", type=float, default=None, metavar="NU",
+                   help="for a card holding an effective modulus E* = E/(1-nu^2) (a Hertz/Sneddon fit with nu fixed): the tissue's "
+                        "Poisson ratio; exports E = E* (1 - nu^2) and this nu (without it a card fitted at nu = 0 is refused)")
     x.add_argument("--law", choices=("linear", "neo_hookean", "springs"), default=None,
                    help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
     x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|indentation|fitted",
@@ -766,6 +894,7 @@ _CLI_WORDS = (
     ("overwrite/--force", "--force"),
     ("pass resume=True", "pass --resume"),
     ("approximate=True (--approximate)", "--approximate"),
+    ("nu=0.45 / --nu 0.45", "--nu 0.45"),
     ("bonded_punch=True (--bonded-punch)", "--bonded-punch"),
 )
 

@@ -61,6 +61,7 @@ _TOP_KEYS = ("title", "description", "material", "fit", "experiment")
 _FIT_KEYS = (
     "parameters", "bounds", "method", "loss", "f_scale", "starts", "seed", "start_spread", "max_steps",
     "rtol", "atol", "learning_rate", "jac", "absolute_sigma", "checkpoint_every", "separate_compilation",
+    "plausible", "start",
 )
 _COMMON_EXPERIMENT_KEYS = ("name", "scenario", "data", "sigma", "points", "length_unit")
 _EXPERIMENT_KEYS = {
@@ -373,6 +374,9 @@ class Experiment:
     provenance: dict | None = None
     #: plausibility warnings of the data (e.g. :class:`~difftissue.errors.ImplausibleUnitWarning`)
     warnings: tuple[str, ...] = ()
+    #: the data's own modulus estimate for a data-driven start: ``(value [Pa], kind, how)`` with
+    #: kind ``"effective"`` (E / (1 - nu^2), indentation) or ``"young"`` (E, compression)
+    modulus_estimate: tuple[float, str, str] | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -382,10 +386,12 @@ class FitConfig:
     Attributes:
         path: the config file (None when parsed from a mapping).
         raw: the parsed TOML (a dict).
-        material: initial :class:`~difftissue.materials.Material` (SI).
+        material: initial :class:`~difftissue.materials.Material` (SI): the config's
+            [material], with E from the data unless ``fit.start = "material"``.
         parameterization: fitted fields and their transforms.
         options: keyword arguments for :func:`difftissue.fit.fit` (method, loss, starts, ...).
         experiments: the built experiments, in file order.
+        start: the data-driven start (see :func:`_data_start`), or None.
     """
 
     path: Path | None
@@ -394,10 +400,23 @@ class FitConfig:
     parameterization: Any
     options: dict
     experiments: tuple[Experiment, ...]
+    #: where the initial values came from when the data chose them (``fit.start = "data"``):
+    #: ``{field: {"value", "config_value", "from"}}``; None when the config's [material] is the start
+    start: dict | None = None
 
     @property
     def scenarios(self) -> tuple:
         return tuple(e.scenario for e in self.experiments)
+
+    @property
+    def config_material(self):
+        """``[material]`` as written in the config (:attr:`material` is the fit's start, whose E
+        may come from the data: :attr:`start`)."""
+        if not self.start:
+            return self.material
+        from .materials import Material
+
+        return Material(**{**self.material.to_dict(), **{f: d["config_value"] for f, d in self.start.items()}})
 
     @property
     def data_files(self) -> tuple[Path, ...]:
@@ -626,6 +645,12 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
         names.append(name)
     built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir, material=material) for i, e in enumerate(exps))
     _check_model_ranges(built, material, param)
+    start = None
+    if options.pop("start", "data") == "data" and "youngs_modulus" in param.fields:
+        material, start = _data_start(built, material, options)
+        if start is not None:  # the transforms are scaled at the start (u = 0 there)
+            param, _ = _parse_fit(top["fit"], material)
+    options.pop("_bounds", None)
     return FitConfig(
         path=None if path is None else Path(path),
         raw=dict(raw),
@@ -633,6 +658,7 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
         parameterization=param,
         options=options,
         experiments=built,
+        start=start,
     )
 
 
@@ -750,7 +776,24 @@ def _parse_fit(value, material):
         opts["checkpoint_every"] = _integer(t["checkpoint_every"], "fit.checkpoint_every", minimum=1)
     if "separate_compilation" in t:
         opts["separate_compilation"] = _bool(t["separate_compilation"], "fit.separate_compilation")
+    if "plausible" in t:
+        opts["plausible"] = _plausible_ranges(t["plausible"], params)
+    opts["start"] = _choice(t.get("start", "data"), "fit.start", ("data", "material"))
+    opts["_bounds"] = {f: (float(b[0]), float(b[1])) for f, b in bounds.items()}
     return param, opts
+
+
+def _plausible_ranges(value, params) -> dict:
+    """``fit.plausible = { youngs_modulus = [lo, hi] }`` (SI): the range outside which a fitted
+    value is flagged ``implausible_value`` (default E in [1 Pa, 1 GPa])."""
+    t = _table(value, "fit.plausible", tuple(FIELDS))
+    out = {}
+    for f, b in t.items():
+        p = f"fit.plausible.{f}"
+        if not isinstance(b, list) or len(b) != 2 or not all(_is_number(v) for v in b) or not float(b[0]) < float(b[1]):
+            _fail(p, f"must be [lower, upper] with lower < upper ({FIELDS[f] if FIELDS[f] != '1' else 'dimensionless'}), got {_show(b)}")
+        out[f] = (float(b[0]), float(b[1]))
+    return out
 
 
 def _solver_options(e: Mapping, path: str):
@@ -889,6 +932,75 @@ def _effective_modulus(depth: float, force: float, kw: Mapping) -> float:
     return math.pi * force / (2.0 * math.tan(kw["half_angle"]) * depth**2)
 
 
+def _indentation_shape(depth, kw: Mapping) -> np.ndarray:
+    """``g(d)`` [N/Pa] with ``F = E_eff g(d)`` on a half-space: Hertz ``4/3 sqrt(R) d^1.5`` (sphere),
+    Sneddon ``2 a d`` (flat punch) and ``2/pi tan(alpha) d^2`` (cone); depth in m."""
+    d = np.clip(np.asarray(depth, dtype=float), 0.0, None)
+    shape = kw["indenter"]
+    if shape == "sphere":
+        return 4.0 / 3.0 * math.sqrt(kw["radius"]) * d**1.5
+    if shape == "flat_punch":
+        return 2.0 * kw["radius"] * d
+    return 2.0 / math.pi * math.tan(kw["half_angle"]) * d**2
+
+
+def _indentation_estimate(depth, force, sigma, kw: Mapping) -> tuple[float, str, str] | None:
+    """The effective modulus E/(1 - nu^2) [Pa] that fits ``F = E_eff g(d)`` best (weighted least
+    squares, one parameter, closed form), or None when the curve has no positive force."""
+    g = _indentation_shape(depth, kw)
+    w = 1.0 / np.asarray(sigma, dtype=float) ** 2 * np.ones_like(g)
+    den = float(np.sum(w * g * g))
+    E = float(np.sum(w * g * np.asarray(force, dtype=float))) / den if den > 0 else float("nan")
+    if not (math.isfinite(E) and E > 0):
+        return None
+    law = {"sphere": "Hertz", "flat_punch": "Sneddon flat punch", "cone": "Sneddon cone"}[kw["indenter"]]
+    return E, "effective", f"{law} half-space slope of the force-depth curve"
+
+
+#: Fraction of the largest strain used for the small-strain slope of a compression curve.
+SMALL_STRAIN_FRACTION = 0.25
+
+
+def _compression_estimate(strain, stress) -> tuple[float, str, str] | None:
+    """Small-strain Young's modulus [Pa]: the least-squares slope through the origin of stress vs
+    strain over the points up to :data:`SMALL_STRAIN_FRACTION` of the largest strain (at least 3)."""
+    x, y = np.abs(np.asarray(strain, dtype=float)), np.abs(np.asarray(stress, dtype=float))
+    order = np.argsort(x)
+    x, y = x[order], y[order]
+    n = max(3, int(np.sum(x <= SMALL_STRAIN_FRACTION * x.max()))) if x.size else 0
+    x, y = x[:n], y[:n]
+    den = float(np.sum(x * x))
+    E = float(np.sum(x * y)) / den if den > 0 else float("nan")
+    if not (math.isfinite(E) and E > 0):
+        return None
+    return E, "young", f"small-strain slope of stress vs strain (strain <= {x.max():.3g})"
+
+
+def _data_start(experiments, material, options: Mapping) -> tuple[Any, dict | None]:
+    """The initial material with E from the data (``fit.start = "data"``, the default): the
+    geometric mean of the experiments' estimates (an effective modulus times ``1 - nu^2`` at
+    the config's nu). Returns ``(material, record)``; the record (None when no experiment gives
+    an estimate) says what was used: ``value``, ``config_value``, ``from``."""
+    ests = [(e.name, *e.modulus_estimate) for e in experiments if e.modulus_estimate is not None]
+    if not ests:
+        return material, None
+    nu = float(material.poisson_ratio)
+    vals = [v * (1.0 - nu**2) if kind == "effective" else v for _, v, kind, _ in ests]
+    E0 = float(np.exp(np.mean(np.log(vals))))
+    lo, hi = options.get("_bounds", {}).get("youngs_modulus", (0.0, math.inf))
+    if not lo < E0 < hi:  # outside the config's bounds: a point well inside them
+        if lo > 0 and math.isfinite(hi):
+            E0 = math.sqrt(lo * hi)
+        else:
+            E0 = 2.0 * lo if E0 <= lo else 0.5 * hi
+    from .materials import Material
+
+    start = Material(**{**material.to_dict(), "youngs_modulus": E0})
+    how = "; ".join(f"{name}: {how} {v:.4g} Pa" + (f" -> E = {v * (1 - nu**2):.4g} Pa at nu = {nu:g}" if kind == "effective" and nu != 0 else "")
+                    for name, v, kind, how in ests)
+    return start, {"youngs_modulus": {"value": E0, "config_value": float(material.youngs_modulus), "from": how}}
+
+
 def _plausibility(path: str, depth: np.ndarray, force: np.ndarray, kw: Mapping, curve) -> tuple[str, ...]:
     """Warn (:class:`~difftissue.errors.ImplausibleUnitWarning`) when the depths do not fit the
     indenter (deepest point beyond the radius, or below 1e-3 of it) or the deepest point implies
@@ -979,7 +1091,8 @@ def _analytic(e, path, name, base_dir) -> Experiment:
     except DifftissueError as err:
         _reraise(path, err)
     model = {"sphere": "hertz", "flat_punch": "sneddon_flat_punch", "cone": "sneddon_cone"}[kw["indenter"]] if solution == "half_space" else f"{solution}_{kw['indenter']}"
-    return Experiment(name, "analytic_indentation", model, sc, (file,), notes, prov, _plausibility(path, depth, force, kw, curve))
+    return Experiment(name, "analytic_indentation", model, sc, (file,), notes, prov, _plausibility(path, depth, force, kw, curve),
+                      _indentation_estimate(depth, force, sigma, kw))
 
 
 def _compression(e, path, name, base_dir) -> Experiment:
@@ -1037,7 +1150,7 @@ def _compression(e, path, name, base_dir) -> Experiment:
         sc = Compression(mesh, x, y, model=model, bonded=platens == "bonded", measure=measure, sigma=sigma, options=options, name=name)
     except DifftissueError as err:
         _reraise(path, err)
-    return Experiment(name, "compression", model, sc, tuple(files), notes)
+    return Experiment(name, "compression", model, sc, tuple(files), notes, modulus_estimate=_compression_estimate(x, y))
 
 
 def _mesh_file(spec: dict, p: str, base_dir: Path):
@@ -1096,7 +1209,8 @@ def _indentation(e, path, name, base_dir) -> Experiment:
         sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
     except DifftissueError as err:
         _reraise(path, err)
-    return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve))
+    return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve),
+                      _indentation_estimate(depth, force, sigma, kw))
 
 
 def _node_set_spec(value, path: str):

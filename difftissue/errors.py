@@ -326,3 +326,30 @@ class ReactionSignError(DataError):
     supports exert on the prescribed nodes (internal elastic force minus applied force there),
     negative along an axis the nodes are pushed into the specimen (e.g. ``-z`` for a punch
     pressed down)."""
+
+
+# ====================================================================== fit quality gates
+# (appended block: issue 17 -- a fit's answer checked before anyone uses it)
+__all__ += ["FitQualityWarning", "UnusableFitError", "EffectiveModulusError"]
+
+
+class FitQualityWarning(DifftissueWarning):
+    """A quality gate of a fit (:func:`difftissue.fit.assess_quality`) raised a flag: the
+    message starts with ``error:`` (the answer is unusable: a parameter at a bound, an
+    implausible value, non-finite, not converged) or ``warning:`` (poor or systematic residuals)."""
+
+
+class UnusableFitError(FitError):
+    """A fit finished but its answer is unusable (a quality flag of severity "error"); the
+    CLI writes the outputs and exits with status 3. ``quality`` is the
+    :class:`~difftissue.fit.FitQuality`."""
+
+    def __init__(self, message: str, quality=None):
+        super().__init__(message)
+        self.quality = quality
+
+
+class EffectiveModulusError(DifftissueError):
+    """A material card holds an effective modulus ``E / (1 - nu^2)`` (a Hertz/Sneddon fit with
+    nu fixed as a placeholder) and a simulator needs E and nu separately: state nu
+    (``--nu``), pass ``--approximate``, or refit with nu fixed at the tissue's value."""

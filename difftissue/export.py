@@ -32,7 +32,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ._io import atomic_output, sha256_file
-from .errors import ExportError
+from .errors import EffectiveModulusError, ExportError
 
 __all__ = [
     "CARD_VERSION",
@@ -42,6 +42,7 @@ __all__ = [
     "MaterialCard",
     "card_from_fit",
     "card_from_fit_json",
+    "resolve_effective_modulus",
     "read_card",
     "write_card",
     "abaqus_name",
@@ -349,6 +350,9 @@ def card_from_fit(result, *, model: str, scenario_names: Sequence[str] | None = 
     }
     if scenario_records:
         prov["scenario_records"] = [dict(r) for r in scenario_records if r]
+    em = getattr(result, "effective_modulus", None)
+    if em is not None:  # a half-space indentation fit with nu fixed: E is E* (1 - nu^2) at an assumed nu
+        prov["effective_modulus"] = {k: (None if isinstance(v, float) and not math.isfinite(v) else v) for k, v in em.items()}
     return MaterialCard(model=model, parameters=params, name=name, provenance=prov)
 
 
@@ -370,7 +374,48 @@ def card_from_fit_json(doc: Mapping) -> MaterialCard:
         "created": doc.get("created"),
         "source": "fit.json",
     }
+    if doc.get("effective_modulus"):
+        prov["effective_modulus"] = dict(doc["effective_modulus"])
     return MaterialCard(model=str(model), parameters=params, provenance=prov)
+
+
+def resolve_effective_modulus(card: MaterialCard, *, nu: float | None = None, approximate: bool = False) -> MaterialCard:
+    """The card a simulator may be given, for a card whose E rests on an assumed nu.
+
+    A half-space indentation fit with nu fixed determines only the effective modulus
+    ``E* = E / (1 - nu^2)`` (``provenance.effective_modulus``). With ``nu`` stated the card is
+    converted explicitly: ``E = E* (1 - nu^2)`` [Pa], poisson_ratio = ``nu`` (recorded in
+    ``provenance.effective_modulus.converted``). Without it, a card fitted at the assumed
+    ``nu = 0`` (the indentation-modulus convention, no tissue's nu) is refused with
+    :class:`~difftissue.errors.EffectiveModulusError` unless ``approximate`` (exported as is,
+    said in the file's header); a card fitted at another fixed nu is exported as is, its header
+    saying that E rests on that nu.
+    """
+    em = (card.provenance or {}).get("effective_modulus")
+    if not em:
+        if nu is not None:
+            raise ExportError(f"nu = {nu:g} was stated, but the card holds E and nu of its own (no effective modulus); leave nu out")
+        return card
+    e_star, nu0 = float(em["value"]), float(em["poisson_ratio_assumed"])
+    if nu is not None:
+        nu = _finite(nu, "nu")
+        if not -1.0 < nu < 0.5:
+            raise ExportError(f"nu = {nu:g} must lie in (-1, 0.5) (0.5 is the incompressible limit; use e.g. 0.49)")
+        k = 1.0 - nu**2
+        params = {key: dict(v) for key, v in card.parameters.items()}
+        se = em.get("standard_error")
+        params["youngs_modulus"].update(value=e_star * k, standard_error=None if se is None else float(se) * k)
+        params["poisson_ratio"].update(value=nu, standard_error=None, fitted=False)
+        prov = {**card.provenance, "effective_modulus": {**em, "converted": {"poisson_ratio": nu, "youngs_modulus": e_star * k,
+                "how": f"youngs_modulus = E* (1 - nu^2) = {e_star:.6g} Pa x {k:.6g} at the stated nu = {nu:g}"}}}
+        return MaterialCard(model=card.model, parameters=params, energy=card.energy, name=card.name, provenance=prov)
+    if nu0 == 0.0 and not approximate:
+        raise EffectiveModulusError(
+            f"the card's youngs_modulus = {card.youngs_modulus:.6g} Pa is the effective modulus E* = E/(1-nu^2) of a half-space "
+            f"{em.get('law', 'indentation')} fit with nu fixed at 0 (the indentation-modulus convention): a simulator given E = E* and "
+            f"nu = 0 is a different material. State the tissue's nu to convert (nu=0.45 / --nu 0.45: E = E* (1 - nu^2)), refit with "
+            f"poisson_ratio fixed at the tissue's value, or pass approximate=True (--approximate) to export E* with nu = 0 as is")
+    return card
 
 
 def read_card(path) -> MaterialCard:
@@ -439,6 +484,17 @@ def _header_lines(card: MaterialCard, target: str, law: str | None = None) -> li
             lines.append(f"data: {f.get('path')} sha256 {f.get('sha256')}")
     if prov.get("scenarios"):
         lines.append("scenarios: " + ", ".join(str(s) for s in prov["scenarios"]))
+    em = prov.get("effective_modulus")
+    if em:
+        conv = em.get("converted")
+        if conv:
+            lines.append(f"E from the effective modulus E* = E/(1-nu^2) = {float(em['value']):.6g} Pa of a half-space indentation fit: {conv['how']}")
+        elif float(em["poisson_ratio_assumed"]) == 0.0:
+            lines.append(f"APPROXIMATION: E = {float(em['value']):.6g} Pa is the effective modulus E* = E/(1-nu^2) of a half-space indentation fit, "
+                         "written with nu = 0 as is (no tissue's nu; the data do not determine nu)")
+        else:
+            lines.append(f"E rests on the assumed nu = {float(em['poisson_ratio_assumed']):g}: the data (half-space indentation) determine only "
+                         f"E* = E/(1-nu^2) = {float(em['value']):.6g} Pa")
     return lines
 
 
@@ -1205,7 +1261,8 @@ def _write_text(path, text: str, force: bool) -> Path:
 
 def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
            law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int = 1,
-           displacement: float | None = None, constraints: str = "xpbd", indentation=None, fitted=None) -> Path:
+           displacement: float | None = None, constraints: str = "xpbd", indentation=None, fitted=None,
+           nu: float | None = None) -> Path:
     """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``.
 
     ``to="pbd"``: a pypbd scene (:func:`difftissue.pbd.write_pbd`; ``constraints`` ``"xpbd"`` or
@@ -1213,7 +1270,11 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
     :class:`~difftissue.export_indentation.IndentationSpecimen` (instead of ``mesh``).
     ``fitted``: a :class:`~difftissue.export_fitted.FittedSpecimen` (the experiment of a
     fem_field / incision fit, :func:`~difftissue.export_fitted.fitted_specimen_from_card`),
-    written by :func:`~difftissue.export_fitted.write_fitted`."""
+    written by :func:`~difftissue.export_fitted.write_fitted`.
+
+    A card whose E is an effective modulus (half-space indentation fit, nu fixed at 0) is
+    refused unless ``nu`` converts it or ``approximate`` (:func:`resolve_effective_modulus`)."""
+    card = resolve_effective_modulus(card, nu=nu, approximate=approximate)
     if fitted is not None:
         if mesh is not None or indentation is not None or displacement is not None:
             raise ExportError("a fitted specimen carries its own mesh and prescribed displacements: give no mesh, indentation or displacement")

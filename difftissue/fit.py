@@ -50,6 +50,7 @@ from .errors import (
     CheckpointError,
     CheckpointMismatchError,
     FitError,
+    FitQualityWarning,
     IdentifiabilityWarning,
     OutputError,
     OutputExistsError,
@@ -65,6 +66,11 @@ __all__ = [
     "fit",
     "parameter_statistics",
     "identifiability_diagnostics",
+    "assess_quality",
+    "effective_modulus",
+    "FitQuality",
+    "QualityFlag",
+    "PLAUSIBLE",
     "write_fit_outputs",
     "package_versions",
     "UNITS",
@@ -414,6 +420,22 @@ class ScenarioFit:
     residual: np.ndarray
     x_label: str
     y_label: str
+    #: for plots of scenarios that are not one curve: a ``fem_field``'s
+    #: ``{"kind": "fem_field", "points": (nd, 3) [m], "components": (nd,), "force_components": "z"}``
+    layout: dict | None = None
+
+
+def _plot_layout(scenario) -> dict | None:
+    """The :attr:`ScenarioFit.layout` of a scenario (unwrapping a separately compiled one)."""
+    sc = getattr(scenario, "inner", scenario)
+    dofs = getattr(sc, "observe_dofs", None)
+    model = getattr(sc, "model", None)
+    if dofs is None or getattr(model, "rest_points", None) is None:
+        return None
+    dofs = np.asarray(dofs)
+    mask = getattr(sc, "reaction_mask", None)
+    forces = "" if mask is None else "".join(c for i, c in enumerate("xyz") if np.asarray(mask)[:, i].any())
+    return {"kind": "fem_field", "points": np.asarray(model.rest_points)[dofs // 3], "components": dofs % 3, "force_components": forces}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -454,6 +476,12 @@ class FitResult:
         unconstrained: the optimiser's vector ``u`` of the best start.
         compilations: how many times the step function was traced (1 in a healthy fit).
         resumed_from: step count read from a checkpoint (0 for a fresh fit).
+        quality: the quality gates (:func:`assess_quality`): flags such as ``at_bound``,
+            ``not_converged`` (errors: the answer is unusable) or ``systematic_residuals``
+            (warnings), each also emitted as :class:`~difftissue.errors.FitQualityWarning`.
+        effective_modulus: for a half-space indentation fit (Hertz/Sneddon) with nu not
+            fitted, what the data determine: ``E* = E / (1 - nu^2)`` [Pa] with its standard
+            error, the assumed nu and the meaning (:func:`effective_modulus`); else None.
     """
 
     material: Material
@@ -488,6 +516,8 @@ class FitResult:
     unconstrained: np.ndarray
     compilations: int
     resumed_from: int = 0
+    quality: "FitQuality | None" = None
+    effective_modulus: dict | None = None
 
     @property
     def scenario_names(self) -> tuple[str, ...]:
@@ -502,6 +532,10 @@ class FitResult:
             lines.append(f"{f} = {self.values[f]:.6g} ± {se:.3g}{unit}")
         lines.append(f"loss = {self.loss:.6g}; {'converged' if self.converged else 'NOT converged'} after {self.steps} steps ({self.reason})")
         lines.extend(f"warning: {w}" for w in self.warnings)
+        if self.effective_modulus is not None:
+            lines.append(effective_modulus_line(self.effective_modulus))
+        if self.quality is not None:
+            lines.append(f"quality: {self.quality.summary()}")
         return "\n".join(lines)
 
 
@@ -657,6 +691,245 @@ def identifiability_diagnostics(stats: Mapping, values, fields) -> list[tuple[st
                 add(fields[i], f"corr-{fields[j]}", msg)
                 add(fields[j], f"corr-{fields[i]}", msg)
     return out
+
+
+# ============================================================================ quality gates
+#: Plausible range of a fitted field (SI) unless :func:`fit`'s ``plausible`` (config:
+#: ``fit.plausible``) widens it: outside it the fit is flagged ``implausible_value`` (an error).
+PLAUSIBLE: dict[str, tuple[float, float]] = {"youngs_modulus": (1.0, 1e9)}
+#: rms of the scaled residuals above this is flagged ``poor_fit`` (a warning) [-].
+RMS_LIMIT = 3.0
+#: lag-1 autocorrelation of a scenario's residuals above this is flagged ``systematic_residuals``.
+AUTOCORRELATION_LIMIT = 0.5
+#: Wald--Wolfowitz runs-test p-value below this is flagged ``systematic_residuals``.
+RUNS_P_LIMIT = 0.01
+#: A parameter closer to a transform bound than this fraction of its range (ScaledLogit) or of
+#: its scale (Log) is flagged ``at_bound`` (an error).
+BOUND_FRACTION = 1e-4
+#: Residual structure is judged only where the rms residual/sigma reaches this: below it the
+#: model lies within the stated noise level and the residuals' pattern is numerical noise.
+STRUCTURE_MIN_RMS = 0.5
+#: Minimum points of a scenario for the structure tests.
+STRUCTURE_MIN_POINTS = 10
+#: Quality flags that make the fit's answer unusable (severity "error"; CLI exit status 3).
+QUALITY_ERRORS = ("non_finite", "not_converged", "at_bound", "implausible_value")
+
+
+@dataclasses.dataclass(frozen=True)
+class QualityFlag:
+    """One finding of :func:`assess_quality`.
+
+    Attributes:
+        name: ``non_finite``, ``not_converged``, ``at_bound``, ``implausible_value`` (errors:
+            the answer is unusable), ``poor_fit`` or ``systematic_residuals`` (warnings).
+        severity: ``"error"`` or ``"warning"``.
+        subject: the field or scenario it concerns (None for the whole fit).
+        message: one line for people.
+        numbers: the quantities behind it (SI units or dimensionless).
+    """
+
+    name: str
+    severity: str
+    subject: str | None
+    message: str
+    numbers: dict
+
+
+@dataclasses.dataclass(frozen=True)
+class FitQuality:
+    """Quality gates of a fit: the flags and, per scenario, the residual statistics
+    (``rms`` of residual/sigma, ``lag1_autocorrelation``, ``runs``, ``runs_expected``, ``runs_p``)."""
+
+    flags: tuple[QualityFlag, ...]
+    scenarios: dict
+
+    @property
+    def usable(self) -> bool:
+        """False when a flag of severity "error" is raised."""
+        return not any(f.severity == "error" for f in self.flags)
+
+    @property
+    def errors(self) -> tuple[QualityFlag, ...]:
+        return tuple(f for f in self.flags if f.severity == "error")
+
+    @property
+    def verdict(self) -> str:
+        """``"ok"``, ``"warnings"`` or ``"unusable"``."""
+        return "unusable" if not self.usable else ("warnings" if self.flags else "ok")
+
+    def summary(self) -> str:
+        """One line: the verdict and the flag names with their subjects."""
+        if not self.flags:
+            return "ok"
+        names = ", ".join(f.name + (f" ({f.subject})" if f.subject else "") for f in self.flags)
+        return f"{self.verdict}: {names}"
+
+    def to_json(self) -> dict:
+        return {
+            "verdict": self.verdict,
+            "usable": self.usable,
+            "flags": [{"name": f.name, "severity": f.severity, "subject": f.subject, "message": f.message, "numbers": _jsonable(f.numbers)} for f in self.flags],
+            "scenarios": _jsonable(self.scenarios),
+            "thresholds": {"rms": RMS_LIMIT, "lag1_autocorrelation": AUTOCORRELATION_LIMIT, "runs_p": RUNS_P_LIMIT,
+                           "bound_fraction": BOUND_FRACTION, "structure_min_rms": STRUCTURE_MIN_RMS},
+        }
+
+
+def lag1_autocorrelation(r) -> float:
+    """Lag-1 autocorrelation of a residual sequence ``r`` [-] (NaN for fewer than 3 points or zero variance)."""
+    r = np.asarray(r, dtype=float)
+    if r.size < 3:
+        return float("nan")
+    d = r - r.mean()
+    den = float(np.sum(d * d))
+    return float(np.sum(d[:-1] * d[1:]) / den) if den > 0 else float("nan")
+
+
+def runs_test(r) -> tuple[int, float, float]:
+    """Wald--Wolfowitz runs test on the signs of ``r`` (zeros dropped).
+
+    Returns ``(runs, expected runs, two-sided p-value)`` from the normal approximation; the
+    p-value is NaN when all signs agree or fewer than 2 points remain. Too few runs means
+    residuals of one sign cluster: the model misses a trend of the data.
+    """
+    s = np.sign(np.asarray(r, dtype=float))
+    s = s[s != 0]
+    n1, n2 = int(np.sum(s > 0)), int(np.sum(s < 0))
+    n = n1 + n2
+    runs = int(1 + np.sum(s[1:] != s[:-1])) if n else 0
+    if n1 == 0 or n2 == 0 or n < 2:
+        return runs, float("nan"), float("nan")
+    mu = 2.0 * n1 * n2 / n + 1.0
+    var = (mu - 1.0) * (mu - 2.0) / (n - 1.0)
+    if var <= 0:
+        return runs, mu, float("nan")
+    z = (runs - mu) / math.sqrt(var)
+    return runs, mu, math.erfc(abs(z) / math.sqrt(2.0))
+
+
+def _bound_flags(parameterization, u, values) -> list[QualityFlag]:
+    """``at_bound`` for each field whose transform is saturated (within :data:`BOUND_FRACTION`)."""
+    from .materials import Log, ScaledLogit
+
+    out = []
+    for i, (f, t) in enumerate(zip(parameterization.fields, parameterization.transforms)):
+        ui = float(u[i])
+        unit = _unit_text(UNITS.get(f, ""))
+        if isinstance(t, ScaledLogit):
+            frac = 1.0 / (1.0 + math.exp(-ui)) if ui > -700 else 0.0
+            for side, dist, b in (("lower", frac, t.lower), ("upper", 1.0 - frac, t.upper)):
+                if dist < BOUND_FRACTION:
+                    out.append(QualityFlag("at_bound", "error", f, f"{f} = {values[f]:.6g} {unit} sits at its {side} bound {b:g}: the optimum lies outside "
+                                           f"[{t.lower:g}, {t.upper:g}] (widen fit.bounds, or the model does not describe the data)".replace("  ", " "),
+                                           {"value": values[f], "bound": b, "side": side, "fraction_of_range": dist}))
+        elif isinstance(t, Log) and ui < math.log(BOUND_FRACTION):
+            out.append(QualityFlag("at_bound", "error", f, f"{f} = {values[f]:.6g} {unit} collapsed onto its lower limit {t.lower:g} "
+                                   f"({math.exp(ui):.2g} of its start scale {t.scale:g})".replace("  ", " "),
+                                   {"value": values[f], "bound": t.lower, "side": "lower", "fraction_of_scale": math.exp(ui)}))
+    return out
+
+
+def _residual_flags(scenarios) -> tuple[list[QualityFlag], dict]:
+    """``poor_fit`` and ``systematic_residuals`` per scenario, and each scenario's statistics."""
+    flags, stats = [], {}
+    for s in scenarios:
+        r = np.asarray(s.residual, dtype=float)
+        rms = float(np.sqrt(np.mean(r**2))) if r.size else float("nan")
+        rho = lag1_autocorrelation(r)
+        runs, expected, p = runs_test(r)
+        stats[s.name] = {"points": int(r.size), "rms": rms, "lag1_autocorrelation": rho, "runs": runs, "runs_expected": expected, "runs_p": p,
+                         "max_abs": float(np.max(np.abs(r))) if r.size else float("nan")}
+        if np.isfinite(rms) and rms > RMS_LIMIT:
+            flags.append(QualityFlag("poor_fit", "warning", s.name, f"{s.name}: rms residual/sigma {rms:.3g} > {RMS_LIMIT:g}: the model misses the data "
+                                     "by more than the stated noise (or sigma is too small)", {"rms": rms}))
+        if r.size >= STRUCTURE_MIN_POINTS and np.isfinite(rms) and rms >= STRUCTURE_MIN_RMS:
+            why = []
+            if np.isfinite(rho) and rho > AUTOCORRELATION_LIMIT:
+                why.append(f"lag-1 autocorrelation {rho:.2f} > {AUTOCORRELATION_LIMIT:g}")
+            if np.isfinite(p) and p < RUNS_P_LIMIT:
+                why.append(f"{runs} sign runs where {expected:.1f} are expected (runs test p = {p:.2g} < {RUNS_P_LIMIT:g})")
+            if why:
+                flags.append(QualityFlag("systematic_residuals", "warning", s.name,
+                                         f"{s.name}: systematic residuals ({'; '.join(why)}; largest abs(residual)/sigma {stats[s.name]['max_abs']:.2g}): "
+                                         "the model's shape does not follow the data; the standard errors are optimistic",
+                                         {"lag1_autocorrelation": rho, "runs": runs, "runs_expected": expected, "runs_p": p}))
+    return flags, stats
+
+
+def assess_quality(result: "FitResult", parameterization=None, *, plausible: Mapping[str, Sequence[float]] | None = None) -> FitQuality:
+    """Quality gates of a fit (see ``docs/fitting.md``, "Quality").
+
+    Errors (the answer is unusable): a non-finite value or loss (``non_finite``), a fit that did
+    not converge (``not_converged``), a parameter at a transform bound (``at_bound``, needs
+    ``parameterization``), a value outside its plausible range (``implausible_value``:
+    :data:`PLAUSIBLE` updated by ``plausible``, ``{field: (lo, hi)}`` SI). Warnings: rms
+    residual/sigma above :data:`RMS_LIMIT` (``poor_fit``), structured residuals: lag-1
+    autocorrelation above :data:`AUTOCORRELATION_LIMIT` or runs-test p below
+    :data:`RUNS_P_LIMIT` (``systematic_residuals``).
+    """
+    ranges = {**PLAUSIBLE, **{k: (float(v[0]), float(v[1])) for k, v in (plausible or {}).items()}}
+    flags: list[QualityFlag] = []
+    bad = [f for f in result.fields if not math.isfinite(result.values[f])]
+    if bad or not math.isfinite(result.loss) or any(not np.all(np.isfinite(s.predicted)) for s in result.scenarios):
+        flags.append(QualityFlag("non_finite", "error", ", ".join(bad) or None, f"non-finite result ({', '.join(bad) or 'loss or predictions'})", {"loss": result.loss}))
+    if not result.converged:
+        flags.append(QualityFlag("not_converged", "error", None, f"the fit did not converge ({result.reason}) after {result.steps} steps", {"steps": result.steps}))
+    if parameterization is not None:
+        flags += _bound_flags(parameterization, result.unconstrained, result.values)
+    for f in result.fields:
+        v = result.values[f]
+        if f in ranges and math.isfinite(v) and not ranges[f][0] <= v <= ranges[f][1]:
+            lo, hi = ranges[f]
+            unit = _unit_text(UNITS.get(f, ""))
+            flags.append(QualityFlag("implausible_value", "error", f, f"{f} = {v:.4g} {unit} lies outside the plausible range [{lo:g}, {hi:g}] {unit} "
+                                     "(most often a unit mistake or a diverged fit; widen it with fit.plausible if the material really is so)".replace("  ", " "),
+                                     {"value": v, "range": [lo, hi]}))
+    res_flags, stats = _residual_flags(result.scenarios)
+    return FitQuality(tuple(flags + res_flags), stats)
+
+
+# ============================================================================ effective modulus
+#: Half-space closed forms whose force is proportional to E / (1 - nu^2), by indenter.
+_HALF_SPACE_LAWS = {"sphere": "Hertz", "flat_punch": "Sneddon flat punch", "cone": "Sneddon cone"}
+
+
+def effective_modulus(result: "FitResult", scenarios) -> dict | None:
+    """What a half-space indentation fit with nu fixed determines: ``E* = E / (1 - nu^2)`` [Pa].
+
+    Every scenario must be a half-space analytic indentation (``solution == "half_space"``:
+    Hertz, Sneddon), E fitted and nu not: such a curve determines E* only, and the fitted E is
+    E* (1 - nu^2) at the assumed nu. Returns ``{"value", "standard_error", "unit",
+    "poisson_ratio_assumed", "law", "meaning"}`` or None for any other fit.
+    """
+    if "youngs_modulus" not in result.fields or "poisson_ratio" in result.fields or not scenarios:
+        return None
+    laws = []
+    for sc in scenarios:
+        if getattr(sc, "solution", None) != "half_space" or getattr(sc, "indenter", None) not in _HALF_SPACE_LAWS:
+            return None
+        laws.append(_HALF_SPACE_LAWS[sc.indenter])
+    nu = float(result.material.poisson_ratio)
+    k = 1.0 - nu**2
+    se = result.standard_errors["youngs_modulus"]
+    return {
+        "value": result.values["youngs_modulus"] / k,
+        "standard_error": se / k if math.isfinite(se) else float("inf"),
+        "unit": "Pa",
+        "poisson_ratio_assumed": nu,
+        "law": ", ".join(dict.fromkeys(laws)),
+        "meaning": (f"E* = E / (1 - nu^2), the effective (indentation) modulus: what a half-space {laws[0]} fit determines. "
+                    f"youngs_modulus = E* (1 - nu^2) holds only for the assumed poisson_ratio = {nu:g}, which the data do not determine"
+                    + (" (nu = 0 is the indentation-modulus convention E = E*, not a tissue's nu)" if nu == 0 else "")),
+    }
+
+
+def effective_modulus_line(rec: Mapping) -> str:
+    """One line for people: the effective modulus, its standard error and what it means."""
+    se = rec["standard_error"]
+    se_txt = f" ± {se:.3g}" if se is not None and math.isfinite(se) else ""
+    nu = rec["poisson_ratio_assumed"]
+    return (f"effective modulus E* = E/(1-nu^2) = {rec['value']:.6g}{se_txt} Pa ({rec['law']}): what the data determine; "
+            f"E = {rec['value'] * (1 - nu**2):.6g} Pa only at the assumed nu = {nu:g}")
 
 
 # ============================================================================ optimisers
@@ -1022,7 +1295,7 @@ def _progress_bar(enabled: bool, total: int):
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
     return Progress(
-        TextColumn("fit"),
+        TextColumn("{task.description}"),
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("loss {task.fields[loss]}"),
@@ -1054,6 +1327,7 @@ def fit(
     resume: bool = False,
     progress: bool = False,
     callback: Callable[[FitProgress], bool | None] | None = None,
+    plausible: Mapping[str, Sequence[float]] | None = None,
 ) -> FitResult:
     """Fit the fields of ``parameterization`` to one or more scenarios (weighted least squares).
 
@@ -1091,10 +1365,13 @@ def fit(
         callback: called with a :class:`FitProgress` after every step; returning ``True``
             stops the fit (reason "stopped by callback"). An exception (e.g. KeyboardInterrupt)
             propagates after the checkpoint is written.
+        plausible: ``{field: (lo, hi)}`` (SI) widening or narrowing :data:`PLAUSIBLE` (default
+            E in [1 Pa, 1 GPa]) for the ``implausible_value`` quality gate.
 
     Returns:
         A :class:`FitResult`. Identifiability problems are also emitted as
-        :class:`~difftissue.errors.IdentifiabilityWarning`.
+        :class:`~difftissue.errors.IdentifiabilityWarning`, quality flags (:func:`assess_quality`)
+        as :class:`~difftissue.errors.FitQualityWarning`.
     """
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}; choose one of {METHODS}")
@@ -1156,7 +1433,7 @@ def fit(
     task = None
     if bar is not None:
         bar.start()
-        task = bar.add_task("fit", total=max_steps, completed=step, loss=f"{np.nanmin(history[-1]):.6g}" if history else "-")
+        task = bar.add_task("compiling + first step", total=max_steps, completed=step, loss=f"{np.nanmin(history[-1]):.6g}" if history else "-")
     try:
         while step < max_steps and not bool(np.all(np.asarray(done))):
             U, dyn, done, new_status, losses = step_fn(U, dyn, done, data)
@@ -1167,7 +1444,7 @@ def fit(
                 history.append(losses)
             history.append(losses)
             if bar is not None:
-                bar.update(task, completed=step, loss=f"{np.nanmin(losses):.6g}")
+                bar.update(task, completed=step, loss=f"{np.nanmin(losses):.6g}", description="fitting")
             if ckpt is not None and step % checkpoint_every == 0:
                 save()
             if callback is not None:
@@ -1202,13 +1479,13 @@ def fit(
     return _fit_result(
         problem, engine, U, all_values, final, all_J, all_preds, done, status, history, step,
         stop_reason=stop_reason, absolute_sigma=absolute_sigma, method=method, loss=loss, f_scale=f_scale,
-        compilations=engine.traces - traces_before, resumed_from=resumed_from, stacklevel=3,
+        compilations=engine.traces - traces_before, resumed_from=resumed_from, stacklevel=3, plausible=plausible,
     )
 
 
 def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_J, all_preds, done, status, history, step, *,
                 stop_reason: str, absolute_sigma: bool, method: str, loss: str, f_scale: float, compilations: int,
-                resumed_from: int = 0, warning_prefix: str = "", stacklevel: int = 2) -> FitResult:
+                resumed_from: int = 0, warning_prefix: str = "", stacklevel: int = 2, plausible=None) -> FitResult:
     """The :class:`FitResult` of one problem from the final state of its starts: best start,
     covariance, identifiability diagnostics (emitted as warnings, prefixed by
     ``warning_prefix``) and per-scenario outputs. ``history`` is a list of ``(S,)`` loss rows."""
@@ -1251,9 +1528,10 @@ def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_
         absc = np.arange(obs.size, dtype=float) if absc is None else np.asarray(absc, dtype=float)
         predictions[sc.name] = pred
         residuals[sc.name] = res
-        scen_fits.append(ScenarioFit(sc.name, absc, obs, sig, pred, res, str(getattr(sc, "x_label", "index")), str(getattr(sc, "y_label", "observed"))))
+        scen_fits.append(ScenarioFit(sc.name, absc, obs, sig, pred, res, str(getattr(sc, "x_label", "index")), str(getattr(sc, "y_label", "observed")),
+                                     _plot_layout(sc)))
     start_vals = np.asarray(all_values)
-    return FitResult(
+    result = FitResult(
         material=material,
         fields=fields,
         values={f: float(values_vec[i]) for i, f in enumerate(fields)},
@@ -1287,6 +1565,11 @@ def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_
         compilations=int(compilations),
         resumed_from=resumed_from,
     )
+    result = dataclasses.replace(result, effective_modulus=effective_modulus(result, problem.scenarios))
+    quality = assess_quality(result, problem.parameterization, plausible=plausible)
+    for flag in quality.flags:
+        warnings.warn(f"{warning_prefix}{flag.severity}: {flag.message}", FitQualityWarning, stacklevel=stacklevel)
+    return dataclasses.replace(result, quality=quality)
 
 
 # ============================================================================ outputs
@@ -1383,6 +1666,8 @@ def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -
         "degrees_of_freedom": result.dof,
         "condition_number": _num(result.condition_number),
         "identifiability_warnings": list(result.warnings),
+        "quality": result.quality.to_json() if result.quality is not None else None,
+        "effective_modulus": _jsonable(result.effective_modulus),
         "unidentified": list(result.unidentified),
         "model": model_name,
         "scenarios": [
@@ -1398,6 +1683,123 @@ def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -
     }
 
 
+#: SI prefixes for plot axes, by unit: (factor, label).
+_PREFIXES = {
+    "m": ((1e-9, "nm"), (1e-6, "µm"), (1e-3, "mm"), (1.0, "m")),
+    "N": ((1e-9, "nN"), (1e-6, "µN"), (1e-3, "mN"), (1.0, "N")),
+    "Pa": ((1.0, "Pa"), (1e3, "kPa"), (1e6, "MPa"), (1e9, "GPa")),
+}
+
+
+def human_unit(values, unit: str) -> tuple[float, str]:
+    """``(factor, label)`` such that ``values / factor`` reads well in ``label``: the largest
+    prefix of ``unit`` (m, N, Pa; strain ``-``/``1`` as %) not above max|values|; other units as given."""
+    v = np.asarray(values, dtype=float)
+    peak = float(np.nanmax(np.abs(v))) if v.size and np.any(np.isfinite(v)) else 0.0
+    if unit in ("-", "1"):
+        return 0.01, "%"
+    choices = _PREFIXES.get(unit)
+    if not choices:
+        return 1.0, unit
+    best = choices[0]
+    for f, label in choices:
+        if peak >= f:
+            best = (f, label)
+    return best
+
+
+def _split_label(label: str) -> tuple[str, str]:
+    """``"depth [m]"`` -> ``("depth", "m")``; no unit -> ``(label, "")``."""
+    import re
+
+    m = re.match(r"^(.*?)\s*\[([^\]]*)\]\s*$", label)
+    return (m.group(1), m.group(2)) if m else (label, "")
+
+
+def _value_text(value: float, se: float, unit: str) -> str:
+    """``"158.5 ± 0.96 Pa"`` in a human prefix of ``unit`` (SI value and standard error)."""
+    f, u = human_unit([value], unit) if unit in _PREFIXES else (1.0, _unit_text(unit))
+    se_txt = f" ± {se / f:.2g}" if se is not None and math.isfinite(se) else " (se not determined)"
+    return f"{value / f:.4g}{se_txt} {u}".rstrip()
+
+
+def _fit_title(result: FitResult) -> str:
+    """The figure's title: each fitted value with its standard error, E* where named, the quality verdict."""
+    parts = [f"{f} = {_value_text(result.values[f], result.standard_errors[f], result.units[f])}" for f in result.fields]
+    em = result.effective_modulus
+    if em is not None:
+        parts.append(f"E* = E/(1-ν²) = {_value_text(em['value'], em['standard_error'], 'Pa')} (ν = {em['poisson_ratio_assumed']:g} assumed)")
+    if result.quality is not None:
+        parts.append(f"quality: {result.quality.summary()}")
+    return "\n".join(parts)
+
+
+def _plot_curve(top, bottom, s: ScenarioFit) -> None:
+    """Data with sigma bars and the model against the abscissa, in human units; residuals below."""
+    xname, xunit = _split_label(s.x_label)
+    yname, yunit = _split_label(s.y_label)
+    fx, ux = human_unit(s.abscissa, xunit)
+    fy, uy = human_unit(s.observed, yunit)
+    x = np.asarray(s.abscissa) / fx
+    top.errorbar(x, s.observed / fy, yerr=s.sigma / fy, fmt="o", ms=3, lw=0.8, color="0.3", label="data")
+    # the model as lines along each increasing run of the abscissa (a scenario may concatenate
+    # several outputs or loading segments); as markers when the points are not ordered
+    runs = np.split(np.arange(x.size), np.nonzero(np.diff(x) < 0)[0] + 1)
+    if min(len(r) for r in runs) >= 2:
+        for i, run in enumerate(runs):
+            top.plot(x[run], s.predicted[run] / fy, "-", color="C0", lw=1.6, label="model" if i == 0 else None)
+    else:
+        top.plot(x, s.predicted / fy, "x", color="C0", ms=5, label="model")
+    top.set_ylabel(f"{yname} [{uy}]" if uy else yname)
+    top.legend(frameon=False)
+    bottom.plot(x, s.residual, "o", ms=3, color="C3")
+    bottom.set_xlabel(f"{xname} [{ux}]" if ux else xname)
+
+
+def _plot_fem_field(axes, s: ScenarioFit) -> None:
+    """A fem_field scenario: displacement profile (each observed component against the node's
+    distance from the most displaced node, data dots, model crosses), its residuals, and the
+    reaction force in its own panel (magnitude, with the direction said in the label)."""
+    top, bottom, side = axes
+    lay = s.layout
+    nd = len(lay["components"])
+    pts = np.asarray(lay["points"], dtype=float)
+    comp = np.asarray(lay["components"], dtype=int)
+    obs_u, pred_u, res_u = s.observed[:nd], s.predicted[:nd], s.residual[:nd]
+    centre = pts[int(np.argmax(np.abs(obs_u)))]
+    r = np.linalg.norm((pts - centre)[:, :2], axis=1)
+    fr, ur = human_unit(r, "m")
+    fu, uu = human_unit(obs_u, "m")
+    for c in np.unique(comp):
+        k = comp == c
+        top.plot(r[k] / fr, obs_u[k] / fu, "o", ms=3.5, color=f"C{c}", alpha=0.8, label=f"u{'xyz'[c]} data")
+        top.plot(r[k] / fr, pred_u[k] / fu, "x", ms=5, mew=1.4, color=f"C{c}", label=f"u{'xyz'[c]} model")
+        bottom.plot(r[k] / fr, res_u[k], "o", ms=3, color=f"C{c}")
+    top.set_ylabel(f"displacement [{uu}]")
+    top.set_title(f"{s.name}: displacement profile")
+    top.legend(frameon=False, fontsize=8, ncol=2)
+    bottom.set_xlabel(f"lateral distance from the most displaced node [{ur}]")
+    forces = lay["force_components"]
+    if side is None:
+        return
+    if not forces:
+        side.set_axis_off()
+        return
+    F_obs, F_pred, F_sig = s.observed[nd:], s.predicted[nd:], s.sigma[nd:]
+    ff, uf = human_unit(F_obs, "N")
+    idx = np.arange(len(forces))
+    side.bar(idx - 0.15, np.abs(F_obs) / ff, 0.3, yerr=F_sig / ff, color="0.6", label="measured")
+    side.bar(idx + 0.15, np.abs(F_pred) / ff, 0.3, color="C0", label="model")
+    side.set_xlim(-0.75, len(forces) - 0.25)
+    side.set_xticks(idx, [f"{'-' if o < 0 else '+'}{c}" for c, o in zip(forces, F_obs)])
+    side.set_ylabel(f"reaction force magnitude [{uf}]")
+    side.set_xlabel("reaction direction (-z: pushed into the specimen)")
+    side.set_title("reaction force")
+    for i, (o, p) in enumerate(zip(F_obs, F_pred)):
+        side.annotate(f"{abs(o) / ff:.4g} / {abs(p) / ff:.4g}", (i, max(abs(o), abs(p)) / ff), ha="center", va="bottom", fontsize=8)
+    side.legend(frameon=True, fontsize=8, loc="lower center")
+
+
 def _plot_fit(result: FitResult, path: Path):
     import matplotlib
 
@@ -1405,29 +1807,26 @@ def _plot_fit(result: FitResult, path: Path):
     from matplotlib.figure import Figure
 
     k = len(result.scenarios)
-    fig = Figure(figsize=(5.0 * k, 5.5), layout="constrained")
-    axes = fig.subplots(2, k, sharex="col", height_ratios=[3, 1], squeeze=False)
-    for j, s in enumerate(result.scenarios):
+    fem = [s.layout is not None and s.layout.get("kind") == "fem_field" for s in result.scenarios]
+    cols = k + sum(fem)  # a fem_field scenario gets a second column for its force
+    fig = Figure(figsize=(5.0 * cols, 6.0), layout="constrained")
+    axes = fig.subplots(2, cols, height_ratios=[3, 1], squeeze=False)
+    j = 0
+    for s, is_fem in zip(result.scenarios, fem):
         top, bottom = axes[0, j], axes[1, j]
-        top.errorbar(s.abscissa, s.observed, yerr=s.sigma, fmt="o", ms=3, lw=0.8, color="0.3", label="data")
-        # the model as lines along each increasing run of the abscissa (a scenario may concatenate
-        # several outputs or loading segments); as markers when the points are not ordered
-        x = np.asarray(s.abscissa)
-        runs = np.split(np.arange(x.size), np.nonzero(np.diff(x) < 0)[0] + 1)
-        if min(len(r) for r in runs) >= 2:
-            for i, run in enumerate(runs):
-                top.plot(x[run], s.predicted[run], "-", color="C0", lw=1.6, label="model" if i == 0 else None)
+        bottom.sharex(top)
+        if is_fem:
+            side = axes[0, j + 1]
+            axes[1, j + 1].set_axis_off()
+            _plot_fem_field((top, bottom, side), s)
+            j += 2
         else:
-            top.plot(x, s.predicted, "x", color="C0", ms=5, label="model")
-        for ax in (top, bottom):
-            ax.ticklabel_format(style="sci", scilimits=(-3, 4), useMathText=True)
-        top.set_ylabel(s.y_label)
-        top.set_title(s.name)
-        top.legend(frameon=False)
+            _plot_curve(top, bottom, s)
+            top.set_title(s.name)
+            j += 1
         bottom.axhline(0.0, color="0.6", lw=0.8)
-        bottom.plot(s.abscissa, s.residual, "o", ms=3, color="C3")
         bottom.set_ylabel("residual / sigma")
-        bottom.set_xlabel(s.x_label)
+    fig.suptitle(_fit_title(result), fontsize=9)
     fig.savefig(path, format="png", dpi=110)
 
 
@@ -1455,6 +1854,29 @@ def _unit_text(unit: str) -> str:
     return "" if unit == "1" else unit
 
 
+def _quality_md(quality: "FitQuality | None") -> list[str]:
+    """The report's "Quality" section: verdict, flags, residual statistics per scenario."""
+    if quality is None:
+        return []
+    verdict = {"ok": "**OK**: no quality flag raised.",
+               "warnings": "**Usable, with warnings** (see below).",
+               "unusable": "**UNUSABLE**: do not use these values (the CLI exits with status 3)."}[quality.verdict]
+    lines = ["", "## Quality", "", verdict]
+    if quality.flags:
+        lines += ["", "| flag | severity | subject | finding |", "|---|---|---|---|"]
+        lines += [f"| {f.name} | {f.severity} | {f.subject or '-'} | {f.message} |" for f in quality.flags]
+    lines += ["", "| scenario | points | rms residual/sigma | lag-1 autocorrelation | sign runs (expected) | runs test p |", "|---|---|---|---|---|---|"]
+    fmt = lambda x, spec: "-" if x is None or not np.isfinite(x) else format(x, spec)  # noqa: E731
+    for name, st in quality.scenarios.items():
+        lines.append(f"| {name} | {st['points']} | {fmt(st['rms'], '.3g')} | {fmt(st['lag1_autocorrelation'], '.2f')} | "
+                     f"{st['runs']} ({fmt(st['runs_expected'], '.1f')}) | {fmt(st['runs_p'], '.2g')} |")
+    lines += ["", f"Thresholds: errors for a parameter within {BOUND_FRACTION:g} of a transform bound, a value outside its plausible range "
+              f"(E in [{PLAUSIBLE['youngs_modulus'][0]:g}, {PLAUSIBLE['youngs_modulus'][1]:g}] Pa unless fit.plausible says otherwise), "
+              f"non-finite values, no convergence; warnings for rms residual/sigma > {RMS_LIMIT:g}, lag-1 autocorrelation > "
+              f"{AUTOCORRELATION_LIMIT:g} or runs test p < {RUNS_P_LIMIT:g} (judged where rms >= {STRUCTURE_MIN_RMS:g})."]
+    return lines
+
+
 def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines = ["# Fit report", ""]
     lines.append(f"Model: {record['model'] or '(not given)'}; scenarios: {', '.join(names)}.")
@@ -1463,17 +1885,24 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
         + (f" (f_scale {result.f_scale:g})" if result.loss_function != "linear" else "")
         + f", {int(result.start_losses.size)} start(s) (best: {result.best_start})."
     )
-    lines.append(f"**{'Converged' if result.converged else 'Not converged'}** after {result.steps} steps: {result.reason}. Final loss {result.loss:.6g}.")
+    lines.append(f"**{'Converged' if result.converged else 'Not converged'}** after {result.steps} steps: {result.reason}. Final loss {result.loss:.6g}."
+                 + (f" Quality: {result.quality.summary()}." if result.quality is not None else ""))
     lines += ["", "## Parameters", "", "| parameter | value | standard error | relative | unit |", "|---|---|---|---|---|"]
     for f in result.fields:
         v, se = result.values[f], result.standard_errors[f]
         rel = f"{100 * se / abs(v):.3g} %" if v != 0 and math.isfinite(se) else "-"
         se_txt = f"{se:.4g}" if math.isfinite(se) else "not determined"
         lines.append(f"| {f} | {v:.6g} | {se_txt} | {rel} | {_unit_text(result.units[f]) or '-'} |")
+    if result.effective_modulus is not None:
+        em = result.effective_modulus
+        se = em["standard_error"]
+        lines += ["", f"**Effective modulus E\\* = E/(1-nu^2) = {em['value']:.6g}"
+                  + (f" ± {se:.4g}" if math.isfinite(se) else "") + f" Pa** ({em['law']}). {em['meaning']}."]
     cov_txt = "(J^T J)^-1 (absolute sigma)" if result.absolute_sigma else f"s^2 (J^T J)^-1 with s^2 = SSE/(n-p) = {result.residual_variance:.4g} (n-p = {result.dof})"
     lines += ["", f"Standard errors from the Gauss-Newton covariance {cov_txt}; condition number of J^T J (scaled) {result.condition_number:.3g}."]
     if record["fixed_parameters"]:
         lines += ["", "Fixed: " + ", ".join(f"{k} = {d['value']:g}{' ' + _unit_text(d['unit']) if _unit_text(d['unit']) else ''}" for k, d in record["fixed_parameters"].items()) + "."]
+    lines += _quality_md(result.quality)
     if len(result.fields) > 1:
         lines += ["", "## Correlations", "", "| | " + " | ".join(result.fields) + " |", "|---" * (len(result.fields) + 1) + "|"]
         for i, f in enumerate(result.fields):
@@ -1481,7 +1910,7 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
             lines.append(f"| {f} | " + " | ".join(cells) + " |")
     lines += ["", "## Warnings", ""]
     data_warnings = [f"- data: {w}" for w in record.get("data_warnings", ())]
-    lines += data_warnings + [f"- {w}" for w in result.warnings] or ["None: every parameter is determined by the data."]
+    lines += data_warnings + [f"- {w}" for w in result.warnings] or ["None from the data or identifiability checks (every parameter is determined by the data); the fit's quality flags are under Quality."]
     if record.get("data_rows"):
         lines += ["", "## Data rows", "", "| experiment | file | rows used | rows loaded | left out or reordered |", "|---|---|---|---|---|"]
         for d in record["data_rows"]:
@@ -1511,6 +1940,7 @@ def write_fit_outputs(
     scenarios: Sequence | None = None,
     data: Sequence[Mapping] = (),
     data_warnings: Sequence[str] = (),
+    start: Mapping | None = None,
 ) -> dict[str, Path]:
     """Write ``fit.json``, ``material.json``, ``fit.png``, ``loss.png`` and ``report.md`` into
     ``out_dir``, and ``specimen-<name>.vtu`` for each simulated ``fem_field``, ``compression``
@@ -1543,6 +1973,8 @@ def write_fit_outputs(
             in ``fit.json`` and in the report's "Data rows" section.
         data_warnings: plausibility warnings of the data (a likely unit mistake, ...); recorded
             as ``data_warnings`` in ``fit.json`` and first under the report's "Warnings".
+        start: where the initial values came from when the data chose them
+            (:attr:`difftissue.config.FitConfig.start`); recorded as ``start`` in ``fit.json``.
         force: overwrite existing output files. Without it, an existing file among the five
             (or a specimen file to be written) raises :class:`~difftissue.errors.OutputExistsError`
             naming it, before anything is written.
@@ -1583,6 +2015,7 @@ def write_fit_outputs(
     record = _fit_json(result, config=config, data_files=data_files, model=model, scenario_names=scenario_names)
     record["data_warnings"] = [str(w) for w in data_warnings]
     record["data_rows"] = [dict(d) for d in data]
+    record["start"] = _jsonable(start) if start else None
     out.mkdir(parents=True, exist_ok=True)
     with atomic_output(paths["fit.json"], overwrite=force) as tmp:
         tmp.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n", encoding="utf-8")

@@ -91,15 +91,18 @@ def _material_with(material, overrides: Mapping[str, float] | None):
     return Material(**values)
 
 
-def simulate_config(cfg, material=None, *, overrides: Mapping[str, float] | None = None) -> tuple:
+def simulate_config(cfg, material=None, *, overrides: Mapping[str, float] | None = None, on_experiment=None) -> tuple:
     """Evaluate every experiment of a loaded config (:func:`difftissue.config.load_config`).
 
     Args:
         cfg: a :class:`~difftissue.config.FitConfig`.
         material: the :class:`~difftissue.materials.Material` to evaluate (default: the
-            config's ``[material]``, the fit's starting point).
+            config's ``[material]`` as written, :attr:`~difftissue.config.FitConfig.config_material`;
+            a fit may start elsewhere, from the data).
         overrides: fields of the material to replace, in SI units, e.g.
             ``{"youngs_modulus": 12e3}``.
+        on_experiment: called as ``on_experiment(i, n, name)`` before experiment ``i`` of ``n``
+            is evaluated (progress).
 
     Returns:
         the material used and a tuple of :class:`SimulatedExperiment`, in config order.
@@ -107,9 +110,12 @@ def simulate_config(cfg, material=None, *, overrides: Mapping[str, float] | None
     Raises:
         SimulationError: a model evaluation failed or predicted a non-finite value.
     """
-    mat = _material_with(cfg.material if material is None else material, overrides)
+    base = getattr(cfg, "config_material", cfg.material) if material is None else material
+    mat = _material_with(base, overrides)
     out = []
-    for e in cfg.experiments:
+    for i, e in enumerate(cfg.experiments):
+        if on_experiment is not None:
+            on_experiment(i, len(cfg.experiments), e.name)
         sc = e.scenario
         t0 = time.perf_counter()
         try:

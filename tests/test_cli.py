@@ -103,6 +103,12 @@ def test_demo_quick_fits_the_bundled_afm_curve(tmp_path, capsys):
     e_eff = rec["parameters"]["youngs_modulus"]["value"]  # nu is fixed at 0: E is E_eff
     assert rec["fixed_parameters"]["poisson_ratio"]["value"] == 0.0 and rec["converged"]
     assert e_eff == pytest.approx(156.0, rel=0.05)  # the instrument's own Hertz fit
+    # the +-5 sigma residual waves of the Hertz fit are named, not "Warnings: None" (issue 17)
+    q = rec["quality"]
+    assert q["verdict"] == "warnings" and [f["name"] for f in q["flags"]] == ["systematic_residuals"]
+    assert q["scenarios"]["afm"]["rms"] == pytest.approx(2.13, abs=0.01) and q["scenarios"]["afm"]["lag1_autocorrelation"] > 0.5
+    assert "quality: warnings: systematic_residuals (afm)" in " ".join(text.split())
+    assert "## Quality" in (out / "afm_hertz" / "report.md").read_text()
     assert rec["parameters"]["youngs_modulus"]["unit"] == "Pa" and rec["parameters"]["youngs_modulus"]["standard_error"] > 0
     assert len(rec["data_files"]) == 1 and len(rec["data_files"][0]["sha256"]) == 64
     for name in ("material.json", "fit.png", "loss.png", "report.md", "config.toml"):
@@ -316,7 +322,8 @@ BAD_INPUT = [
     ("depth_um_declared_mm", 1, "above the plausible range [1e-07, 2e-01] m for 'macro' data; the values would be plausible in 'um' or 'nm'. "
      "Check the unit, or set plausible = { depth = [lo, hi] } (SI) in the experiment's data table", None),
     ("depth_30x_radius", 0, "most likely depths given in um but declared as mm", None),
-    ("force_uN_declared_N", 0, "implies an effective modulus of", None),
+    # E = 5e9 Pa: the data warning, and now the quality gate too (implausible_value, exit 3)
+    ("force_uN_declared_N", 3, "implies an effective modulus of", None),
 ]
 
 
@@ -326,9 +333,11 @@ def test_bad_input_is_never_a_silent_wrong_modulus(tmp_path, capsys, case, statu
     out = tmp_path / "out"
     assert main(["fit", str(_write_case(tmp_path, case)), "--out", str(out)]) == status
     cap = capsys.readouterr()
-    text = " ".join((cap.err if status else cap.out).split())
+    text = " ".join((cap.err if status == 1 else cap.out).split())
     assert seen in text, text[-2000:]
-    if status:
+    if status == 3:
+        assert "answer is unusable (implausible_value (youngs_modulus))" in cap.err
+    if status == 1:
         assert cap.err.count("\n") == 1 and "Traceback" not in cap.err and not (out / "fit.json").exists()
         return
     rec = json.loads((out / "fit.json").read_text())
@@ -397,3 +406,108 @@ reaction = {{ set = "punch", components = "z", force = [{force!r}] }}
         else:
             rec = json.loads((tmp_path / "out0" / "fit.json").read_text())
             assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(12e3, rel=1e-6)
+            # the plot: a displacement profile and a separate force panel (not one axis vs observation index)
+            import matplotlib.image
+
+            img = matplotlib.image.imread(tmp_path / "out0" / "fit.png")
+            assert img.shape[1] > 1.5 * img.shape[0]
+
+
+def test_an_unusable_fit_writes_its_outputs_and_exits_3(tmp_path, capsys):
+    """Not converged (max_steps = 1) or E outside fit.plausible: the answer is unusable."""
+    base = _AFM.read_text().replace('path = "data/', f'path = "{_AFM.parent}/data/')
+    for extra, flag in (("max_steps = 1", "not_converged"), ("plausible = { youngs_modulus = [1e3, 1e9] }", "implausible_value")):
+        cfg = tmp_path / f"{flag}.toml"
+        cfg.write_text(base.replace('method = "levenberg_marquardt"', 'method = "levenberg_marquardt"\n' + extra))
+        rc = main(["fit", str(cfg), "--out", str(tmp_path / flag)])
+        cap = capsys.readouterr()
+        assert rc == 3, cap.err
+        assert "answer is unusable" in cap.err and flag in cap.err and f"error: " in cap.out
+        rec = json.loads((tmp_path / flag / "fit.json").read_text())
+        assert rec["quality"]["usable"] is False and flag in [f["name"] for f in rec["quality"]["flags"] if f["severity"] == "error"]
+        assert "UNUSABLE" in (tmp_path / flag / "report.md").read_text()
+
+
+# Data-driven starts (issue 17): the shipped configs converge whatever the stiffness.
+_SHIPPED = Path(__file__).resolve().parents[1] / "difftissue" / "configs"
+
+
+@pytest.mark.parametrize("E", [1e3, 1e5])
+def test_hertz_fit_starts_from_the_data_over_100x_in_E(tmp_path, E):
+    """Synthetic Hertz curves (1 mm sphere, nu = 0, 1 % noise) of E = 1 kPa and 100 kPa with
+    the shipped AFM config's [material] (E = 100 Pa): the start is the data's Hertz slope."""
+    from difftissue.config import load_config
+
+    d = np.linspace(5e-6, 100e-6, 40)
+    f = 4.0 / 3.0 * E * np.sqrt(1e-3) * d**1.5
+    f = f + 0.01 * f.max() * np.random.default_rng(1).normal(size=d.size)
+    (tmp_path / "curve.csv").write_text("depth,force\n" + "".join(f"{a:.9g},{b:.9g}\n" for a, b in zip(d, f)))
+    text = _AFM.read_text().split("[[experiment]]")[0] + '''[[experiment]]
+name = "afm"
+scenario = "analytic_indentation"
+data = { format = "table", path = "curve.csv", columns = { depth = { name = "depth", unit = "m" }, force = { name = "force", unit = "N" } } }
+indenter = { shape = "sphere", radius = 1e-3 }
+sigma = { relative = 0.01 }
+'''
+    (tmp_path / "fit.toml").write_text(text)
+    cfg = load_config(tmp_path / "fit.toml")
+    assert cfg.start["youngs_modulus"]["config_value"] == 100.0
+    assert cfg.start["youngs_modulus"]["value"] == pytest.approx(E, rel=0.02) == cfg.material.youngs_modulus
+    assert main(["fit", str(tmp_path / "fit.toml"), "--out", str(tmp_path / "out")]) == 0
+    rec = json.loads((tmp_path / "out" / "fit.json").read_text())
+    assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(E, rel=0.02) and rec["quality"]["usable"]
+    assert rec["start"]["youngs_modulus"]["value"] == pytest.approx(E, rel=0.02)
+    (tmp_path / "pinned.toml").write_text(text.replace("[fit]\n", '[fit]\nstart = "material"\n'))
+    pinned = load_config(tmp_path / "pinned.toml")
+    assert pinned.start is None and pinned.material.youngs_modulus == 100.0
+
+
+def test_shipped_compression_config_fits_a_10x_stiffer_silicone(tmp_path, capsys):
+    """The bundled Ecoflex curve with forces and stresses x 10 (a stiff silicone, ~160 kPa):
+    the shipped config (start E = 10 kPa) used to stop with a NaN linear solve after 3
+    Gauss-Newton steps at E = 5.2e10 Pa; from the data's small-strain slope, with LM, it
+    converges to 10 x the bundled fit's E and the same b."""
+    src = _SHIPPED / "data" / "compression" / "EF10_50T_A1.csv"
+    lines = src.read_text().splitlines()
+    head = next(i for i, ln in enumerate(lines) if ln.startswith("Time"))
+    rows = []
+    for ln in lines[head + 1:]:
+        v = ln.split(",")
+        for j in (2, 4, 6):  # load [N], engineering stress [kPa], true stress [kPa]
+            v[j] = f"{10.0 * float(v[j]):.6f}"
+        rows.append(",".join(v))
+    (tmp_path / "stiff.csv").write_text("\n".join(lines[: head + 1] + rows) + "\n")
+    cfg = _SHIPPED.joinpath("ecoflex_compression.toml").read_text().replace('path = "data/compression/EF10_50T_A1.csv"', 'path = "stiff.csv"')
+    (tmp_path / "stiff.toml").write_text(cfg)
+    assert main(["fit", str(tmp_path / "stiff.toml"), "--out", str(tmp_path / "out")]) == 0, capsys.readouterr().err
+    rec = json.loads((tmp_path / "out" / "fit.json").read_text())
+    assert rec["method"] == "levenberg_marquardt" and rec["converged"] and rec["quality"]["usable"]
+    assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(158403, rel=0.01)  # bundled curve: 15.84 kPa
+    assert rec["parameters"]["cubic_coefficient"]["value"] == pytest.approx(-1.643, abs=0.01)
+
+
+def test_progress_lines_off_a_terminal_for_fit_and_simulate(tmp_path, capsys, monkeypatch):
+    """stderr is not a terminal under pytest: plain 'difftissue: [t s] phase' lines every
+    PROGRESS_EVERY seconds (10 s by default; shortened here), for fit and simulate; none with --no-progress."""
+    import difftissue.cli as cli
+
+    monkeypatch.setattr(cli, "PROGRESS_EVERY", 0.02)
+    assert main(["fit", str(_AFM), "--out", str(tmp_path / "fit")]) == 0
+    err = capsys.readouterr().err
+    assert "difftissue: [" in err and ("fitting: step" in err or "compiling the model" in err), err
+    assert main(["simulate", str(_AFM), "--out", str(tmp_path / "sim")]) == 0
+    err = capsys.readouterr().err
+    assert "simulating experiment 1/1 (afm" in err or "writing simulation.json" in err or "loading" in err, err
+    assert main(["fit", str(_AFM), "--out", str(tmp_path / "quiet"), "--no-progress"]) == 0
+    assert capsys.readouterr().err == ""
+
+
+def test_data_start_stays_inside_the_bounds_of_E(tmp_path):
+    """A data estimate outside fit.bounds.youngs_modulus starts at the bounds' geometric mean."""
+    from difftissue.config import load_config
+
+    text = _AFM.read_text().replace('path = "data/', f'path = "{_AFM.parent}/data/').replace(
+        'method = "levenberg_marquardt"', 'method = "levenberg_marquardt"\nbounds = { youngs_modulus = [10.0, 40.0] }').replace("youngs_modulus = 100.0", "youngs_modulus = 20.0")
+    (tmp_path / "b.toml").write_text(text)
+    cfg = load_config(tmp_path / "b.toml")  # the Hertz slope, 158.5 Pa, lies above the bounds
+    assert cfg.material.youngs_modulus == pytest.approx(20.0) and cfg.start["youngs_modulus"]["config_value"] == 20.0

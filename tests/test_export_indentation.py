@@ -387,3 +387,57 @@ def test_xpbd_json_flat_punch_runs_to_the_static_force(tmp_path):
     doc["setting"]["dt"] = 1e-2  # warm-started XPBD diverges at this step on 2.5 mm cells: a clear error, no NaN
     with pytest.raises(ConvergenceError, match="smaller"):
         run_xpbd_indentation(doc, tol=1e-10, max_steps=300)
+
+
+# ------------------------------------------------------------------ effective modulus (issue 17)
+def _hertz_fit(tmp_path, nu, name="fit"):
+    """A Hertz half-space fit of E* = 200 Pa with nu fixed at ``nu``: outputs in tmp_path/name."""
+    import jax.numpy as jnp
+
+    from difftissue import analytic
+    from difftissue.fit import fit, write_fit_outputs
+    from difftissue.materials import Material, MaterialParameterization
+
+    depths = np.linspace(1e-6, 8e-6, 12)
+    forces = np.asarray(analytic.hertz_force(jnp.asarray(depths), 200.0, 0.0, 25e-6))  # E* = 200 Pa
+    sc = AnalyticIndentation(depths, forces, indenter="sphere", radius=25e-6, name="afm")
+    result = fit([sc], MaterialParameterization(("youngs_modulus",)), Material(150.0, nu))
+    return result, write_fit_outputs(result, tmp_path / name, model="hertz")
+
+
+def test_a_hertz_fit_with_nu_fixed_reports_the_effective_modulus(tmp_path):
+    result, paths = _hertz_fit(tmp_path, 0.45)
+    em = result.effective_modulus
+    assert em["value"] == pytest.approx(200.0, rel=1e-6) and em["poisson_ratio_assumed"] == 0.45 and em["law"] == "Hertz"
+    assert result.values["youngs_modulus"] == pytest.approx(200.0 * (1 - 0.45**2), rel=1e-6)
+    rec = json.loads(paths["fit.json"].read_text())
+    assert rec["effective_modulus"]["value"] == pytest.approx(200.0, rel=1e-6) and "E* = E / (1 - nu^2)" in rec["effective_modulus"]["meaning"]
+    assert "Effective modulus E\\* = E/(1-nu^2) = 200" in paths["report.md"].read_text()
+    card = read_card(paths["material.json"])
+    assert card.provenance["effective_modulus"]["poisson_ratio_assumed"] == 0.45
+    assert read_card(paths["fit.json"]).provenance["effective_modulus"]["value"] == pytest.approx(200.0, rel=1e-6)
+    # nu fixed at a tissue's value: exported as is, the header says E rests on that nu
+    export(card, "febio", tmp_path / "a.feb")
+    assert "E rests on the assumed nu = 0.45" in (tmp_path / "a.feb").read_text()
+
+
+def test_export_refuses_an_effective_modulus_fitted_at_nu_0_unless_nu_is_stated(tmp_path, capsys):
+    from difftissue.errors import EffectiveModulusError
+
+    _, paths = _hertz_fit(tmp_path, 0.0)
+    card = read_card(paths["material.json"])
+    with pytest.raises(EffectiveModulusError, match=r"effective modulus E\* = E/\(1-nu\^2\).*State the tissue's nu"):
+        export(card, "febio", tmp_path / "x.feb")
+    assert not (tmp_path / "x.feb").exists()
+    export(card, "febio", tmp_path / "conv.feb", nu=0.45)  # explicit conversion
+    mat = ET.parse(tmp_path / "conv.feb").getroot().find(".//material")
+    assert float(mat.find("E").text) == pytest.approx(200.0 * (1 - 0.45**2), rel=1e-6) and float(mat.find("v").text) == 0.45
+    export(card, "febio", tmp_path / "approx.feb", approximate=True)
+    text = (tmp_path / "approx.feb").read_text()
+    assert "APPROXIMATION: E = 200 Pa is the effective modulus" in text and "<v>0.0</v>" in text
+    # the CLI: one line naming the reason and the ways out; --nu converts
+    assert main(["export", str(paths["material.json"]), "--to", "febio", "--out", str(tmp_path / "c.feb")]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--nu 0.45" in err and "--approximate" in err and "refit with poisson_ratio fixed" in err
+    assert main(["export", str(paths["material.json"]), "--to", "febio", "--out", str(tmp_path / "c.feb"), "--nu", "0.49"]) == 0
+    assert "<v>0.49</v>" in (tmp_path / "c.feb").read_text()

@@ -527,3 +527,92 @@ def test_forward_jacobian_wrapper_has_the_derivatives_of_the_function():
     np.testing.assert_allclose(lin(t), jax.jvp(lambda v: f(v)[0], (u,), (t,))[1], rtol=1e-14)
     check_grads(lambda v: g(v)[0], (u,), order=1, modes=("fwd", "rev"))
     check_grads(lambda v: g(v)[1][1], (u,), order=1, modes=("fwd", "rev"))
+
+
+# ------------------------------------------------------------------ quality gates (issue 17)
+def test_runs_test_and_autocorrelation_tell_waves_from_noise():
+    from difftissue.fit import lag1_autocorrelation, runs_test
+
+    rng = np.random.default_rng(0)
+    noise = rng.normal(size=200)
+    wave = np.sin(np.linspace(0, 6 * np.pi, 200))
+    assert abs(lag1_autocorrelation(noise)) < 0.2 and runs_test(noise)[2] > 0.01
+    runs, expected, p = runs_test(wave)
+    assert lag1_autocorrelation(wave) > 0.9 and runs == 6 and expected > 90 and p < 1e-10
+    assert runs_test(np.array([1.0, -1.0, 1.0, -1.0]))[0] == 4
+
+
+def test_a_straight_line_through_a_curve_is_flagged_systematic():
+    """E only (b = 0 fixed) on a cubic-stiffening curve: converged, but the residuals are a wave."""
+    from difftissue.errors import FitQualityWarning
+
+    data = stress_strain_data()
+    with pytest.warns(FitQualityWarning, match="systematic residuals"):
+        r = fit(data, MaterialParameterization(("youngs_modulus",)), Material(2e3, 0.3))
+    q = r.quality
+    assert r.converged and q.usable and q.verdict == "warnings"
+    names = {f.name for f in q.flags}
+    assert {"systematic_residuals", "poor_fit"} <= names
+    st = q.scenarios["stress_strain"]
+    assert st["lag1_autocorrelation"] > 0.5 and st["runs_p"] < 0.01 and st["rms"] > 3
+
+
+def test_a_good_fit_raises_no_quality_flag():
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        r = fit(stress_strain_data(), P_E_B, Material(2e3, 0.3))
+    assert r.quality.verdict == "ok" and r.quality.flags == () and r.quality.summary() == "ok"
+
+
+def test_unusable_fits_are_flagged_as_errors():
+    """A bound that excludes the optimum, an E outside the plausible range, and max_steps = 1."""
+    from difftissue.fit import assess_quality
+
+    data = stress_strain_data()
+    with pytest.warns(Warning):
+        at_bound = fit(data, MaterialParameterization(("youngs_modulus", "cubic_coefficient"), {"cubic_coefficient": ScaledLogit(-1.0, 1.0)}), Material(2e3, 0.3))
+    flags = {f.name: f for f in at_bound.quality.flags}
+    assert not at_bound.quality.usable and flags["at_bound"].subject == "cubic_coefficient" and flags["at_bound"].numbers["side"] == "upper"
+    with pytest.warns(Warning):
+        stopped = fit(data, P_E_B, Material(2e3, 0.3), max_steps=1)
+    assert "not_converged" in {f.name for f in stopped.quality.errors}
+    good = fit(data, P_E_B, Material(2e3, 0.3))
+    absurd = assess_quality(good, plausible={"youngs_modulus": (1e6, 1e9)})
+    assert [f.name for f in absurd.errors] == ["implausible_value"] and "1e+06" in absurd.errors[0].message
+    assert assess_quality(good, plausible={"youngs_modulus": (1.0, 1e4)}).usable
+
+
+def test_quality_is_written_to_fit_json_and_report(tmp_path):
+    data = stress_strain_data()
+    with pytest.warns(Warning):
+        r = fit(data, MaterialParameterization(("youngs_modulus",)), Material(2e3, 0.3))
+    write_fit_outputs(r, tmp_path)
+    rec = json.loads((tmp_path / "fit.json").read_text())
+    assert rec["quality"]["verdict"] == "warnings" and rec["quality"]["usable"] is True
+    assert {f["name"] for f in rec["quality"]["flags"]} >= {"systematic_residuals", "poor_fit"}
+    assert rec["quality"]["scenarios"]["stress_strain"]["runs_p"] < 0.01
+    report = (tmp_path / "report.md").read_text()
+    assert "## Quality" in report and "systematic_residuals" in report and "Usable, with warnings" in report
+
+
+# ------------------------------------------------------------------ plots people read (issue 17)
+def test_plot_units_are_chosen_by_magnitude():
+    from difftissue.fit import human_unit
+
+    assert human_unit([4.8e-8, 1e-9], "N") == (1e-9, "nN")
+    assert human_unit([1.2e-5], "m") == (1e-6, "µm")
+    assert human_unit([-0.0137], "N") == (1e-3, "mN")
+    assert human_unit([15840.0], "Pa") == (1e3, "kPa") and human_unit([2e6], "Pa") == (1e6, "MPa")
+    assert human_unit([0.4], "-") == (0.01, "%") and human_unit([3.0], "s") == (1.0, "s")
+
+
+def test_fit_plot_title_has_values_uncertainty_and_quality(tmp_path):
+    from difftissue.fit import _fit_title
+
+    r = fit(stress_strain_data(), P_E_B, Material(2e3, 0.3))
+    title = _fit_title(r)
+    assert re.search(r"youngs_modulus = 5\.\d+ ± 0\.\d+ kPa", title) and "cubic_coefficient = " in title and "quality: ok" in title
+    write_fit_outputs(r, tmp_path)
+    import matplotlib.image
+
+    assert matplotlib.image.imread(tmp_path / "fit.png").shape[0] > 500

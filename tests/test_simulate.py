@@ -39,11 +39,13 @@ def test_simulate_afm_matches_hertz_and_writes_outputs(tmp_path, capsys):
     assert (out / "simulation.png").stat().st_size > 1000
 
 
-def test_simulate_default_material_is_the_config_start_and_scales_with_E(tmp_path):
+def test_simulate_default_material_is_the_config_material_and_scales_with_E(tmp_path):
+    """[material] as written (100 Pa), not the fit's data-driven start (the Hertz slope, 158.5 Pa)."""
     cfg = load_config(AFM)
     mat, (a,) = simulate_config(cfg)
-    assert float(mat.youngs_modulus) == float(cfg.material.youngs_modulus)
-    _, (b,) = simulate_config(cfg, overrides={"youngs_modulus": 3 * float(cfg.material.youngs_modulus)})
+    assert float(mat.youngs_modulus) == float(cfg.config_material.youngs_modulus) == 100.0
+    assert float(cfg.material.youngs_modulus) == pytest.approx(158.5, rel=1e-3)
+    _, (b,) = simulate_config(cfg, overrides={"youngs_modulus": 3 * float(cfg.config_material.youngs_modulus)})
     np.testing.assert_allclose(b.predicted, 3 * a.predicted, rtol=1e-12)  # Hertz is linear in E
 
 
