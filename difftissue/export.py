@@ -520,8 +520,14 @@ def uniaxial_signed_errors(card: MaterialCard, law: str, strains: Sequence[float
 
 
 def _signed_error_text(card: MaterialCard, law: str) -> str:
-    """``+8.5 % at 10 %, ... compression`` for :func:`uniaxial_signed_errors`."""
-    err = uniaxial_signed_errors(card, law)
+    """``+8.5 % at 10 %, ... compression`` for :func:`uniaxial_signed_errors` (a solve that
+    fails, e.g. outside the card model's range, is reported in the note instead)."""
+    try:
+        err = uniaxial_signed_errors(card, law)
+    except ExportError:
+        raise
+    except Exception as e:  # difftissue's solver / model errors: one line in the note, the export goes on
+        return f"signed stress error NOT measured ({type(e).__name__}: {' '.join(str(e).split())[:200]})"
     parts = ", ".join(f"{100 * e:+.3g} % at {100 * abs(s):g} %" for e, s in zip(err, UNIAXIAL_STRAINS))
     return (f"measured signed stress error of the exported {law} law ({LAW_MODELS[law]}) against the card's model "
             f"{card.model}, homogeneous uniaxial compression of one cube in difftissue: {parts} nominal strain "
