@@ -1284,6 +1284,7 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
     h = dt / substeps
     out = {
         "format": "difftissue-xpbd/1",
+        "units": UNITS,
         "constraints": "stable neo-Hookean pair (Macklin & Mueller 2021): C_D = sqrt(tr F^T F), C_H = det F - gamma",
         "material": card.name,
         "model": card.model,

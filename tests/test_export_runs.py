@@ -108,7 +108,9 @@ def test_sofa_plugins_first_explicit_solver_and_output(tmp_path, mesh, kind):
 @pytest.mark.parametrize("target, suffix", [("febio", "feb"), ("sofa", "scn"), ("abaqus", "inp")])
 def test_files_and_card_state_their_units(tmp_path, mesh, target, suffix):
     assert f"units: {UNITS}" in export(_card(), target, tmp_path / f"m.{suffix}").read_text()
-    card_path = write_card(_card(), tmp_path / "material.json")
+    xp = json.loads(export(_card(), "xpbd", tmp_path / f"x-{target}.json", dt=1e-3, iterations=10).read_text())
+    assert xp["units"] == UNITS
+    card_path = write_card(_card(), tmp_path / f"material-{target}.json")
     doc = json.loads(card_path.read_text())
     assert doc["units"] == UNITS
     doc["units"] = "mm, N, MPa, s"
