@@ -191,8 +191,59 @@ def _indentation_from_args(card, args, f: float):
         bonded_punch=True if args.bonded_punch else None, penalty=args.penalty, steps=args.steps, scenario=args.scenario)
 
 
+_README_MARK = "<!-- difftissue export README: one section per exported file, rewritten by `difftissue export` -->"
+_HOW_TO_RUN = {
+    "febio": "`febio4 -i {f}` (FEBio 4); the reaction forces [N] are written per node to the logfile `reaction_<set>.txt` (sum the rows) "
+             "and in the plot file",
+    "sofa": "`runSofa {f}` (or `runSofa -g batch -n STEPS {f}`); positions [m] and forces [N] of every node go to `tissue_state.txt` "
+            "(WriteState); run a few steps past t = 1",
+    "abaqus": "`abaqus job={stem}` (Abaqus) or `ccx -i {stem}` (CalculiX: C3D4 / C3D10 only, it has no hybrid elements, analytical "
+              "surfaces or ENCASTRE); summed reactions [N] are printed to `{stem}.dat`",
+    "pbd": "in Python: `from difftissue.pbd import read_pbd_scene, run_pbd_scene; run_pbd_scene(read_pbd_scene('{f}'))` (pypbd)",
+    "xpbd": "load the JSON into your XPBD engine: compliances for the stated dt and iteration count (docs/export.md)",
+    "vtu": "open `{f}` in ParaView (cell fields: the material per cell)",
+}
+
+
+def _readme_section(path: Path, target: str, card, what: str) -> str:
+    """The README section of one exported file: target, units, how to run it, and the file's
+    own APPROXIMATION / RECALIBRATED lines (what is approximated)."""
+    from .export import UNITS
+
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError):  # a binary VTU
+        text = ""
+    notes = sorted({ln.strip().strip("<!->*\"', ").strip() for ln in text.splitlines() if "APPROXIMATION" in ln or "RECALIBRATED" in ln})
+    lines = [f"## {path.name}", "", f"- target: {target} ({what}), from a `{card.model}` card `{card.name}`",
+             f"- units: {UNITS}", "- run: " + _HOW_TO_RUN[target].format(f=path.name, stem=path.stem)]
+    lines += ["- approximated: " + (" / ".join(notes) if notes else "nothing (the file represents the card exactly)"), ""]
+    return "\n".join(lines)
+
+
+def _write_readme(out: Path, target: str, card, what: str) -> Path:
+    """Add / replace the section of ``out`` in ``README.md`` beside it (a README.md that
+    difftissue did not write is left alone: ``README-difftissue.md`` instead)."""
+    from ._io import atomic_output
+
+    readme = out.parent / "README.md"
+    if readme.exists() and not readme.read_text(encoding="utf-8", errors="replace").startswith(_README_MARK):
+        readme = out.parent / "README-difftissue.md"
+    sections: dict[str, str] = {}
+    if readme.exists():
+        body = readme.read_text(encoding="utf-8").split("\n## ")[1:]
+        sections = {b.split("\n", 1)[0].strip(): "## " + b.rstrip() + "\n" for b in body}
+    sections[out.name] = _readme_section(out, target, card, what)
+    text = _README_MARK + "\n\n# Exported simulator files\n\n" + "\n".join(sections[k] for k in sorted(sections))
+    with atomic_output(readme, overwrite=True) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return readme
+
+
 def _cmd_export(args) -> int:
     from .export import export, read_card
+
+    _enable_float64()  # measuring an approximation or recalibrating solves in difftissue
 
     card = read_card(args.card)
     f = _length_factor(args.unit)
@@ -224,11 +275,12 @@ def _cmd_export(args) -> int:
     disp = None if args.displacement is None else args.displacement * f
     path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
                   dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp,
-                  constraints=args.constraints, indentation=indentation, fitted=fitted, nu=args.nu)
+                  constraints=args.constraints, indentation=indentation, fitted=fitted, nu=args.nu, element=args.element)
     what = ("complete specimen model" if mesh is not None else
             f"fitted {fitted.experiment} specimen of scenario {fitted.scenario!r}" if fitted is not None else
             f"{indentation.indenter} indentation specimen, depth {indentation.depth:.6g} m" if indentation is not None else "material")
-    print(f"wrote {path}: {card.model} card as {args.to} ({what})")
+    readme = _write_readme(Path(path), args.to, card, what)
+    print(f"wrote {path}: {card.model} card as {args.to} ({what}); {readme.name} says how to run it")
     return 0
 
 
@@ -844,6 +896,9 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--substeps", type=int, default=1, help="XPBD substeps per time step (default 1)")
     x.add_argument("--constraints", choices=("xpbd", "fem"), default="xpbd",
                    help="pbd only: XPBD distance + volume constraints (default) or pypbd's PBD FEMTetConstraint (needs --approximate)")
+    x.add_argument("--element", choices=("C3D4", "C3D4H", "C3D10", "C3D10H"), default="C3D4",
+                   help="abaqus only: solid element (default C3D4; C3D10/C3D10H add midside nodes; H = hybrid, for near-incompressible "
+                        "hyperelasticity; CalculiX has no hybrid elements)")
     x.set_defaults(func=_cmd_export)
     return p
 

@@ -27,6 +27,7 @@ import re
 import time
 import xml.etree.ElementTree as ET
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -48,6 +49,11 @@ __all__ = [
     "abaqus_name",
     "abaqus_number",
     "abaqus_reaction_print",
+    "abaqus_quadratic",
+    "ABAQUS_ELEMENTS",
+    "model_mismatch",
+    "uniaxial_signed_errors",
+    "portable_path",
     "febio_material",
     "febio_indenter_cap",
     "febio_prestrain_gradient",
@@ -74,9 +80,11 @@ CARD_VERSION = 1
 MODEL_ENERGIES: dict[str, str] = {
     "springs_volume": (
         "cube lattice of central springs (edges and face diagonals, force k x + a x^3 with "
-        "a = b k / L0^2) plus a per-tetrahedron volume term K (V - V0)^2 / (2 V0); small-strain "
-        "response equals isotropic linear elasticity (E, nu) with uniaxial stiffening "
-        "sigma = E (eps + b eps^3)"
+        "a = b k / L0^2) plus a per-cell volume term K (V - V0)^2 / (2 V0) over each hexahedral "
+        "lattice cube (V: the cube's volume); under homogeneous strain its small-strain response "
+        "equals isotropic linear elasticity (E, nu) with uniaxial stiffening sigma = E (eps + b eps^3); "
+        "E and nu are lattice-effective values, not those of a continuum tet mesh under "
+        "inhomogeneous strain"
     ),
     "fem_linear": "linear isotropic elasticity, W = lambda/2 tr(eps)^2 + mu eps:eps (small strain)",
     "fem_neo_hookean": "compressible neo-Hookean, W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2",
@@ -86,6 +94,10 @@ MODEL_ENERGIES: dict[str, str] = {
     ),
     "analytic": "small-strain linear isotropic elasticity (closed-form contact / compression solutions)",
 }
+
+#: The unit statement every written file carries (cards: the ``units`` field; files: a comment).
+UNITS = "m, N, Pa, s (density kg/m^3)"
+UNITS_LINE = "units: " + UNITS
 
 #: SI unit of every parameter a card may hold.
 PARAMETER_UNITS: dict[str, str] = {
@@ -256,6 +268,7 @@ class MaterialCard:
             "energy": self.energy,
             "name": self.name,
             "parameters": {k: dict(v) for k, v in self.parameters.items()},
+            "units": UNITS,
             "provenance": self.provenance,
         }
 
@@ -273,9 +286,11 @@ class MaterialCard:
             raise ExportError("model is missing")
         if "parameters" not in doc:
             raise ExportError("parameters is missing")
-        unknown = set(doc) - {"card_version", "model", "energy", "name", "parameters", "provenance"}
+        unknown = set(doc) - {"card_version", "model", "energy", "name", "parameters", "provenance", "units"}
         if unknown:
             raise ExportError(f"unknown card key(s) {sorted(unknown)}")
+        if doc.get("units", UNITS) != UNITS:
+            raise ExportError(f"units = {doc.get('units')!r}; cards are SI: {UNITS!r}")
         return cls(model=doc["model"], parameters=doc["parameters"], energy=doc.get("energy", ""),
                    name=doc.get("name", "tissue"), provenance=dict(doc.get("provenance") or {}), card_version=doc["card_version"])
 
@@ -311,6 +326,18 @@ def _sha256(path: Path) -> str:
     return sha256_file(path)
 
 
+def portable_path(path, base=None) -> str:
+    """A path for provenance without host directories: relative to ``base`` (the config's
+    folder) when ``path`` lies below it, else the bare file name (the sha256 identifies it)."""
+    p = Path(path)
+    if base is not None:
+        try:
+            return Path(os.path.relpath(p.resolve(), Path(base).resolve())).as_posix() if p.resolve().is_relative_to(Path(base).resolve()) else p.name
+        except (OSError, ValueError):
+            return p.name
+    return p.as_posix() if not p.is_absolute() and ".." not in p.parts else p.name
+
+
 def _version() -> str:
     from ._version import __version__
 
@@ -319,7 +346,7 @@ def _version() -> str:
 
 def card_from_fit(result, *, model: str, scenario_names: Sequence[str] | None = None,
                   data_files: Sequence[str | os.PathLike] = (), name: str = "tissue",
-                  scenario_records: Sequence[Mapping] | None = None) -> MaterialCard:
+                  scenario_records: Sequence[Mapping] | None = None, base_dir=None) -> MaterialCard:
     """A card from a :class:`~difftissue.fit.FitResult`.
 
     ``scenario_records`` (e.g. ``[scenario_record(s) for s in scenarios]``,
@@ -329,7 +356,8 @@ def card_from_fit(result, *, model: str, scenario_names: Sequence[str] | None = 
 
     Every field of the fitted material is recorded; fitted fields carry their standard error
     (``None`` where the data do not determine it), fixed fields ``standard_error: None`` and
-    ``"fitted": false``.
+    ``"fitted": false``. Data file paths are stored without host directories
+    (:func:`portable_path`: relative to ``base_dir``, the config's folder, else the file name).
     """
     if not isinstance(model, str):
         model = getattr(model, "name", None) or type(model).__name__
@@ -343,7 +371,7 @@ def card_from_fit(result, *, model: str, scenario_names: Sequence[str] | None = 
     names = list(scenario_names) if scenario_names is not None else list(getattr(result, "scenario_names", ()))
     prov = {
         "scenarios": [str(n) for n in names],
-        "data_files": [{"path": str(p), "sha256": _sha256(Path(p))} for p in data_files],
+        "data_files": [{"path": portable_path(p, base_dir), "sha256": _sha256(Path(p))} for p in data_files],
         "difftissue_version": _version(),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
         "fit": {"loss": float(result.loss), "converged": bool(result.converged), "method": result.method},
@@ -449,17 +477,140 @@ def _law(card: MaterialCard, law: str | None) -> str:
     return law
 
 
+#: difftissue's model whose energy each exported continuum law is (FEBio, SOFA's tet force fields,
+#: Abaqus / CalculiX on tets): the models a card is recalibrated to and its errors measured with.
+LAW_MODELS = {"linear": "fem_linear", "neo_hookean": "fem_neo_hookean"}
+#: Card models whose (E, nu) are lattice-effective values, not a continuum's.
+_LATTICE_MODELS = ("springs_volume",)
+#: Nominal strains (compression) at which an --approximate note quotes the signed stress error.
+UNIAXIAL_STRAINS = (-0.1, -0.2, -0.4)
+
+
+def model_mismatch(card: MaterialCard, law: str) -> str | None:
+    """Why the card's (E, nu) are not values of the continuum ``law`` (``"linear"`` /
+    ``"neo_hookean"``), or None when they are.
+
+    A ``springs_volume`` card (alone or in a joint fit) holds lattice-effective values: the
+    cube lattice of springs with a per-cell volume term equals (E, nu) only under homogeneous
+    strain; under a punch or bonded platens its cubes change volume far more freely than
+    tets do, so the same (E, nu) on a continuum tet mesh is much stiffer (measured: +40 %
+    punch force, docs/export.md "Model mismatch")."""
+    lattice = [m for m in _model_parts(card.model) if m in _LATTICE_MODELS]
+    if not lattice:
+        return None
+    return (f"model mismatch: the card's E = {card.youngs_modulus:.6g} Pa, nu = {card.poisson_ratio:.6g} are {lattice[0]} "
+            f"lattice-effective values (cube lattice of springs with a per-cell volume term), the target solves the continuum "
+            f"{law} law ({LAW_MODELS[law]}) on tets, which under inhomogeneous strain (a punch, bonded platens) is tens of "
+            f"percent stiffer at the same values")
+
+
+def _uniaxial_cube_stress(model: str, values: tuple, strains: Sequence[float]) -> np.ndarray:
+    """Engineering stress [Pa] of one 1 mm cube of difftissue's ``model`` (``values`` =
+    E [Pa], nu, b) under frictionless uniaxial compression to the nominal ``strains``:
+    bottom face held in z, top face moved by ``strain * 1 mm`` in z, the x = 0 / y = 0 faces
+    held in x / y (symmetry), lateral faces free; solved by difftissue's static solver
+    (float64 required). Stress = summed top z reaction / 1 mm^2."""
+    import jax
+
+    from .boundary import BoundaryConditions
+    from .materials import Material
+    from .mesh import block
+    from .models import make_model
+    from .solvers.static import solve_static
+
+    if not jax.config.jax_enable_x64:
+        raise ExportError("measuring an approximation needs float64 JAX (jax.config.update('jax_enable_x64', True))")
+    L = 1e-3
+    mesh = block(L, 1)
+    p = np.asarray(mesh.points)
+    low, top = np.isclose(p[:, 2], 0.0), np.isclose(p[:, 2], L)
+    fixed = np.zeros((len(p), 3), dtype=bool)
+    fixed[low | top, 2] = True
+    fixed[np.isclose(p[:, 0], 0.0), 0] = True
+    fixed[np.isclose(p[:, 1], 0.0), 1] = True
+    m = make_model(mesh, model)
+    mat = Material(youngs_modulus=values[0], poisson_ratio=values[1], cubic_coefficient=values[2])
+    out = []
+    for e in strains:
+        u = np.zeros((len(p), 3))
+        u[top, 2] = e * L
+        sol = solve_static(m, mat, BoundaryConditions(fixed, u, np.zeros_like(u)), load_steps=max(1, int(math.ceil(abs(e) / 0.05))))
+        out.append(float(np.sum(np.asarray(sol.reaction)[top, 2])) / L**2)
+    return np.asarray(out)
+
+
+_ERROR_CACHE: dict = {}
+
+
+def uniaxial_signed_errors(card: MaterialCard, law: str, strains: Sequence[float] = UNIAXIAL_STRAINS) -> np.ndarray:
+    """Signed relative error ``(|exported| - |card|) / |card|`` of the engineering stress under
+    homogeneous frictionless uniaxial compression at the nominal ``strains`` (default
+    -10, -20, -40 %): the exported ``law`` at the card's (E, nu) with ``b`` dropped
+    (:data:`LAW_MODELS`: ``fem_linear`` / ``fem_neo_hookean``, FEBio's and SOFA's energies)
+    against the card's own model with ``b`` (difftissue's ``springs_volume``,
+    ``stable_neo_hookean``, ... solved the same way, :func:`_uniaxial_cube_stress`; a closed-form
+    card, e.g. ``hertz``, against its stated law ``E (eps + b eps^3)``). Positive: the export is
+    stiffer. Pre-stretch is left out of both (it is noted separately)."""
+    from .models import MODELS
+
+    own = next((m for m in _model_parts(card.model) if m in MODELS), None)
+    E, nu, b = card.youngs_modulus, card.poisson_ratio, card.cubic_coefficient
+    key = (own, E, nu, b, law, tuple(strains))
+    if key not in _ERROR_CACHE:
+        eps = np.asarray(strains, dtype=float)
+        ref = _uniaxial_cube_stress(own, (E, nu, b), eps) if own else E * (eps + b * eps**3)
+        exp = _uniaxial_cube_stress(LAW_MODELS[law], (E, nu, 0.0), eps)
+        _ERROR_CACHE[key] = (np.abs(exp) - np.abs(ref)) / np.abs(ref)
+    return _ERROR_CACHE[key]
+
+
+def _signed_error_text(card: MaterialCard, law: str) -> str:
+    """``+8.5 % at 10 %, ... compression`` for :func:`uniaxial_signed_errors` (a solve that
+    fails, e.g. outside the card model's range, is reported in the note instead)."""
+    try:
+        err = uniaxial_signed_errors(card, law)
+    except ExportError:
+        raise
+    except Exception as e:  # difftissue's solver / model errors: one line in the note, the export goes on
+        return f"signed stress error NOT measured ({type(e).__name__}: {' '.join(str(e).split())[:200]})"
+    parts = ", ".join(f"{100 * e:+.3g} % at {100 * abs(s):g} %" for e, s in zip(err, UNIAXIAL_STRAINS))
+    return (f"measured signed stress error of the exported {law} law ({LAW_MODELS[law]}) against the card's model "
+            f"{card.model}, homogeneous uniaxial compression of one cube in difftissue: {parts} nominal strain "
+            "(positive: the export is stiffer)")
+
+
+def _target_law(target: str) -> str | None:
+    """``"FEBio neo_hookean"`` -> ``"neo_hookean"``; None for a target that is no continuum law."""
+    law = target.rsplit(" ", 1)[-1]
+    return law if law in LAW_MODELS else None
+
+
 def _approximations(card: MaterialCard, target: str, *, approximate: bool, cubic_ok: bool = False,
                     pre_stretch_ok: bool = False) -> list[str]:
-    """Notes on what ``target`` cannot represent; raise unless ``approximate``."""
+    """Notes on what ``target`` cannot represent; raise unless ``approximate``.
+
+    ``target`` ending in a continuum law (``"... linear"`` / ``"... neo_hookean"``) is also
+    checked for a model mismatch (:func:`model_mismatch`). With ``approximate`` the notes state
+    the measured signed error (:func:`uniaxial_signed_errors`) of dropping the cubic term
+    and / or of writing lattice-effective values into a continuum law."""
     notes = []
+    law = _target_law(target)
+    mismatch = model_mismatch(card, law) if law else None
+    if mismatch:
+        if not approximate:
+            raise ExportError(f"{mismatch}; export the fitted experiment (--specimen fitted), which recalibrates E for {target}, "
+                              "or pass approximate=True (--approximate) to write the card's values anyway with the measured error noted")
+        notes.append(f"APPROXIMATION: {mismatch}; the values are written unchanged")
     b = card.cubic_coefficient
     if b != 0.0 and not cubic_ok:
         msg = (f"cubic_coefficient b = {b:g} (strain stiffening sigma = E (eps + b eps^3)) cannot be represented by {target}")
         if not approximate:
-            raise ExportError(msg + "; pass approximate=True (--approximate) to drop it, which changes the stress by a relative b*eps^2 at strain eps")
-        notes.append(f"APPROXIMATION: cubic_coefficient b = {b:g} dropped (target {target} has no strain stiffening); "
-                     f"the stress is lower by a relative b*eps^2: {abs(b) * 0.01:.3g} at 10 % strain, {abs(b) * 0.04:.3g} at 20 % strain")
+            raise ExportError(msg + "; pass approximate=True (--approximate) to drop it (the file then states the measured signed "
+                              "stress error)")
+        notes.append(f"APPROXIMATION: cubic_coefficient b = {b:g} dropped (target {target} has no cubic strain stiffening)")
+    if law and approximate and (mismatch or b != 0.0):
+        notes.append("APPROXIMATION ERROR: " + _signed_error_text(card, law)
+                     + ("; under inhomogeneous strain the lattice/continuum difference is larger" if mismatch else ""))
     lam0 = card.pre_stretch
     if lam0 != 1.0 and not pre_stretch_ok:
         msg = f"pre_stretch = {lam0:g} (pre-tension) is not written for {target}"
@@ -471,6 +622,7 @@ def _approximations(card: MaterialCard, target: str, *, approximate: bool, cubic
 
 def _header_lines(card: MaterialCard, target: str, law: str | None = None) -> list[str]:
     lines = [f"difftissue {_version()} material card export to {target}",
+             UNITS_LINE,
              f"model: {card.model} ({card.energy})" if card.energy else f"model: {card.model}",
              f"E = {card.youngs_modulus:.10g} Pa, nu = {card.poisson_ratio:.10g}, density = {card.density:.10g} kg/m^3"]
     for k, v in card.parameters.items():
@@ -495,6 +647,9 @@ def _header_lines(card: MaterialCard, target: str, law: str | None = None) -> li
         else:
             lines.append(f"E rests on the assumed nu = {float(em['poisson_ratio_assumed']):g}: the data (half-space indentation) determine only "
                          f"E* = E/(1-nu^2) = {float(em['value']):.6g} Pa")
+    rec = prov.get("recalibration")
+    if isinstance(rec, Mapping):
+        lines += [str(n) for n in rec.get("notes", [])]
     return lines
 
 
@@ -644,7 +799,7 @@ def febio_model(card: MaterialCard, mesh=None, *, law: str | None = None, approx
     ET.SubElement(pre, "dof").text = "z"
     ET.SubElement(pre, "value", {"lc": "1"}).text = _fmt(d)
     ET.SubElement(pre, "relative").text = "0"
-    _febio_ramp_and_output(root)
+    _febio_ramp_and_output(root, {"top": ",".join(str(int(n) + 1) for n in top)})
     return root
 
 
@@ -662,9 +817,15 @@ def _febio_static_root(comments, steps: int) -> ET.Element:
     return root
 
 
-def _febio_ramp_and_output(root: ET.Element) -> None:
-    """FEBio ``LoadData`` (load controller 1: a linear ramp 0 -> 1 over the step) and ``Output``
-    (plot file with displacement, stress and reaction forces)."""
+def _febio_ramp_and_output(root: ET.Element, reactions: Mapping[str, str] | None = None, rigid: Sequence[int] = ()) -> None:
+    """FEBio ``LoadData`` (load controller 1: a linear ramp 0 -> 1 over the step) and ``Output``:
+    the plot file (displacement, stress, reaction forces) and a ``<logfile>`` that writes the
+    reaction force [N] of each node set in ``reactions`` (``{set name: "1,2,..."}``, 1-based
+    ids: ``<node_data data="Rx;Ry;Rz" file="reaction_<set>.txt" delim=",">ids</node_data>``,
+    one line per node and step; sum them) and of each rigid material id in ``rigid``
+    (``<rigid_body_data data="Fx;Fy;Fz">id</rigid_body_data>``). FEBio reports reactions only
+    on prescribed degrees of freedom, so the writers prescribe 0 (``prescribed displacement``)
+    rather than ``zero displacement`` on every set listed here."""
     ld = ET.SubElement(root, "LoadData")
     lc = ET.SubElement(ld, "load_controller", {"id": "1", "name": "ramp", "type": "loadcurve"})
     ET.SubElement(lc, "interpolate").text = "LINEAR"
@@ -675,6 +836,25 @@ def _febio_ramp_and_output(root: ET.Element) -> None:
     plot = ET.SubElement(out, "plotfile", {"type": "febio"})
     for var in ("displacement", "stress", "reaction forces"):
         ET.SubElement(plot, "var", {"type": var})
+    if reactions or rigid:
+        log = ET.SubElement(out, "logfile")
+        for name, ids in (reactions or {}).items():
+            ET.SubElement(log, "node_data", {"data": "Rx;Ry;Rz", "name": f"reaction_{name}", "file": f"reaction_{name}.txt",
+                                             "delim": ","}).text = ids
+        for rid in rigid:
+            ET.SubElement(log, "rigid_body_data", {"data": "Fx;Fy;Fz", "name": f"rigid_{rid}_force", "file": f"rigid_{rid}_force.txt",
+                                                   "delim": ","}).text = str(int(rid))
+
+
+def _febio_zero_prescribed(bnd: ET.Element, name: str, nset: str, dofs: str) -> None:
+    """Hold ``dofs`` (e.g. ``"xyz"``) of node set ``nset`` at 0 by ``prescribed displacement``
+    (value 0, one BC per dof) instead of ``zero displacement``: FEBio records reaction forces
+    only for prescribed degrees of freedom, and this set's reaction is reported."""
+    for d in dofs:
+        bc = ET.SubElement(bnd, "bc", {"name": f"{name}_{d}", "node_set": nset, "type": "prescribed displacement"})
+        ET.SubElement(bc, "dof").text = d
+        ET.SubElement(bc, "value", {"lc": "1"}).text = "0.0"
+        ET.SubElement(bc, "relative").text = "0"
 
 
 def _xml_text(root: ET.Element) -> str:
@@ -818,16 +998,17 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
                "springs": ["Sofa.Component.SolidMechanics.Spring", "Sofa.Component.SolidMechanics.FEM.Elastic"]}[law]
     for plugin in plugins:
         ET.SubElement(root, "RequiredPlugin", {"name": plugin})
-    node = ET.SubElement(root, "Node", {"name": "tissue"})
     if mesh is None:
+        node = ET.SubElement(root, "Node", {"name": "tissue"})
         node.append(_xml_comment("add a tetrahedral topology and a MechanicalObject here"))
         node.append(sofa_force_field(card, law=law, approximate=True))
         return root
-    for p in _SOFA_SPECIMEN_PLUGINS:
+    for p in _SOFA_SPECIMEN_PLUGINS:  # every RequiredPlugin before the first Node that uses it
         ET.SubElement(root, "RequiredPlugin", {"name": p})
+    node = ET.SubElement(root, "Node", {"name": "tissue"})
     base, top, height = _specimen_sets(mesh)
     d = _default_displacement(height, displacement)
-    _sofa_specimen_node(node, card, mesh)
+    _sofa_specimen_node(node, card, mesh, dt=1.0 / steps)
     if law == "springs":
         from .models import SpringVolumeModel
 
@@ -855,10 +1036,32 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
     return root
 
 
-#: SOFA plugins of a static specimen scene (solver, direct linear solver, mass, state, topology, projective constraints).
+#: SOFA plugins of a static specimen scene (solver, direct linear solver, mass, state, topology, projective
+#: constraints, WriteState output).
 _SOFA_SPECIMEN_PLUGINS = ("Sofa.Component.ODESolver.Backward", "Sofa.Component.LinearSolver.Direct", "Sofa.Component.Mass",
                           "Sofa.Component.StateContainer", "Sofa.Component.Topology.Container.Constant",
-                          "Sofa.Component.Constraint.Projective")
+                          "Sofa.Component.Constraint.Projective", "Sofa.Component.Playback")
+
+
+def _sofa_static_solver(node: ET.Element, size: float) -> None:
+    """``StaticSolver`` with explicit Newton settings and a direct linear solver: at most 25
+    Newton iterations per step, converged when the correction is below ``1e-12 size`` [m]
+    (``size``: the specimen's diagonal) or 1e-10 of the displacement, or the residual below
+    1e-10 of the first one (absolute residual test off: -1); ``SparseLDLSolver`` on 3x3
+    blocks. SOFA's own defaults differ between releases, hence explicit."""
+    ET.SubElement(node, "StaticSolver", {"newton_iterations": "25", "absolute_correction_tolerance_threshold": _fmt(1e-12 * size),
+                                         "relative_correction_tolerance_threshold": "1e-10",
+                                         "absolute_residual_tolerance_threshold": "-1",
+                                         "relative_residual_tolerance_threshold": "1e-10"})
+    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
+
+
+def _sofa_output(node: ET.Element, dt: float, name: str = "tissue") -> None:
+    """A ``WriteState`` (Sofa.Component.Playback) writing positions [m] and forces [N] of every
+    node each step ``dt`` [s] to ``<name>_state.txt`` (after the ``MechanicalObject``). The
+    reaction at a held node is minus its force entry; NOT run in SOFA here."""
+    ET.SubElement(node, "WriteState", {"name": f"{name}_output", "filename": f"{name}_state.txt", "period": _fmt(dt),
+                                       "time": "0", "writeX": "1", "writeV": "0", "writeF": "1"})
 
 
 def _sofa_ramp(dz: float) -> dict:
@@ -871,16 +1074,17 @@ def _sofa_ramp(dz: float) -> dict:
     return {"keyTimes": "0 1 1000000", "movements": f"0 0 0  {m}  {m}", "relativeMovements": "1"}
 
 
-def _sofa_specimen_node(node: ET.Element, card: MaterialCard, mesh) -> None:
-    """The static solver, sparse LDL solver, tet topology of ``mesh`` [m], its ``MechanicalObject``
-    and a ``MeshMatrixMass`` of the card's density [kg/m^3] inside the tissue node."""
-    ET.SubElement(node, "StaticSolver")
-    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
+def _sofa_specimen_node(node: ET.Element, card: MaterialCard, mesh, *, dt: float) -> None:
+    """The static solver and sparse LDL solver (:func:`_sofa_static_solver`), tet topology of
+    ``mesh`` [m], its ``MechanicalObject``, a ``MeshMatrixMass`` of the card's density [kg/m^3]
+    and the ``WriteState`` output (:func:`_sofa_output`, every ``dt`` [s]) inside the tissue node."""
     pts = np.asarray(mesh.points, dtype=float)
+    _sofa_static_solver(node, float(np.linalg.norm(np.ptp(pts, axis=0))))
     ET.SubElement(node, "MeshTopology", {"name": "topology", "position": " ".join(_fmt(c) for c in pts.reshape(-1)),
                                          "tetrahedra": " ".join(str(int(n)) for n in np.asarray(mesh.tets).reshape(-1))})
     ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "src": "@topology"})
     ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
+    _sofa_output(node, dt)
 
 
 def write_sofa(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
@@ -1003,26 +1207,81 @@ def abaqus_reaction_print(nset: str) -> list[str]:
     return [f"*NODE PRINT, NSET={nset}, TOTALS=ONLY", "RF"]
 
 
+#: Abaqus solid elements the specimen writers can use (``element=``, ``--element``): linear
+#: tets, hybrid linear tets (near-incompressible hyperelasticity), quadratic tets (midside nodes
+#: added by :func:`abaqus_quadratic`) and hybrid quadratic tets. CalculiX has C3D4 and C3D10 but
+#: no hybrid elements (docs/export.md, tests/test_export_calculix.py).
+ABAQUS_ELEMENTS = ("C3D4", "C3D4H", "C3D10", "C3D10H")
+#: Local corner pairs of the midside nodes 5..10 of an Abaqus C3D10 (1-2, 2-3, 3-1, 1-4, 2-4, 3-4).
+_C3D10_EDGES = ((0, 1), (1, 2), (2, 0), (0, 3), (1, 3), (2, 3))
+
+
+def _abaqus_element(element: str) -> str:
+    e = str(element).upper()
+    if e not in ABAQUS_ELEMENTS:
+        raise ExportError(f"element = {element!r}: expected one of {list(ABAQUS_ELEMENTS)}")
+    return e
+
+
+def abaqus_quadratic(points, tets):
+    """Quadratic tets from linear ones: one midside node per edge at its midpoint [m].
+
+    Returns ``(points (N + E, 3), tets (M, 10), edges (E, 2))``: the first N points are the
+    input's, point ``N + k`` is the midpoint of ``edges[k]``; each row of ``tets`` is in Abaqus
+    C3D10 order (corners 1-4, then midside 1-2, 2-3, 3-1, 1-4, 2-4, 3-4). Straight edges, so
+    the geometry is the linear mesh's."""
+    pts = np.asarray(points, dtype=float)
+    t = np.asarray(tets, dtype=np.int64)
+    pairs = np.sort(t[:, np.array(_C3D10_EDGES)].reshape(-1, 2), axis=1)
+    edges, inv = np.unique(pairs, axis=0, return_inverse=True)
+    mid = 0.5 * (pts[edges[:, 0]] + pts[edges[:, 1]])
+    return np.vstack([pts, mid]), np.hstack([t, len(pts) + inv.reshape(len(t), 6)]), edges
+
+
+def _abaqus_elements(points, tets, element: str):
+    """``(points, connectivity)`` for ``element``: the mesh as is (C3D4, C3D4H) or with midside
+    nodes (C3D10, C3D10H: :func:`abaqus_quadratic`)."""
+    if element.startswith("C3D10"):
+        p, t, _ = abaqus_quadratic(points, tets)
+        return p, t
+    return np.asarray(points, dtype=float), np.asarray(tets, dtype=np.int64)
+
+
+def _element_comment(element: str) -> list[str]:
+    """Header lines on the element choice (what CalculiX lacks)."""
+    out = [f"element: {element}" + {"C3D4": " (linear tet)", "C3D4H": " (hybrid linear tet, for near-incompressible hyperelasticity)",
+                                     "C3D10": " (quadratic tet, midside nodes at the edge midpoints)",
+                                     "C3D10H": " (hybrid quadratic tet)"}[element]]
+    if element.endswith("H"):
+        out.append("CalculiX has no hybrid (H) elements: this deck is for Abaqus; use C3D4 or C3D10 in CalculiX (docs/export.md)")
+    return out
+
+
 def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, approximate: bool = False,
-                 displacement: float | None = None) -> str:
+                 displacement: float | None = None, element: str = "C3D4") -> str:
     """Abaqus input: the material alone, or with ``mesh`` a complete specimen: ``*NODE``,
-    ``*ELEMENT, TYPE=C3D4``, node sets ``BASE`` (min z, clamped: ``BASE, 1, 3``, not
+    ``*ELEMENT, TYPE=<element>`` (:data:`ABAQUS_ELEMENTS`, default C3D4; C3D10 / C3D10H get
+    midside nodes, :func:`abaqus_quadratic`), node sets ``BASE`` (min z, clamped: ``BASE, 1, 3``, not
     ``ENCASTRE``, which CalculiX rejects) and ``TOP`` (max z, moved by ``displacement`` [m] in
     direction 3, free in x and y), ``*SOLID SECTION`` and one ``*STATIC`` step (``NLGEOM=YES``
     for the neo-Hookean law) that prints the summed ``TOP`` reaction [N] to the ``.dat``
-    (:func:`abaqus_reaction_print`). Runs in CalculiX 2.20 (tests/test_export_calculix.py)."""
+    (:func:`abaqus_reaction_print`). Runs in CalculiX 2.20 with C3D4 and C3D10
+    (tests/test_export_calculix.py); CalculiX has no hybrid elements."""
     law = _law(card, law)
+    element = _abaqus_element(element)
     mat = abaqus_material(card, law=law, approximate=approximate)
     if mesh is None:
         return "\n".join(mat) + "\n"
-    base, top, height = _specimen_sets(mesh)
+    pts, conn = _abaqus_elements(mesh.points, mesh.tets, element)
+    base, top, height = _specimen_sets(SimpleNamespace(points=pts))
     d = _default_displacement(height, displacement)
     mname = abaqus_name(card.name)
-    lines = ["*HEADING", f"difftissue specimen for material {mname} (SI units: m, N, Pa, kg)", "*NODE"]
-    for i, p in enumerate(np.asarray(mesh.points, dtype=float), start=1):
+    lines = ["*HEADING", f"difftissue specimen for material {mname} (SI units: m, N, Pa, kg)"]
+    lines += [_abaqus_comment(t) for t in _element_comment(element)] + ["*NODE"]
+    for i, p in enumerate(pts, start=1):
         lines.append(f"{i}, " + ", ".join(abaqus_number(c) for c in p))
-    lines.append("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")
-    for i, t in enumerate(np.asarray(mesh.tets), start=1):
+    lines.append(f"*ELEMENT, TYPE={element}, ELSET=TISSUE")
+    for i, t in enumerate(conn, start=1):
         lines.append(f"{i}, " + ", ".join(str(int(n) + 1) for n in t))
     lines.append("*NSET, NSET=BASE")
     lines += _wrap_ids(base + 1)
@@ -1038,13 +1297,16 @@ def abaqus_model(card: MaterialCard, mesh=None, *, law: str | None = None, appro
 
 
 def write_abaqus(card: MaterialCard, path, *, mesh=None, law: str | None = None, approximate: bool = False,
-                 displacement: float | None = None, force: bool = False, indentation=None) -> Path:
+                 displacement: float | None = None, force: bool = False, indentation=None, element: str = "C3D4") -> Path:
     """Write an Abaqus ``.inp`` (see :func:`abaqus_model`; conversion in :func:`abaqus_material`;
-    indentation specimens: :func:`abaqus_indentation_model`)."""
+    indentation specimens: :func:`abaqus_indentation_model`, C3D4 only)."""
     if indentation is not None:
         _no_mesh_with_indentation(mesh)
+        if _abaqus_element(element) != "C3D4":
+            raise ExportError(f"element = {element!r}: the Abaqus indentation specimen is written with C3D4 only")
         return _write_text(path, abaqus_indentation_model(card, indentation, law=law, approximate=approximate), force)
-    return _write_text(path, abaqus_model(card, mesh, law=law, approximate=approximate, displacement=displacement), force)
+    return _write_text(path, abaqus_model(card, mesh, law=law, approximate=approximate, displacement=displacement,
+                                          element=element), force)
 
 
 # ============================================================================= XPBD
@@ -1078,6 +1340,7 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
     h = dt / substeps
     out = {
         "format": "difftissue-xpbd/1",
+        "units": UNITS,
         "constraints": "stable neo-Hookean pair (Macklin & Mueller 2021): C_D = sqrt(tr F^T F), C_H = det F - gamma",
         "material": card.name,
         "model": card.model,
@@ -1262,7 +1525,7 @@ def _write_text(path, text: str, force: bool) -> Path:
 def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
            law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int = 1,
            displacement: float | None = None, constraints: str = "xpbd", indentation=None, fitted=None,
-           nu: float | None = None) -> Path:
+           nu: float | None = None, element: str = "C3D4") -> Path:
     """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``.
 
     ``to="pbd"``: a pypbd scene (:func:`difftissue.pbd.write_pbd`; ``constraints`` ``"xpbd"`` or
@@ -1270,10 +1533,13 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
     :class:`~difftissue.export_indentation.IndentationSpecimen` (instead of ``mesh``).
     ``fitted``: a :class:`~difftissue.export_fitted.FittedSpecimen` (the experiment of a
     fem_field / incision fit, :func:`~difftissue.export_fitted.fitted_specimen_from_card`),
-    written by :func:`~difftissue.export_fitted.write_fitted`.
+    written by :func:`~difftissue.export_fitted.write_fitted`. ``element``: the Abaqus element
+    (:data:`ABAQUS_ELEMENTS`; other targets refuse anything but the default C3D4).
 
     A card whose E is an effective modulus (half-space indentation fit, nu fixed at 0) is
     refused unless ``nu`` converts it or ``approximate`` (:func:`resolve_effective_modulus`)."""
+    if _abaqus_element(element) != "C3D4" and to != "abaqus":
+        raise ExportError(f"element = {element!r} is an Abaqus option; {to} is written with linear tets")
     card = resolve_effective_modulus(card, nu=nu, approximate=approximate)
     if fitted is not None:
         if mesh is not None or indentation is not None or displacement is not None:
@@ -1281,7 +1547,7 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
         from .export_fitted import write_fitted
 
         return write_fitted(card, to, path, fitted, law=law, approximate=approximate, force=force, dt=dt,
-                            iterations=iterations, substeps=substeps)
+                            iterations=iterations, substeps=substeps, element=element)
     if indentation is not None and displacement is not None:
         raise ExportError("displacement is the compression block's top displacement; an indentation specimen takes its depth")
     if to == "febio":
@@ -1292,7 +1558,7 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
                           indentation=indentation)
     if to == "abaqus":
         return write_abaqus(card, path, mesh=mesh, law=law, approximate=approximate, displacement=displacement, force=force,
-                            indentation=indentation)
+                            indentation=indentation, element=element)
     if to == "pbd":
         from .pbd import write_pbd
 
@@ -1514,10 +1780,15 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
         for dof in ("x_dof", "y_dof", "z_dof"):
             ET.SubElement(bc, dof).text = "1" if dof[0] in dofs else "0"
 
-    if spec.base == "bonded":
+    if contact and spec.base == "bonded":  # the indentation force is read from the base: prescribed 0
+        _febio_zero_prescribed(bnd, "fixed_base", "base", "xyz")
+    elif contact:
+        _febio_zero_prescribed(bnd, "sliding_base", "base", "z")
+    elif spec.base == "bonded":
         zero("fixed_base", "base", "xyz")
     else:
         zero("sliding_base", "base", "z")
+    if spec.base == "sliding":
         zero("base_anchor", "base_anchor", "xy")
         zero("base_other", "base_other", "y")
     if not contact:
@@ -1552,7 +1823,8 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
         for tag, val in (("laugon", "0"), ("penalty", _fmt(eps)), ("auto_penalty", "0"), ("two_pass", "0"),
                          ("fric_coeff", "0.0"), ("tension", "0"), ("search_radius", _fmt(max(spec.depth, r_cap)))):
             ET.SubElement(c, tag).text = val
-    _febio_ramp_and_output(root)
+    logs = {"base": ids(s["base"])} if contact else {"punch": ids(s["punch"])}
+    _febio_ramp_and_output(root, logs, rigid=(len(mats.findall("material")),) if contact else ())
     return root
 
 
@@ -1676,7 +1948,7 @@ def sofa_indentation_scene(card: MaterialCard, spec, *, law: str | None = None, 
     for p in plugins:
         ET.SubElement(root, "RequiredPlugin", {"name": p})
     node = ET.SubElement(root, "Node", {"name": "tissue"})
-    _sofa_specimen_node(node, card, mesh)
+    _sofa_specimen_node(node, card, mesh, dt=1.0 / spec.steps)
     node.append(sofa_force_field(card, law=law, approximate=True))
     join = lambda a: " ".join(str(int(i)) for i in np.atleast_1d(a))  # noqa: E731
     if spec.indenter == "sphere":

@@ -78,6 +78,8 @@ __all__ = [
     "sofa_fitted_scene",
     "xpbd_fitted_parameters",
     "write_fitted",
+    "specimen_reactions",
+    "recalibrated_card",
 ]
 
 #: Format tag of the specimen file (recorded in the card next to its sha256).
@@ -495,12 +497,16 @@ def load_steps(spec: FittedSpecimen, default: int = 10) -> int:
     return max(int(default), int(math.ceil(e / MAX_STRAIN_INCREMENT - 1e-9)))
 
 
-def _component_sets(spec: FittedSpecimen):
-    """Per component c: nodes held at zero, nodes with a nonzero prescribed value (0-based)."""
+def _component_sets(spec: FittedSpecimen, reaction_prescribed: bool = False):
+    """Per component c: nodes held at zero, nodes with a nonzero prescribed value (0-based).
+    ``reaction_prescribed`` (FEBio): the reaction set's held components go with the prescribed
+    ones (value 0), since FEBio records reactions only on prescribed displacements."""
     out = []
     for c in range(3):
         held = spec.fixed[:, c]
         nz = held & (spec.prescribed[:, c] != 0.0)
+        if reaction_prescribed and spec.reaction is not None:
+            nz |= held & spec.reaction[:, c]
         out.append((np.flatnonzero(held & ~nz), np.flatnonzero(nz)))
     return out
 
@@ -522,7 +528,8 @@ def febio_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, ap
     materials: the card's (:func:`~difftissue.export.febio_material`, a ``prestrain elastic``
     with ``F0 = diag(lambda0, lambda0, 1)`` where ``pre_stretch != 1``) on the fitted regions,
     one per fixed region otherwise. Per component ``c``: ``<NodeSet name="fixed_c">`` (held at
-    zero: ``zero displacement`` with ``c_dof`` 1) and ``<NodeSet name="prescribed_c">`` with
+    zero: ``zero displacement`` with ``c_dof`` 1; the reaction set's components are instead
+    prescribed 0, FEBio records reactions only there) and ``<NodeSet name="prescribed_c">`` with
     ``<MeshData><NodeData name="prescribed_uc" node_set="prescribed_c" data_type="scalar">``
     (``<node lid="k">``: the k-th node of the set, 1-based) and a ``prescribed displacement``
     BC (``<dof>c</dof>``, ``<value lc="1" type="map">prescribed_uc</value>``, ``relative`` 0),
@@ -565,7 +572,7 @@ def febio_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, ap
             eid += 1
             ET.SubElement(elems, "elem", {"id": str(eid)}).text = ",".join(str(int(n) + 1) for n in t)
     ids = lambda a: ",".join(str(int(n) + 1) for n in np.atleast_1d(a))  # noqa: E731
-    sets = _component_sets(spec)
+    sets = _component_sets(spec, reaction_prescribed=True)
     for c, (zero, nz) in zip("xyz", sets):
         if zero.size:
             ET.SubElement(meshel, "NodeSet", {"name": f"fixed_{c}"}).text = ids(zero)
@@ -598,25 +605,46 @@ def febio_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, ap
             ET.SubElement(bc, "dof").text = c
             ET.SubElement(bc, "value", {"lc": "1", "type": "map"}).text = f"prescribed_u{c}"
             ET.SubElement(bc, "relative").text = "0"
-    _febio_ramp_and_output(root)
+    _febio_ramp_and_output(root, {"reaction": ids(np.flatnonzero(spec.reaction.any(axis=1)))} if spec.reaction is not None else None)
     return root
 
 
-def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False) -> str:
-    """Abaqus input of a fitted specimen: ``*NODE``, ``*ELEMENT, TYPE=C3D4, ELSET=<region>``,
+def _quadratic_specimen(spec: FittedSpecimen):
+    """``(spec with midside nodes, tets10)``: points of :func:`~difftissue.export.abaqus_quadratic`;
+    a midside node is fixed / in the reaction set in a component when both edge ends are, with
+    the mean of their prescribed values (the linear element's value there)."""
+    from .export import abaqus_quadratic
+
+    pts, t10, e = abaqus_quadratic(spec.points, spec.tets)
+    both = lambda m: np.concatenate([m, m[e[:, 0]] & m[e[:, 1]]])  # noqa: E731
+    fixed = both(spec.fixed)
+    presc = np.where(fixed, np.concatenate([spec.prescribed, 0.5 * (spec.prescribed[e[:, 0]] + spec.prescribed[e[:, 1]])]), 0.0)
+    reaction = None if spec.reaction is None else both(spec.reaction)
+    return dataclasses.replace(spec, points=pts, fixed=fixed, prescribed=presc, reaction=reaction), t10
+
+
+def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False,
+                        element: str = "C3D4") -> str:
+    """Abaqus input of a fitted specimen: ``*NODE``, ``*ELEMENT, TYPE=<element>, ELSET=<region>`` (C3D4 default;
+    C3D10 / C3D10H: midside nodes, a node set / prescribed value where both edge ends have one),
     one ``*SOLID SECTION`` and material per region, ``*NSET`` per held / prescribed component
     (``FIXED_X``, ``PRESCRIBED_X``, ...) and ``REACTION``, and one ``*STEP`` / ``*STATIC`` whose
     ``*BOUNDARY`` gives every prescribed component its own magnitude (data lines ``node, c, c,
     value``), ramped over the step (the default amplitude of a ``*STATIC`` step), with initial and
     largest increment ``1 /`` :func:`load_steps` of the step. A pre-stretched specimen (an incision) is refused: Abaqus has no prestrain
     gradient here, and without it the cut does not open."""
-    from .export import _abaqus_comment, _law, _wrap_ids, abaqus_material, abaqus_name, abaqus_number, abaqus_reaction_print
+    from .export import (_abaqus_comment, _abaqus_element, _element_comment, _law, _wrap_ids, abaqus_material, abaqus_name,
+                         abaqus_number, abaqus_reaction_print)
 
     law = _law(card, law)
+    element = _abaqus_element(element)
     cards = spec.region_cards(card)
     _refuse_pre_stretch(cards, "Abaqus")
     lines = ["*HEADING", f"difftissue fitted specimen {spec.scenario} for material {abaqus_name(card.name)} (SI units: m, N, Pa, kg)"]
-    lines += [_abaqus_comment(t) for t in spec.describe()]
+    lines += [_abaqus_comment(t) for t in spec.describe() + _element_comment(element)]
+    tets = spec.tets
+    if element.startswith("C3D10"):
+        spec, tets = _quadratic_specimen(spec)
     lines.append("*NODE")
     for i, p in enumerate(spec.points, start=1):
         lines.append(f"{i}, " + ", ".join(abaqus_number(v) for v in p))
@@ -630,8 +658,8 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
         if es in elsets.values():
             raise ExportError(f"Abaqus fitted specimen: region names {list(spec.region_names)} collide once sanitised")
         elsets[r] = es
-        lines.append(f"*ELEMENT, TYPE=C3D4, ELSET={es}")
-        for t in spec.tets[sel]:
+        lines.append(f"*ELEMENT, TYPE={element}, ELSET={es}")
+        for t in tets[sel]:
             eid += 1
             lines.append(f"{eid}, " + ", ".join(str(int(n) + 1) for n in t))
     sets = _component_sets(spec)
@@ -764,7 +792,8 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
     ``newton_iterations="25"`` and tight correction / residual thresholds (its defaults are 1
     iteration and 1e-5 absolute, too coarse for a millimetre specimen).
     """
-    from .export import _SOFA_SPECIMEN_PLUGINS, _approximations, _fmt, _header_lines, _law, _xml_comment, sofa_force_field
+    from .export import (_SOFA_SPECIMEN_PLUGINS, _approximations, _fmt, _header_lines, _law, _sofa_output, _sofa_static_solver,
+                         _xml_comment, sofa_force_field)
 
     law = _law(card, law)
     cards = spec.region_cards(card)
@@ -796,15 +825,7 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
         ET.SubElement(root, "RequiredPlugin", {"name": p})
     node = ET.SubElement(root, "Node", {"name": "tissue"})
     rest = spec.points
-    if ramp:
-        size = float(np.linalg.norm(np.ptp(rest, axis=0)))
-        ET.SubElement(node, "StaticSolver", {"newton_iterations": "25", "absolute_correction_tolerance_threshold": _fmt(1e-12 * size),
-                                             "relative_correction_tolerance_threshold": "1e-10",
-                                             "absolute_residual_tolerance_threshold": "-1",
-                                             "relative_residual_tolerance_threshold": "1e-10"})
-    else:
-        ET.SubElement(node, "StaticSolver")
-    ET.SubElement(node, "SparseLDLSolver", {"template": "CompressedRowSparseMatrixMat3x3d"})
+    _sofa_static_solver(node, float(np.linalg.norm(np.ptp(rest, axis=0))))
     moving = (spec.fixed & (spec.prescribed != 0.0)).any(axis=1) if ramp else np.zeros(len(rest), dtype=bool)
     pos = rest + np.where(spec.fixed & ~moving[:, None], spec.prescribed, 0.0)
     flat = lambda a: " ".join(_fmt(v) for v in np.asarray(a, dtype=float).reshape(-1))  # noqa: E731
@@ -812,6 +833,7 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
                                          "tetrahedra": " ".join(str(int(n)) for n in spec.tets.reshape(-1))})
     ET.SubElement(node, "MechanicalObject", {"name": "dofs", "template": "Vec3d", "position": flat(pos), "rest_position": flat(rest)})
     ET.SubElement(node, "MeshMatrixMass", {"massDensity": _fmt(card.density)})
+    _sofa_output(node, float(root.get("dt", "1")))
     node.append(sofa_force_field(card, law=law, approximate=True))
     patterns = {}
     for n in np.flatnonzero(spec.fixed.any(axis=1) & ~moving):
@@ -837,6 +859,111 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
     return root
 
 
+# ============================================================================ recalibration
+#: Largest number of protocol strains a compression recalibration solves (evenly picked, the last included).
+RECALIBRATION_STATES = 4
+
+
+def specimen_reactions(card, spec: FittedSpecimen, model: str, fractions=(1.0,)) -> np.ndarray:
+    """Summed reaction forces [N] over ``spec.reaction`` (one per summed component) of
+    difftissue's ``model`` with ``card``'s values on the fitted regions, the prescribed
+    displacements scaled by each of ``fractions`` (shape ``(len(fractions), n_components)``).
+    ``springs_volume`` gets the specimen's cube lattice back (``recover_lattice``; a mesh that
+    is no structured grid is refused there). Solved by difftissue's static solver, ramped in
+    increments of at most 5 % nominal strain for a compression."""
+    from .boundary import BoundaryConditions
+    from .models import make_model
+    from .solvers.static import solve_static
+
+    if spec.reaction is None:
+        raise ExportError(f"fitted specimen {spec.scenario!r} has no reaction set")
+    mesh = spec.mesh()
+    if model == "springs_volume":
+        from .scenarios import recover_lattice
+
+        mesh = recover_lattice(mesh)
+    m = make_model(mesh, model)
+    mat = spec.material(card)
+    comps = [c for c in range(3) if spec.reaction[:, c].any()]
+    e_last = abs(float(spec.protocol["nominal_strains"][-1])) if spec.protocol is not None else 0.0
+    out = []
+    for f in fractions:
+        bc = BoundaryConditions(spec.fixed, spec.prescribed * float(f), np.zeros_like(spec.prescribed))
+        sol = solve_static(m, mat, bc, load_steps=max(1, int(math.ceil(abs(f) * e_last / 0.05 - 1e-9))))
+        r = np.asarray(sol.reaction)
+        out.append([float(np.sum(r[spec.reaction[:, c], c])) for c in comps])
+    return np.asarray(out)
+
+
+def _recalibration_fractions(spec: FittedSpecimen) -> list[float]:
+    """Load fractions solved: 1 (fem_field), or up to :data:`RECALIBRATION_STATES` protocol
+    strains of a compression as fractions of the last."""
+    if spec.protocol is None:
+        return [1.0]
+    e = np.asarray(spec.protocol["nominal_strains"], dtype=float)
+    idx = np.unique(np.round(np.linspace(0, len(e) - 1, min(RECALIBRATION_STATES, len(e)))).astype(int))
+    return [float(e[i] / e[-1]) for i in idx]
+
+
+def recalibrated_card(card, spec: FittedSpecimen, law: str, *, approximate: bool = False):
+    """``card`` (a lattice model, :func:`~difftissue.export.model_mismatch`) recalibrated to the
+    continuum ``law`` on its own fitted experiment ``spec``.
+
+    The fitted experiment is rebuilt from the specimen file and solved twice with difftissue:
+    the card's model at the card's values (what the fit matched to the data), and the
+    continuum model of the law (:data:`~difftissue.export.LAW_MODELS`: ``fem_linear`` /
+    ``fem_neo_hookean``, the same P1-tet energies the targets solve) at the same values. With
+    displacements prescribed and nu fixed every energy here is proportional to E, so the
+    reactions are too: the least-squares factor ``c = <R_card, R_law> / <R_law, R_law>`` over the
+    solved load states gives ``E' = c E`` exactly (one state: the reaction is reproduced to the
+    solver's precision). nu is kept (a summed reaction does not determine it), the cubic
+    coefficient is dropped (its effect at these strains is absorbed into E'; the residual per
+    state is recorded). Returns a new card (model ``fem_linear`` / ``fem_neo_hookean``) whose
+    ``provenance["recalibration"]`` holds the factor, the reactions and ``notes`` for the file
+    headers, including the signed error the card's own values would have had.
+    Refused (one line) for an incision, a fem_field without reaction, fixed regions or a
+    pre-stretch, and a cubic coefficient ``b != 0`` unless ``approximate`` (the law cannot
+    follow the stiffening: E' is then a least-squares compromise, its residuals noted)."""
+    from .export import LAW_MODELS, MaterialCard, _model_parts, model_mismatch
+
+    why = model_mismatch(card, law)
+    own = next(m for m in _model_parts(card.model) if m in ("springs_volume",))
+    if spec.experiment == "incision" or spec.reaction is None or card.pre_stretch != 1.0 or spec.region_materials:
+        raise ExportError(f"{why}; the fitted {spec.experiment} specimen {spec.scenario!r} cannot be recalibrated (needs a summed "
+                          "reaction, one material and no pre-stretch); pass approximate=True (--approximate) to write the card's values "
+                          "with the measured error noted")
+    if card.cubic_coefficient != 0.0 and not approximate:
+        raise ExportError(f"cubic_coefficient b = {card.cubic_coefficient:g} cannot be represented by the continuum {law} law; pass "
+                          "approximate=True (--approximate) to recalibrate E alone (b dropped, the residual per load state noted)")
+    fr = _recalibration_fractions(spec)
+    ref = specimen_reactions(card, spec, own, fr)
+    tgt = specimen_reactions(card, spec, LAW_MODELS[law], fr)
+    c = float(np.vdot(ref, tgt) / np.vdot(tgt, tgt))
+    before = tgt / ref - 1.0
+    after = c * tgt / ref - 1.0
+    params = {k: dict(v) for k, v in card.parameters.items()}
+    E = card.youngs_modulus
+    params["youngs_modulus"].update(value=c * E, recalibrated_from=E)
+    if params["youngs_modulus"].get("standard_error") is not None:
+        params["youngs_modulus"]["standard_error"] *= c
+    b = card.cubic_coefficient
+    if "cubic_coefficient" in params:
+        params["cubic_coefficient"].update(value=0.0, recalibrated_from=b)
+    fmt = lambda a: ", ".join(f"{100 * v:+.3g} %" for v in np.ravel(a))  # noqa: E731
+    notes = [f"RECALIBRATED for the continuum {law} law" + (" (APPROXIMATION: b dropped)" if b else "") + f": {why}",
+             f"E = {c * E:.10g} Pa = {c:.6g} x the card's {E:.10g} Pa ({own}), nu = {card.poisson_ratio:.10g} kept"
+             + (f", cubic_coefficient b = {b:g} dropped (absorbed into E at these strains)" if b else ""),
+             f"the fitted experiment {spec.scenario!r} solved in difftissue at load fraction(s) {[round(f, 6) for f in fr]}: "
+             f"{LAW_MODELS[law]} at the card's values gives reaction error {fmt(before)} against {own} (what the fit matched); "
+             f"after recalibration {fmt(after)}"]
+    prov = dict(card.provenance or {})
+    prov["recalibration"] = {"from_model": own, "to_model": LAW_MODELS[law], "law": law, "factor": c, "scenario": spec.scenario,
+                             "load_fractions": fr, "reaction_card_model": ref.tolist(), "reaction_law_at_card_values": tgt.tolist(),
+                             "signed_error_before": np.ravel(before).tolist(), "signed_error_after": np.ravel(after).tolist(),
+                             "notes": notes}
+    return MaterialCard(model=LAW_MODELS[law], parameters=params, name=card.name, provenance=prov)
+
+
 _REFUSED = {
     "pbd": ("pypbd fitted specimen: a pypbd scene holds fixed particles and one moved set, not per-node prescribed displacements, "
             "region materials or a pre-stretch; export to febio, abaqus, xpbd or vtu"),
@@ -844,20 +971,32 @@ _REFUSED = {
 
 
 def write_fitted(card, to: str, path, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False,
-                 force: bool = False, dt: float | None = None, iterations: int | None = None, substeps: int = 1) -> Path:
-    """Write the complete model of the fitted specimen ``spec`` for target ``to``."""
+                 force: bool = False, dt: float | None = None, iterations: int | None = None, substeps: int = 1,
+                 element: str = "C3D4") -> Path:
+    """Write the complete model of the fitted specimen ``spec`` for target ``to``.
+
+    A lattice card (``springs_volume``) is recalibrated to the target's continuum law on this
+    experiment before FEBio, SOFA and Abaqus are written (:func:`recalibrated_card`; the file
+    header says so); where that is impossible (incision, no reaction) it is refused unless
+    ``approximate``, which writes the card's values with the measured error noted."""
     from .export import TARGETS, _write_text, _xml_text
 
     if to in _REFUSED:
         raise ExportError(_REFUSED[to])
     if law == "springs":
         raise ExportError("law='springs' is written for the SOFA compression block only, not for a fitted specimen")
+    if to in ("febio", "sofa", "abaqus"):
+        from .export import _law, model_mismatch
+
+        lw = _law(card, law)
+        if model_mismatch(card, lw) and not (approximate and (spec.experiment == "incision" or spec.reaction is None)):
+            card = recalibrated_card(card, spec, lw, approximate=approximate)
     if to == "febio":
         return _write_text(path, _xml_text(febio_fitted_model(card, spec, law=law, approximate=approximate)), force)
     if to == "sofa":
         return _write_text(path, _xml_text(sofa_fitted_scene(card, spec, law=law, approximate=approximate)), force)
     if to == "abaqus":
-        return _write_text(path, abaqus_fitted_model(card, spec, law=law, approximate=approximate), force)
+        return _write_text(path, abaqus_fitted_model(card, spec, law=law, approximate=approximate, element=element), force)
     if to == "xpbd":
         if dt is None or iterations is None:
             raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")

@@ -1614,6 +1614,11 @@ def _jsonable(obj):
     return str(obj)
 
 
+def _config_dir(config):
+    """The folder of a config given as a path (data paths are stored relative to it), else None."""
+    return Path(config).parent if isinstance(config, (str, os.PathLike)) else None
+
+
 def _config_record(config):
     if config is None:
         return None
@@ -1621,7 +1626,7 @@ def _config_record(config):
         path = Path(config)
         if not path.is_file():
             raise OutputError(f"config file {path} does not exist")
-        record: dict[str, Any] = {"path": str(path), "sha256": _sha256(path)}
+        record: dict[str, Any] = {"path": path.name, "sha256": _sha256(path)}
         if path.suffix.lower() == ".toml":
             import tomllib
 
@@ -1636,6 +1641,8 @@ def _config_record(config):
 
 
 def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -> dict:
+    from .export import portable_path
+
     fields = list(result.fields)
     params = {}
     for f in fields:
@@ -1676,7 +1683,7 @@ def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -
         ]
         if scenario_names is None
         else [{"name": str(n)} for n in scenario_names],
-        "data_files": [{"path": str(p), "sha256": _sha256(Path(p))} for p in data_files],
+        "data_files": [{"path": portable_path(p, _config_dir(config)), "sha256": _sha256(Path(p))} for p in data_files],
         "versions": package_versions(),
         "config": _config_record(config),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
@@ -2035,7 +2042,7 @@ def write_fit_outputs(
                 r["specimen_file"] = specimen_record(sp, paths[fname])
     model_name = None if model is None else (model if isinstance(model, str) else getattr(model, "name", None) or type(model).__name__)
     card = card_from_fit(result, model=model_name or "unspecified", scenario_names=names, data_files=data_files,
-                         scenario_records=scenario_records)
+                         scenario_records=scenario_records, base_dir=_config_dir(config))
     with atomic_output(paths["material.json"], overwrite=force) as tmp:
         tmp.write_text(card.to_json(), encoding="utf-8")
     with atomic_output(paths["fit.png"], overwrite=force) as tmp:

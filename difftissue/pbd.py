@@ -427,7 +427,7 @@ class PBDRun:
 
 def run_pbd_scene(scene: dict, *, dt: float | None = None, iterations: int = 20, gravity: bool = False,
                   damping: float = 0.9, ramp_steps: int = 20, max_steps: int = 200_000,
-                  check_every: int = 200, rtol: float = 1e-6, atol: float = 0.0) -> PBDRun:
+                  check_every: int = 200, rtol: float = 1e-4, atol: float = 0.0) -> PBDRun:
     """Run ``scene`` in pypbd to a static state and check it against the scene energy.
 
     Quasi-static drive, using only pypbd's own time stepping (``TimeStepController.step``,
@@ -438,6 +438,12 @@ def run_pbd_scene(scene: dict, *, dt: float | None = None, iterations: int = 20,
     (``gravity=True``: the specimen carries its own weight). Every ``check_every`` steps the
     residual of the scene energy (:func:`scene_forces`) on the dynamic particles is evaluated;
     the run stops when it is below ``max(atol, rtol * max |reaction|)``.
+
+    Default ``rtol = 1e-4``: the residual of pypbd's XPBD iterate does not go to zero, it
+    floors at a few 1e-7 of the reaction (3e-7 N on the 10 mm test block: the iterate is
+    XPBD's fixed point, not the energy's minimum, plus pypbd's rounding), so the former
+    default 1e-6 was never reached and every run went to ``max_steps``; 1e-4 is reached by the
+    test scenes in a few thousand steps and is far below the 1e-3 agreement they check.
 
     Each step then solves ``M (x - x_prev) = -h^2 grad U`` by XPBD, i.e. it is a damped
     (implicit) descent step on ``U``; its fixed points are equilibria of ``U`` up to XPBD's

@@ -375,7 +375,9 @@ def test_cli_fit_writes_outputs_refuses_overwrite_and_resumes(workdir, capsys):
     assert rec["fixed_parameters"]["poisson_ratio"]["value"] == NU and rec["converged"] is True
     assert rec["model"] == "hertz" and [s["name"] for s in rec["scenarios"]] == ["hertz"]
     data = workdir / "curve.csv"
-    assert rec["data_files"] == [{"path": str(data), "sha256": hashlib.sha256(data.read_bytes()).hexdigest()}]
+    # no host directories (issue 16): the data path relative to the config, the config by name
+    assert rec["data_files"] == [{"path": "curve.csv", "sha256": hashlib.sha256(data.read_bytes()).hexdigest()}]
+    assert rec["config"]["path"] == path.name and str(workdir) not in (out / "material.json").read_text()
     assert rec["config"]["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest() and rec["config"]["content"]["fit"]["parameters"] == ["youngs_modulus"]
     assert (out / "config.toml").read_bytes() == path.read_bytes()
 

@@ -150,8 +150,16 @@ def test_febio_sphere_specimen(tmp_path, base):
         assert mesh.find(f"NodeSet[@name='{name}']").text == pm.find(f"NodeSet[@name='{name}']").text
     base_bcs = lambda r: [(b.attrib, [(c.tag, c.text) for c in b]) for b in r.find("Boundary")  # noqa: E731
                           if b.get("node_set", "").startswith("base")]
-    assert base_bcs(root) == base_bcs(proot) and len(base_bcs(root)) == (1 if base == "bonded" else 3)
-    assert mesh.find("NodeSet[@name='punch']") is None and root.find("Boundary/bc[@type='prescribed displacement']") is None
+    # the sphere's force is read from the base: held by prescribed displacement 0 (FEBio records
+    # reactions only there), the punch's base by zero displacement; the held dofs are the same
+    held = lambda r: sorted((b.get("node_set"), d) for b in r.find("Boundary") if b.get("node_set", "").startswith("base")  # noqa: E731
+                            for d in ([b.find("dof").text] if b.get("type") == "prescribed displacement" else
+                                      [c for c in "xyz" if b.find(f"{c}_dof").text == "1"]))
+    assert held(root) == held(proot) and len(held(root)) == (3 if base == "bonded" else 4)
+    pre = [b for b in root.find("Boundary") if b.get("type") == "prescribed displacement"]
+    assert {b.get("node_set") for b in pre} == {"base"} and all(float(b.find("value").text) == 0.0 for b in pre)
+    assert root.find("Output/logfile/node_data").text == mesh.find("NodeSet[@name='base']").text
+    assert len(base_bcs(proot)) == (1 if base == "bonded" else 3) and mesh.find("NodeSet[@name='punch']") is None
     canon = lambda m: (m.attrib, [(c.tag, c.text) for c in m])  # noqa: E731
     assert canon(root.find("Material/material[@id='1']")) == canon(proot.find("Material/material"))
 

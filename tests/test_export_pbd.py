@@ -34,7 +34,7 @@ from difftissue.pbd import read_pbd_scene, run_pbd_scene
 out = {}
 for name, (path, kw) in json.loads(sys.argv[2]).items():
     scene = read_pbd_scene(path)
-    r = run_pbd_scene(scene, **{"rtol": 1e-4, "max_steps": 20000, "check_every": 50, **kw})
+    r = run_pbd_scene(scene, **{"max_steps": 20000, "check_every": 50, **kw})  # default rtol: it must be reachable
     out[name] = {"displacement": r.displacement.tolist(), "reaction": r.reaction.tolist(), "residual": r.residual,
                  "steps": r.steps, "converged": r.converged, "dt": r.dt}
 open(sys.argv[1], "w").write(json.dumps(out))

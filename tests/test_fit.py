@@ -466,7 +466,8 @@ def test_write_fit_outputs(tmp_path, joint_fit):
     assert doc["model"] == "hertz" and [s["name"] for s in doc["scenarios"]] == ["hertz", "compression"]
     import hashlib
 
-    assert doc["data_files"] == [{"path": str(data), "sha256": hashlib.sha256(data.read_bytes()).hexdigest()}]
+    # no host directories (issue 16): an absolute data path without a config folder is stored by name
+    assert doc["data_files"] == [{"path": data.name, "sha256": hashlib.sha256(data.read_bytes()).hexdigest()}]
     assert {"difftissue", "jax", "jaxlib", "numpy", "equinox", "optimistix", "optax"} <= set(doc["versions"])
     assert doc["config"]["content"] == {"fit": {"method": "levenberg_marquardt"}}
     for name in ("fit.png", "loss.png"):
