@@ -39,12 +39,12 @@ from difftissue.materials import Material, MaterialParameterization, ScaledLogit
 from difftissue.scenarios import Indentation, SolverOptions, indentation_block  # noqa: E402
 
 
-def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fit_too: bool = True) -> dict:
+def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fit_too: bool = True, linear_solver: str = "auto") -> dict:
     R, H = 1e-3, 1.6e-3
     mesh = indentation_block((4e-3, 4e-3, H), cells, symmetry="quarter")
     truth = Material(12e3, 0.42)
     depths = np.linspace(0.01, 0.2, points) * 1e-3
-    make = lambda forces=None: Indentation(mesh, depths, forces, model=model, indenter="sphere", radius=R, symmetry="quarter", name="sphere", options=SolverOptions(failure="nan"), solver=solver)  # noqa: E731
+    make = lambda forces=None: Indentation(mesh, depths, forces, model=model, indenter="sphere", radius=R, symmetry="quarter", name="sphere", options=SolverOptions(failure="nan", linear_solver=linear_solver), solver=solver)  # noqa: E731
     probe = make()
     t0 = time.perf_counter()
     data = np.asarray(probe.predict(truth))
@@ -69,7 +69,7 @@ def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fi
         cold=timed[0],
         warm=timed[1],
         model=model,
-        solver="condensed" if sc.condensation is not None else "full",
+        solver=("condensed" if sc.condensation is not None else "full") + f" ({linear_solver})",
         tets=mesh.n_tets,
         nodes=mesh.n_nodes,
         first_forward_s=t_first,
@@ -106,6 +106,8 @@ def main() -> None:
     ap.add_argument("--cells", default="10,10,8", help="nx,ny,nz of the quarter block (10,10,8 -> 4,800 tets, 0.2 mm cubes)")
     ap.add_argument("--points", type=int, default=20)
     ap.add_argument("--max-steps", type=int, default=30)
+    ap.add_argument("--linear-solvers", default="auto", help="linear solvers of the static solves, comma-separated (auto, multigrid, sparse, dense)")
+    ap.add_argument("--forward-only", action="store_true", help="time the forward protocol solves only")
     ap.add_argument("--baseline", default="fem_linear", help="models whose full (uncondensed) forward solve is timed as the baseline ('' for none)")
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))
@@ -116,8 +118,11 @@ def main() -> None:
     for model in [m for m in args.baseline.split(",") if m]:
         r = run(model, cells, args.points, args.max_steps, solver="full", fit_too=False)
         print(f"| {r['model']} | full (baseline) | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | - | - | - | - | - | - | - |")
-    for model in [m for m in args.models.split(",") if m]:
-        r = run(model, cells, args.points, args.max_steps)
+    for model, ls in [(m, ls) for m in args.models.split(",") if m for ls in args.linear_solvers.split(",")]:
+        r = run(model, cells, args.points, args.max_steps, fit_too=not args.forward_only, linear_solver=ls)
+        if args.forward_only:
+            print(f"| {r['model']} | {ls} | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | - | - | - | - | - | - | - |", flush=True)
+            continue
         c, w = r["cold"], r["warm"]
         print(
             f"| {r['model']} | {r['solver']} | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | "

@@ -32,7 +32,7 @@ import numpy as np
 from ..errors import ModelError
 from ..models import ElasticModel, ElementTerm
 from .sparse import sparse_pattern
-from .static import _element_data, _Options, _projected_operator, armijo_backtracking
+from .static import AUTO_DENSE_MAX, _element_data, _Options, _projected_operator, armijo_backtracking
 
 __all__ = ["linear_response_columns", "CondensedParameters", "CondensedContactModel", "solve_condensed_contact"]
 
@@ -40,7 +40,7 @@ __all__ = ["linear_response_columns", "CondensedParameters", "CondensedContactMo
 def _options_for(model: ElasticModel, material, linear_solver: str) -> _Options:
     n = model.n_nodes
     if linear_solver == "auto":
-        linear_solver = "dense" if 3 * n <= 3000 else "sparse"
+        linear_solver = "dense" if 3 * n <= AUTO_DENSE_MAX else "sparse"
     if linear_solver not in ("dense", "sparse"):
         raise ModelError(f"condensation needs a direct linear solver ('dense' or 'sparse'), got {linear_solver!r}")
     pattern = sparse_pattern([t.nodes for t in model.terms(material)], n) if linear_solver == "sparse" else None
@@ -106,7 +106,8 @@ def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear
         material: its material (differentiable: forward and reverse mode).
         free: ``(N, 3)`` bool, True on free components (``BoundaryConditions.free_mask``).
         dofs: ``(m,)`` flat degree-of-freedom indices ``3 node + component``; they must be free.
-        linear_solver: ``"dense"``, ``"sparse"`` or ``"auto"`` (dense up to 3000 unknowns).
+        linear_solver: ``"dense"``, ``"sparse"`` (sparse Cholesky, one factorisation for all
+            columns) or ``"auto"`` (dense up to ``AUTO_DENSE_MAX`` = 300 unknowns, sparse above).
 
     Returns:
         ``(Z, G)``: ``Z`` ``(m, 3N)`` and ``G`` ``(m, m)`` (symmetric) [m/N]. The derivative of

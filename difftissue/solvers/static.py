@@ -490,23 +490,28 @@ def solve_static(
 #: The linear solvers of :func:`solve_static`.
 LINEAR_SOLVERS = ("multigrid", "sparse", "dense", "cg")
 #: ``"auto"`` picks the dense Cholesky up to this many unknowns (3 x nodes) ...
-AUTO_DENSE_MAX = 600
+AUTO_DENSE_MAX = 300
 #: ... the sparse direct Cholesky up to this many, multigrid-preconditioned CG above.
-AUTO_SPARSE_MAX = 30_000
+AUTO_SPARSE_MAX = 3_000
+#: Without a concrete pattern (traced connectivity): dense up to this many, Jacobi CG above.
+AUTO_TRACED_DENSE_MAX = 3_000
 
 
 def auto_linear_solver(n_unknowns: int, *, concrete: bool = True) -> str:
     """The linear solver ``linear_solver="auto"`` uses for ``n_unknowns`` (3 x nodes).
 
-    Rule (measured in ``benchmarks/static.py``, table in docs/performance.md): dense Cholesky
-    up to :data:`AUTO_DENSE_MAX` unknowns, sparse direct Cholesky up to
-    :data:`AUTO_SPARSE_MAX`, multigrid-preconditioned CG above; Jacobi-preconditioned CG
-    when the connectivity or the fixed DOFs are traced (no pattern can be built).
-    Batched fits (``vmap``) and GPUs should use ``"multigrid"`` at every size above the dense
-    limit: the sparse direct solve is a host callback, run one specimen at a time.
+    Rule (measured with ``benchmarks/static.py`` and ``benchmarks/fit.py``, tables in
+    docs/performance.md): dense Cholesky up to :data:`AUTO_DENSE_MAX` unknowns (a few cubes:
+    nothing to gain from sparsity), sparse direct Cholesky up to :data:`AUTO_SPARSE_MAX`
+    (fastest per solve there, and no multigrid setup), multigrid-preconditioned CG above
+    (faster from a few thousand unknowns on, and the only one whose cost grows about
+    linearly). Without a concrete element connectivity or fixed-DOF mask (traced: no
+    pattern can be built): dense up to :data:`AUTO_TRACED_DENSE_MAX`, Jacobi CG above.
+    Batched fits on a GPU should pass ``"multigrid"`` at every size above the dense limit:
+    the sparse direct solve is a host callback that factorises one specimen at a time.
     """
     if not concrete:
-        return "dense" if n_unknowns <= AUTO_DENSE_MAX else "cg"
+        return "dense" if n_unknowns <= AUTO_TRACED_DENSE_MAX else "cg"
     if n_unknowns <= AUTO_DENSE_MAX:
         return "dense"
     return "sparse" if n_unknowns <= AUTO_SPARSE_MAX else "multigrid"
@@ -543,6 +548,9 @@ def _reference_matrix(model, material, layout, free):
     # The (concrete) material is closed over: its range checks then run now, in Python,
     # instead of as equinox runtime checks, which misfire in a program executed while an
     # outer program is being traced.
+    # A model field traced in the caller (an indenter depth inside a fit's protocol) is taken
+    # as zero for the reference: the undeformed, contact-free state.
+    model = jax.tree_util.tree_map(lambda v: np.zeros(v.shape, v.dtype) if isinstance(v, jax.core.Tracer) else v, model)
     dynamic, static = eqx.partition((model, layout, free), eqx.is_array)
 
     def assemble(dynamic):
@@ -550,5 +558,7 @@ def _reference_matrix(model, material, layout, free):
         x = jnp.asarray(model.rest_points, dtype=free.dtype)
         return layout.assemble(_element_data(model, x, material), free).data
 
-    data = jax.jit(assemble).lower(dynamic).compile()(dynamic)
-    return BlockEllMatrix(np.asarray(data), np.asarray(layout.cols))
+    data = np.asarray(jax.jit(assemble).lower(dynamic).compile()(dynamic))
+    if not np.all(np.isfinite(data)):
+        raise ModelError("linear_solver='multigrid': the reference stiffness at rest is not finite (a traced model field taken as zero?); use linear_solver='sparse'")
+    return BlockEllMatrix(data, np.asarray(layout.cols))
