@@ -92,6 +92,12 @@ def stack_materials(materials: Sequence[Material]) -> Material:
     return jax.tree_util.tree_map(lambda *v: jnp.stack([jnp.asarray(a, dtype=float) for a in v]), *materials)
 
 
+class CheckedMaterial(Material):
+    """A :class:`Material` whose fields are ``(n_regions,)`` arrays already range-checked by
+    one model's :meth:`ElasticModel.checked` (internal to the solvers: the model skips its
+    checks for it). Valid only with the model that checked it."""
+
+
 # ----------------------------------------------------------------- hexahedral cells
 _XI = 2.0 * _CUBE_CORNERS.astype(float) - 1.0  # (8, 3) reference corners in [-1, 1]^3
 _GAUSS = _XI / math.sqrt(3.0)  # 2x2x2 Gauss points, weight 1 each
@@ -183,12 +189,29 @@ class ElasticModel(eqx.Module):
     def n_regions(self) -> int:
         return len(self.region_names)
 
+    def checked(self, material: Material) -> "CheckedMaterial":
+        """``material`` with per-region fields, range-checked once (see :meth:`region_values`).
+
+        A solver that evaluates the energy many times (Newton steps, line searches, Hessians)
+        checks the material once with this and passes the result on: the checks under jit are
+        ``equinox.error_if`` callbacks, and repeating them in every evaluation made the
+        compiled programs of small simulations several times larger (374 callbacks in the
+        one-cube compression protocol).
+        """
+        if isinstance(material, CheckedMaterial):
+            return material
+        p = self.region_values(material)
+        return CheckedMaterial(**p)
+
     def region_values(self, material: Material) -> dict[str, jax.Array]:
         """Material fields as ``(n_regions,)`` arrays, checked for the model's valid range.
 
         Concrete values raise :class:`MaterialError` / :class:`ModelRangeError`; traced
-        values (inside jit) are checked with ``equinox.error_if``.
+        values (inside jit) are checked with ``equinox.error_if``. A :class:`CheckedMaterial`
+        (from :meth:`checked`) is returned as it is.
         """
+        if isinstance(material, CheckedMaterial):
+            return {name: getattr(material, name) for name in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
         R = self.n_regions
         out = {}
         for name in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch"):
@@ -472,6 +495,14 @@ class SpringVolumeModel(ElasticModel):
         self.cell_volumes = np.asarray(jax.vmap(hexahedron_volume)(jnp.asarray(p[lat.cubes])))
         self.pre_stretch_range = ranges
 
+    def checked(self, material: Material) -> "CheckedMaterial":
+        """As :meth:`ElasticModel.checked`, with the lattice's pre-stretch range checked too."""
+        if isinstance(material, CheckedMaterial):
+            return material
+        p = self.region_values(material)
+        p["pre_stretch"] = self._check_pre_stretch(p["pre_stretch"])
+        return CheckedMaterial(**p)
+
     def _check_pre_stretch(self, lam0):
         lo, hi = self.pre_stretch_range[:, 0], self.pre_stretch_range[:, 1]
         msg = (
@@ -491,7 +522,7 @@ class SpringVolumeModel(ElasticModel):
         """Per spring element ``(L0 [m], k [N/m], a [N/m^3])`` of the stress-free state."""
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
-        lam0 = self._check_pre_stretch(p["pre_stretch"])
+        lam0 = p["pre_stretch"] if isinstance(material, CheckedMaterial) else self._check_pre_stretch(p["pre_stretch"])
         r = self.spring_regions
         ds = 1.0 / (lam0 * lam0) - 1.0  # s - 1, exactly 0 at lambda0 = 1
         g = self.spring_factors + self.spring_factor_slopes * ds[r]

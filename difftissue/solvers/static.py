@@ -360,6 +360,8 @@ def _equilibrium_jvp(primals, tangents, *, model, free, u_init, options):
 # --------------------------------------------------------------------------- entry
 @eqx.filter_jit
 def _solve(model, material, bc, u_init, options: _Options):
+    # One range check of the material here instead of one in every energy evaluation.
+    material = model.checked(material)
     free = jnp.asarray(bc.free_mask)
     u, info = _equilibrium(material, bc.displacement, bc.force, model=model, free=free, u_init=u_init, options=options)
     code = info[2].astype(jnp.int32)
