@@ -810,7 +810,7 @@ def _solver_options(e: Mapping, path: str):
     if "max_steps" in t:
         kw["max_steps"] = _integer(t["max_steps"], _join(p, "max_steps"), minimum=1)
     if "linear_solver" in t:
-        kw["linear_solver"] = _choice(t["linear_solver"], _join(p, "linear_solver"), ("auto", "dense", "sparse", "cg"))
+        kw["linear_solver"] = _choice(t["linear_solver"], _join(p, "linear_solver"), ("auto", "multigrid", "sparse", "dense", "cg"))
     return SolverOptions(**kw)
 
 

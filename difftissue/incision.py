@@ -86,6 +86,8 @@ class IncisionOptions:
     max_steps: int = 50
     linear_solver: str = "auto"
     failure: str = "raise"
+    #: see :class:`~difftissue.scenarios.SolverOptions`
+    preconditioner_material: Any = None
 
     def __post_init__(self):
         if not (isinstance(self.scalpel_steps, int) and self.scalpel_steps >= 1):
@@ -367,6 +369,7 @@ class Incision(eqx.Module):
             xtol=o.xtol,
             max_steps=o.max_steps,
             linear_solver=o.linear_solver,
+            preconditioner_material=o.preconditioner_material,
             initial_displacement=jax.lax.stop_gradient(u0),
             throw=o.failure == "raise",
         )

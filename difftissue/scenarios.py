@@ -289,6 +289,9 @@ class SolverOptions:
     #: ``"nan"``: its predictions become NaN, so an optimiser rejects the trial parameters
     #: (what :mod:`difftissue.config` uses for fits; the fit refuses a NaN optimum).
     failure: str = "raise"
+    #: the material the multigrid hierarchy is built for when the material is traced (a fit):
+    #: only the CG iteration count depends on it (see :func:`solve_static`).
+    preconditioner_material: Any = None
 
     def __post_init__(self):
         if self.failure not in ("raise", "nan"):
@@ -331,7 +334,8 @@ def _solve(model, material, bc, u0, opts: SolverOptions):
     # must not carry derivatives into the implicit-gradient solve.
     u0 = None if u0 is None else jax.lax.stop_gradient(u0)
     sol = solve_static(
-        model, material, bc, rtol=opts.rtol, xtol=opts.xtol, max_steps=opts.max_steps, linear_solver=opts.linear_solver, initial_displacement=u0, throw=opts.failure == "raise"
+        model, material, bc, rtol=opts.rtol, xtol=opts.xtol, max_steps=opts.max_steps, linear_solver=opts.linear_solver, initial_displacement=u0,
+        throw=opts.failure == "raise", preconditioner_material=opts.preconditioner_material,
     )
     if opts.failure == "nan":
         bad = ~sol.converged

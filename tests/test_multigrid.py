@@ -157,7 +157,8 @@ def test_tangent_of_an_unconverged_iterative_solve_is_nan_not_wrong(springs):
 
 def test_auto_rule():
     assert auto_linear_solver(24) == "dense"  # one lattice cube
-    assert auto_linear_solver(2_187) == "sparse"
+    assert auto_linear_solver(2_187) == "dense"
+    assert auto_linear_solver(3_267) == "multigrid"
     assert auto_linear_solver(200_000) == "multigrid"
     assert auto_linear_solver(2_187, concrete=False) == "dense"
     assert auto_linear_solver(200_000, concrete=False) == "cg"

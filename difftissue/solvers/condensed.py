@@ -40,7 +40,7 @@ __all__ = ["linear_response_columns", "CondensedParameters", "CondensedContactMo
 def _options_for(model: ElasticModel, material, linear_solver: str) -> _Options:
     n = model.n_nodes
     if linear_solver == "auto":
-        linear_solver = "dense" if 3 * n <= AUTO_DENSE_MAX else "sparse"
+        linear_solver = "dense" if 3 * n <= AUTO_DENSE_MAX else "sparse"  # many columns, one factorisation
     if linear_solver not in ("dense", "sparse"):
         raise ModelError(f"condensation needs a direct linear solver ('dense' or 'sparse'), got {linear_solver!r}")
     pattern = sparse_pattern([t.nodes for t in model.terms(material)], n) if linear_solver == "sparse" else None
@@ -107,7 +107,7 @@ def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear
         free: ``(N, 3)`` bool, True on free components (``BoundaryConditions.free_mask``).
         dofs: ``(m,)`` flat degree-of-freedom indices ``3 node + component``; they must be free.
         linear_solver: ``"dense"``, ``"sparse"`` (sparse Cholesky, one factorisation for all
-            columns) or ``"auto"`` (dense up to ``AUTO_DENSE_MAX`` = 300 unknowns, sparse above).
+            columns) or ``"auto"`` (dense up to ``AUTO_DENSE_MAX`` = 3,000 unknowns, sparse above).
 
     Returns:
         ``(Z, G)``: ``Z`` ``(m, 3N)`` and ``G`` ``(m, m)`` (symmetric) [m/N]. The derivative of

@@ -491,32 +491,28 @@ def solve_static(
 
 #: The linear solvers of :func:`solve_static`.
 LINEAR_SOLVERS = ("multigrid", "sparse", "dense", "cg")
-#: ``"auto"`` picks the dense Cholesky up to this many unknowns (3 x nodes) ...
-AUTO_DENSE_MAX = 300
-#: ... the sparse direct Cholesky up to this many, multigrid-preconditioned CG above.
-AUTO_SPARSE_MAX = 3_000
-#: Without a concrete pattern (traced connectivity): dense up to this many, Jacobi CG above.
-AUTO_TRACED_DENSE_MAX = 3_000
+#: ``"auto"`` picks the dense Cholesky up to this many unknowns (3 x nodes), multigrid above.
+AUTO_DENSE_MAX = 3_000
 
 
 def auto_linear_solver(n_unknowns: int, *, concrete: bool = True) -> str:
     """The linear solver ``linear_solver="auto"`` uses for ``n_unknowns`` (3 x nodes).
 
-    Rule (measured with ``benchmarks/static.py`` and ``benchmarks/fit.py``, tables in
-    docs/performance.md): dense Cholesky up to :data:`AUTO_DENSE_MAX` unknowns (a few cubes:
-    nothing to gain from sparsity), sparse direct Cholesky up to :data:`AUTO_SPARSE_MAX`
-    (fastest per solve there, and no multigrid setup), multigrid-preconditioned CG above
-    (faster from a few thousand unknowns on, and the only one whose cost grows about
-    linearly). Without a concrete element connectivity or fixed-DOF mask (traced: no
-    pattern can be built): dense up to :data:`AUTO_TRACED_DENSE_MAX`, Jacobi CG above.
-    Batched fits on a GPU should pass ``"multigrid"`` at every size above the dense limit:
-    the sparse direct solve is a host callback that factorises one specimen at a time.
+    Rule (measured with ``benchmarks/static.py``, tables in docs/performance.md): dense
+    Cholesky up to :data:`AUTO_DENSE_MAX` unknowns, multigrid-preconditioned CG above (faster
+    from a few thousand unknowns on, and the only solver whose cost grows about linearly);
+    Jacobi CG above that size when the connectivity or the fixed DOFs are traced (no pattern
+    can be built). Both are XLA programs: they batch under ``vmap``, shard and run on a GPU.
+
+    The sparse direct Cholesky (``"sparse"``) is faster than the dense one from a few hundred
+    unknowns on (5-10x at 600-1,200 unknowns, measured) but it is a host callback: under
+    ``vmap`` it factorises one specimen after the other, and inside a sharded program it
+    deadlocks XLA's CPU collectives. So it is never chosen automatically; pass it for single
+    CPU fits of a few hundred to a few thousand unknowns.
     """
-    if not concrete:
-        return "dense" if n_unknowns <= AUTO_TRACED_DENSE_MAX else "cg"
     if n_unknowns <= AUTO_DENSE_MAX:
         return "dense"
-    return "sparse" if n_unknowns <= AUTO_SPARSE_MAX else "multigrid"
+    return "multigrid" if concrete else "cg"
 
 
 def _reference_material(material, preconditioner_material):
