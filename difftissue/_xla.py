@@ -40,7 +40,7 @@ def configure() -> bool:
 
         if xla_bridge.backends_are_initialized():
             return False
-    except (ImportError, AttributeError):  # a private API; without it, set the variable anyway
+    except (ImportError, AttributeError):  # private: JAX 0.10 has no public "backend started?" query; without it, set the variable anyway
         pass
     os.environ["XLA_FLAGS"] = (flags + f" {FLAG}=false").strip()
     return True

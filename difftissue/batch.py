@@ -309,7 +309,7 @@ def fit_batch(
     done[B:] = True  # padding: frozen from the start
     if mesh is not None and (B + padding) > n_dev and all(d.platform == "cpu" for d in mesh.devices.reshape(-1)):
         warnings.warn(f"sharded fit_batch with {(B + padding) // n_dev} specimens per CPU device: batches of simulated specimens with "
-                      "more than one specimen per (simulated) CPU device hung in XLA on jaxlib 0.10 (docs/scale.md, 'Sharded batches "
+                      "more than one specimen per (simulated) CPU device hung in XLA on jaxlib 0.10 (docs/scale.md, 'Limitations'; docs/dev/scale-investigation.md, 'Sharded batches "
                       "on simulated CPU devices'); analytic scenarios ran", RuntimeWarning, stacklevel=2)
 
     U = jnp.asarray(U)

@@ -1132,7 +1132,7 @@ class _Engine:
                 u_new, state_new, _ = solver.step(fn, u, data, options, state, tags)
                 term, result = solver.terminate(fn, u_new, data, options, state_new, tags)
                 dyn_new = eqx.partition(state_new, eqx.is_array)[0]
-                status = jnp.asarray(result._value)
+                status = _result_code(result)
                 r = state_new.f_info.residual
                 loss = 0.5 * jnp.sum(r * r)
                 # Also stop when a trial step was rejected and the next one is below the x
@@ -1184,9 +1184,24 @@ class _Engine:
         if code == -1:
             return "non-finite loss"
         if hasattr(self, "_optx"):
-            msg = self._optx.RESULTS._index_to_message[code].strip().split("\n")[0]
+            msg = _result_message(self._optx.RESULTS, code).strip().split("\n")[0]
             return f"optimistix: {msg}"
         return f"status {code}"
+
+
+def _result_code(result) -> jax.Array:
+    """The integer code of an equinox ``Enumeration`` item (e.g. an optimistix ``RESULTS``):
+    its one pytree leaf (public pytree flattening, not the private ``_value``)."""
+    return jnp.asarray(jax.tree_util.tree_leaves(result)[0])
+
+
+def _result_message(enumeration, code: int) -> str:
+    """The message of code ``code`` of the equinox ``Enumeration`` class ``enumeration``: the
+    item rebuilt from the pytree structure of one of its members, then looked up by the
+    public ``enumeration[item]`` (not the private ``_index_to_message``)."""
+    member = enumeration.successful
+    (leaf,), treedef = jax.tree_util.tree_flatten(member)
+    return enumeration[jax.tree_util.tree_unflatten(treedef, [np.asarray(code, dtype=np.asarray(leaf).dtype)])]
 
 
 #: Recently used engines (compiled step and evaluation), so that fitting the same problem

@@ -12,7 +12,6 @@ The numerical layer solutions are compiled per (base, n_nodes, bucket size); the
 a few shapes so the whole file stays well under a minute on two cores.
 """
 
-import doctest
 import functools
 import math
 import re
@@ -22,6 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from docblocks import assert_doctests_pass
 from scipy.integrate import quad
 from scipy.linalg import expm
 
@@ -404,13 +404,7 @@ def test_incompressible_limit_is_accepted_and_traced_values_are_not_checked():
 
 # ------------------------------------------------------------------------------------ docs
 def test_docs_examples_run():
-    text = DOCS.read_text()
-    src = "\n\n".join(b for b in re.findall(r"```python\n(.*?)```", text, flags=re.S) if ">>>" in b)
-    assert src
-    test = doctest.DocTestParser().get_doctest(src, {"__name__": "__doc__"}, "analytic.md", str(DOCS), 0)
-    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
-    runner.run(test)
-    assert runner.summarize(verbose=False).failed == 0
+    assert_doctests_pass(DOCS)
 
 
 def test_docs_table_is_what_the_code_computes(sphere_table):

@@ -283,17 +283,11 @@ def test_a_scenario_that_is_not_a_pytree_is_refused_by_name():
 def test_the_scale_page_example_runs_and_prints_its_table():
     """docs/scale.md's first example (5 Hertz specimens) runs and prints what the page shows."""
     import re
-    from contextlib import redirect_stdout
-    from io import StringIO
-    from pathlib import Path
 
-    text = (Path(__file__).resolve().parents[1] / "docs" / "scale.md").read_text()
-    code = re.findall(r"```python\n(.*?)```", text, flags=re.S)[0]
-    shown = re.findall(r"prints one row per specimen.*?```\n(.*?)```", text, flags=re.S)[0]
-    buf = StringIO()
-    with redirect_stdout(buf):
-        exec(compile(code, "docs/scale.md", "exec"), {"__name__": "scale_example"})
-    printed = buf.getvalue().splitlines()
+    from docblocks import exec_blocks, page_text, python_blocks
+
+    shown = re.findall(r"prints one row per specimen.*?```\n(.*?)```", page_text("scale.md"), flags=re.S)[0]
+    printed = exec_blocks("scale.md", python_blocks("scale.md")[:1]).splitlines()
     for line in shown.splitlines():
         if line.strip() != "...":
             assert line in printed, (line, printed)

@@ -4,7 +4,6 @@ Reference numbers were read by hand from the files (first/last rows, header entr
 Broken variants are written to ``tmp_path`` by the tests themselves.
 """
 
-import doctest
 import hashlib
 import math
 import re
@@ -13,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from docblocks import assert_doctests_pass
 
 import difftissue as dt
 from difftissue import data as dd
@@ -589,13 +589,5 @@ def test_datasets_are_pytrees(instron):
 
 # ================================================================ docs/data.md examples
 def test_doc_examples(monkeypatch, tmp_path):
-    text = (ROOT / "docs" / "data.md").read_text()
-    src = "\n\n".join(b for b in re.findall(r"```python\n(.*?)```", text, flags=re.S) if ">>>" in b)
-    assert src
     monkeypatch.chdir(ROOT)
-    globs = {"__name__": "__doc__"}
-    test = doctest.DocTestParser().get_doctest(src, globs, "data.md", str(ROOT / "docs" / "data.md"), 0)
-    runner = doctest.DocTestRunner(optionflags=doctest.ELLIPSIS | doctest.NORMALIZE_WHITESPACE)
-    runner.run(test)
-    result = runner.summarize(verbose=False)
-    assert result.failed == 0, f"{result.failed} of {result.attempted} examples in data.md failed"
+    assert_doctests_pass("data.md")

@@ -495,15 +495,13 @@ def test_outputs_of_an_unidentified_fit_are_strict_json(tmp_path, hertz_only_fit
 
 # ------------------------------------------------------------------ docs
 def test_docs_example_runs(tmp_path, monkeypatch):
-    text = (Path(__file__).resolve().parents[1] / "docs" / "fitting.md").read_text()
-    blocks = re.findall(r"```python\n(.*?)```", text, flags=re.S)
-    assert blocks
+    from docblocks import exec_blocks, python_blocks
+
+    assert python_blocks("fitting.md")
     monkeypatch.chdir(tmp_path)
-    namespace: dict = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", IdentifiabilityWarning)
-        for block in blocks:
-            exec(compile(block, "docs/fitting.md", "exec"), namespace)
+        print(exec_blocks("fitting.md"), end="")
     assert (tmp_path / "fit-out" / "fit.json").is_file()
 
 

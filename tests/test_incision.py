@@ -56,6 +56,17 @@ def compiled(incision):
     return SeparatelyCompiled(incision)
 
 
+@pytest.fixture(scope="module")
+def progressive(reference):
+    """The reference's progressive opening of the lambda0 = 1.1 dermis at three scalpel
+    positions (the last past the end: the whole cut released): ``(positions, us, widths,
+    max opening)``. Computed once for the module; the joint fit takes its synthetic data
+    from the released cut, so it does not depend on which test ran first."""
+    pos = np.array([1.5 * MM, 2.5 * MM, np.inf])
+    us, w, mx = (np.asarray(a) for a in reference.progress(SKIN.replace(pre_stretch=1.1), pos))
+    return pos, us, w, mx
+
+
 def _stable_nh_thickness_stretch(lam0, E, nu):
     """lambda_z of a stable neo-Hookean layer held at lambda0 in x, y, sigma_zz = 0 (closed form)."""
     lam, mu = (float(v) for v in lame_parameters(E, nu))
@@ -119,14 +130,13 @@ def test_opening_gradients_match_central_differences(incision, compiled):
         np.testing.assert_allclose(jac[:, i], fd, rtol=2e-5, atol=1e-7 * np.max(np.abs(jac)))
 
 
-def test_progressive_reference_opens_without_recompiling(cut, reference, tmp_path):
+def test_progressive_reference_opens_without_recompiling(cut, reference, progressive, tmp_path):
     """Seed 002 reference: the pairs tied by the closure are released as the scalpel advances;
     the opening grows with the scalpel position, tied pairs stay shut, all positions run in one
     compiled scan (a second sweep of the same length reuses it). The VTU series and the
     picture are written."""
     mat = SKIN.replace(pre_stretch=1.1)
-    pos = np.array([1.5 * MM, 2.5 * MM, np.inf])
-    us, w, mx = (np.asarray(a) for a in reference.progress(mat, pos))
+    pos, us, w, mx = progressive
     us2, w2, _ = (np.asarray(a) for a in reference.progress(mat, pos + np.array([0.2 * MM, 0.2 * MM, 0.0])))
     assert _jitted(reference, "_progress")._cache_size() == 1
     np.testing.assert_allclose(w2[-1], w[-1], rtol=1e-6)  # the released cut does not depend on the path there
@@ -148,10 +158,6 @@ def test_progressive_reference_opens_without_recompiling(cut, reference, tmp_pat
     assert png.stat().st_size > 10_000
     with pytest.raises(Exception, match="exists"):
         plot_incision(cut, us[-1], png)
-    _REFERENCE_WIDTHS[1.1] = w[-1][cut.surface_pairs]
-
-
-_REFERENCE_WIDTHS: dict = {}
 
 
 class _Data:
@@ -165,7 +171,7 @@ class _Data:
 
 
 # ------------------------------------------------------------------------- fits
-def test_joint_indentation_incision_fit_recovers_E_and_tension(cut, compiled, reference):
+def test_joint_indentation_incision_fit_recovers_E_and_tension(cut, compiled, progressive):
     """Synthetic data: the surface widths of the REFERENCE FEM incision (fem_neo_hookean,
     lambda0 = 1.1) and a Hertz curve of the same dermis. Fitted with the physical model
     (stable neo-Hookean), nu known, from E = 160 kPa, lambda0 = 1.07: lambda0 within 2 %
@@ -173,9 +179,7 @@ def test_joint_indentation_incision_fit_recovers_E_and_tension(cut, compiled, re
     T is proportional to lambda0 - 1, whose error is +1.15 %); 13 LM steps (24 from
     E = 120 kPa, lambda0 = 1.03, same result)."""
     true = SKIN.replace(pre_stretch=1.1)
-    widths = _REFERENCE_WIDTHS.get(1.1)
-    if widths is None:  # run alone
-        widths = np.asarray(reference.progress(true, [np.inf])[1])[-1][cut.surface_pairs]
+    widths = progressive[2][-1][cut.surface_pairs]  # the released cut of the reference
     inc = _Data(compiled, widths, "incision")
     depths = np.linspace(0.05, 0.5, 8) * MM
     forces = np.asarray(AnalyticIndentation(depths, np.ones(8), radius=1 * MM).predict(true))
