@@ -5,7 +5,10 @@ own) it measures, in float64:
 
 - ``multigrid`` (difftissue): cold solve (mesh pattern, PyAMG hierarchy, compilation and the
   solve), warm solve (the compiled program again, new E), and the implicit gradient
-  ``d F / d (E, nu)`` of the punch force by reverse mode (``value_and_grad`` minus a forward);
+  ``d F / d (E, nu)`` of the punch force by reverse mode (``value_and_grad`` minus a forward),
+  compiled inside ``jit`` with the mesh closed over (as the scenarios do: XLA embeds the
+  arrays as constants); ``multigrid-direct``: the same with ``solve_static`` called as a
+  function (its arrays are arguments of its own program);
 - ``sparse`` (difftissue's sparse direct path: CHOLMOD through cholespy), ``superlu`` (the
   previous default above 3,000 unknowns: SciPy's SuperLU through the same host callback) and
   ``dense`` (Cholesky), where they fit;
@@ -85,8 +88,8 @@ def _child(args):
     def since(t):
         return time.perf_counter() - t[0], time.process_time() - t[1]
 
-    if solver in ("multigrid", "sparse", "dense", "superlu"):
-        linear = "sparse" if solver == "superlu" else solver
+    if solver in ("multigrid", "multigrid-direct", "sparse", "dense", "superlu"):
+        linear = {"superlu": "sparse", "multigrid-direct": "multigrid"}.get(solver, solver)
         if solver == "superlu":
             import difftissue.solvers.sparse as sp
 
@@ -96,8 +99,10 @@ def _child(args):
             sol = solve_static(model, Material(E, nu), bc, linear_solver=linear, rtol=RTOL, cg_rtol=RTOL)
             return jnp.sum(sol.reaction[top, 2]), (sol.steps, sol.linear_steps)
 
-        # As in a fit: the solve is compiled once (inside jit), then called with new materials.
-        f = jax.jit(force)
+        # As in a fit: the solve is compiled once (inside jit, the mesh closed over), then called
+        # with new materials. "multigrid-direct": solve_static called as a function (its arrays
+        # are arguments of its own compiled program, not constants of an enclosing one).
+        f = force if solver == "multigrid-direct" else jax.jit(force)
         t = clock()
         F, (steps, cg) = f(1e4, 0.45)
         F = float(F)
@@ -110,7 +115,8 @@ def _child(args):
         if kind == "fem_linear" and abs(F2 - 2 * F) > 1e-6 * abs(F):
             raise SystemExit(f"force not linear in E: {F2} vs 2 x {F}")
         if args.gradient:
-            vg = jax.jit(jax.value_and_grad(lambda E, nu: force(E, nu)[0], argnums=(0, 1)))
+            vg = jax.value_and_grad(lambda E, nu: force(E, nu)[0], argnums=(0, 1))
+            vg = vg if solver == "multigrid-direct" else jax.jit(vg)
             jax.block_until_ready(vg(1e4, 0.45))  # compile
             t = clock()
             _, g = vg(1.5e4, 0.45)
@@ -221,7 +227,8 @@ def _plot(rows, path):
         return r["warm_cpu"]
 
     labels = {
-        "multigrid": "difftissue multigrid (solve, compiled)",
+        "multigrid": "difftissue multigrid (solve compiled in a closure, as in fits)",
+        "multigrid-direct": "difftissue multigrid (solve_static called directly)",
         "pyamg": "PyAMG's own solver (solve)",
         "skfem": "scikit-fem assembly + PyAMG setup + solve",
         "sparse": "sparse Cholesky (cholespy)",
@@ -229,7 +236,7 @@ def _plot(rows, path):
     }
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
     for ax, model in zip(axes, ("fem_linear", "springs_volume")):
-        for solver, style in (("multigrid", "o-"), ("pyamg", "s--"), ("skfem", "^:"), ("sparse", "d-."), ("superlu", "x-.")):
+        for solver, style in (("multigrid", "o-"), ("multigrid-direct", "o-."), ("pyamg", "s--"), ("skfem", "^:"), ("sparse", "d-."), ("superlu", "x-.")):
             pts = sorted((r["unknowns"], cpu(r)) for r in rows if r["model"] == model and r["solver"] == solver and "error" not in r)
             if pts:
                 x, y = np.array(pts).T
@@ -275,7 +282,7 @@ def main():
                 unknowns = 3 * (2 * n + 1) ** 2 * (n + 1)
                 if solver in ("sparse", "superlu", "dense") and unknowns > args.direct_max:
                     continue
-                r = _run(n, model, solver, solver == "multigrid", args.timeout)
+                r = _run(n, model, solver, solver.startswith("multigrid"), args.timeout)
                 r["load"] = os.getloadavg()[0]
                 print(json.dumps(r), flush=True)
                 rows = [q for q in rows if (q["size"], q["model"], q["solver"]) != (n, model, solver)] + [r]

@@ -1512,7 +1512,10 @@ def _fit_result(problem: FitProblem, engine: _Engine, U, all_values, final, all_
     finite = np.where(np.isfinite(final), final, np.inf)
     best = int(np.argmin(finite))
     if not np.isfinite(finite[best]):
-        raise FitError(f"{warning_prefix}every start ended with a non-finite loss; check the initial material, the transforms and the scenarios' predictions")
+        vals = np.asarray(all_values)
+        shown = "; ".join(", ".join(f"{f} = {v:.6g}" for f, v in zip(fields, row)) for row in vals.reshape(len(vals), -1)[:4])
+        raise FitError(f"{warning_prefix}every start ended with a non-finite loss (at {shown}); check the initial material "
+                       "(a value far outside the tissue range, e.g. youngs_modulus = 1e308, gives non-finite predictions), the transforms and the scenarios' predictions")
     done_np = np.asarray(done)
     status_np = np.asarray(status)
     start_converged = done_np & (status_np == 0)
@@ -2066,4 +2069,17 @@ def write_fit_outputs(
         _plot_loss(result, tmp)
     with atomic_output(paths["report.md"], overwrite=force) as tmp:
         tmp.write_text(_report_md(result, record, names), encoding="utf-8")
+    if force:
+        _remove_stale_specimens(out, keep=set(specimens))
     return paths
+
+
+def _remove_stale_specimens(out: Path, keep: set) -> list[Path]:
+    """Remove the ``specimen-*.vtu`` files of an earlier fit in ``out`` that this fit did not
+    write (``--force``: the folder then holds one fit's outputs, not a mix of two)."""
+    removed = []
+    for p in sorted(out.glob("specimen-*.vtu")):
+        if p.name not in keep:
+            p.unlink()
+            removed.append(p)
+    return removed

@@ -615,3 +615,19 @@ def test_fit_plot_title_has_values_uncertainty_and_quality(tmp_path):
     import matplotlib.image
 
     assert matplotlib.image.imread(tmp_path / "fit.png").shape[0] > 500
+
+
+# ------------------------------------------------------------------ bad starts and stale outputs
+def test_a_start_whose_loss_is_not_finite_is_named_in_the_error():
+    with pytest.raises(FitError, match=r"youngs_modulus = 1e\+308"):
+        fit(hertz_data(), P_E_NU, Material(1e308, 0.45), max_steps=3)
+
+
+def test_force_removes_the_specimen_files_of_an_earlier_fit(hertz_only_fit, tmp_path):
+    out = tmp_path / "fit"
+    out.mkdir()
+    stale = out / "specimen-earlier.vtu"
+    stale.write_text("a specimen of another fit")
+    write_fit_outputs(hertz_only_fit[0], out, model="hertz", force=True)
+    assert not stale.exists()
+    assert (out / "fit.json").exists()
