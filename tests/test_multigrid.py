@@ -162,3 +162,14 @@ def test_auto_rule():
     assert auto_linear_solver(200_000) == "multigrid"
     assert auto_linear_solver(2_187, concrete=False) == "dense"
     assert auto_linear_solver(200_000, concrete=False) == "cg"
+
+
+def test_a_new_youngs_modulus_reuses_the_hierarchy(springs):
+    import difftissue.solvers.multigrid as mg
+
+    model, bc, top = springs
+    _force(model, bc, top, Material(1e4, 0.42))
+    n = len(mg._CACHE)
+    f2 = _force(model, bc, top, Material(3e4, 0.42))
+    assert len(mg._CACHE) == n  # E is normalised out of the reference: no new PyAMG setup
+    np.testing.assert_allclose(float(f2), 3 * float(_force(model, bc, top, Material(1e4, 0.42), solver="dense")), rtol=1e-8)

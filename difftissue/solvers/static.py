@@ -516,12 +516,16 @@ def auto_linear_solver(n_unknowns: int, *, concrete: bool = True) -> str:
 
 
 def _reference_material(material, preconditioner_material):
-    if not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(material)):
-        return material
-    if preconditioner_material is not None:
-        return preconditioner_material
-    shape = jnp.shape(material.youngs_modulus)
-    return Material(np.ones(shape), np.full(shape, 0.45), np.zeros(shape), np.full(shape, 1000.0), np.ones(shape))
+    """The material the multigrid hierarchy is built for, with E normalised to a largest value
+    of 1 Pa (the preconditioner rescales to the current stiffness): a new E, the usual change
+    in a loop or a fit, then reuses the cached hierarchy."""
+    if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(material)):
+        if preconditioner_material is None:
+            shape = jnp.shape(material.youngs_modulus)
+            return Material(np.ones(shape), np.full(shape, 0.45), np.zeros(shape), np.full(shape, 1000.0), np.ones(shape))
+        material = preconditioner_material
+    E = np.asarray(material.youngs_modulus, dtype=float)
+    return eqx.tree_at(lambda m: m.youngs_modulus, material, E / np.max(E))
 
 
 def _multigrid_for(model, material, fixed, node_arrays, preconditioner_material):
