@@ -26,7 +26,6 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
-import scipy.sparse as sps
 
 from ..boundary import BoundaryConditions, _validate_values, check_rigid_modes
 from ..errors import ConvergenceError, LinearSolverError, ModelError
