@@ -276,7 +276,8 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         cg_steps, cg_res = _linear_stats(sol)
         # Negative curvature (an indefinite Hessian away from the solution) is not a failure:
         # the Newton loop falls back to a scaled gradient step as with a direct solver.
-        linear_failed = (cg_res > NEWTON_CG_FAILURE) & ~sol.stats.get("negative_curvature", False)
+        negative_curvature = jnp.asarray(sol.stats.get("negative_curvature", False), dtype=bool)
+        linear_failed = (cg_res > NEWTON_CG_FAILURE) & ~negative_curvature
         d = sol.value.reshape(u.shape)
         gd = jnp.vdot(g, d)
         bad = ~jnp.all(jnp.isfinite(d)) | (gd >= 0)
