@@ -558,7 +558,7 @@ def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
         from .fit import effective_modulus_line
 
         console.print(effective_modulus_line(result.effective_modulus), markup=False, highlight=False)
-    if getattr(result, "discretisation", None) is not None:
+    if getattr(result, "discretisation", None) is not None and result.discretisation.get("status") != "not applicable":
         from .fit import discretisation_line
 
         console.print(discretisation_line(result.discretisation), markup=False, highlight=False)

@@ -503,9 +503,13 @@ class FitConfig:
         """``result`` with its discretisation estimate (``result.discretisation``, the
         ``discretisation_error`` quality flag and :class:`~difftissue.errors.DiscretisationWarning`
         where the estimate exceeds the standard error): one evaluation per experiment on a
-        coarser mesh at the fitted material (:meth:`coarse_predictions`)."""
-        from .fit import discretisation_estimate, with_discretisation
+        coarser mesh at the fitted material (:meth:`coarse_predictions`). A fit of closed-form
+        scenarios only gets ``{"status": "not applicable", "reason"}`` (no mesh)."""
+        from .fit import DISCRETISATION_METHOD, discretisation_estimate, with_discretisation
 
+        if all(e.kind == "analytic_indentation" for e in self.experiments):
+            rec = {"method": DISCRETISATION_METHOD, "status": "not applicable", "reason": "closed-form scenarios only: no mesh, no discretisation error"}
+            return dataclasses.replace(result, discretisation=rec)
         coarse, skipped = self.coarse_predictions(result.material)
         return with_discretisation(result, discretisation_estimate(result, coarse, skipped), stacklevel=3)
 

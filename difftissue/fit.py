@@ -1005,6 +1005,8 @@ def with_discretisation(result: "FitResult", rec: dict, *, stacklevel: int = 2) 
 def discretisation_line(rec: Mapping) -> str:
     """One line for people: each field's estimate (relative) and its ratio to the standard
     error, or why it was not estimated."""
+    if rec.get("status") == "not applicable":
+        return f"discretisation error: not applicable ({rec.get('reason', '')})"
     if rec.get("status") != "estimated":
         return f"discretisation error: not estimated ({rec.get('reason', '')})"
     parts = [f"{f} {100 * rec['relative'][f]:+.3g} % ({rec['ratio_to_standard_error'][f]:.3g} x its standard error)" for f in rec["estimate"]]
@@ -2026,7 +2028,7 @@ def _quality_md(quality: "FitQuality | None") -> list[str]:
 
 def _discretisation_md(rec: Mapping | None) -> list[str]:
     """The report's "Discretisation error" section (nothing when the check was off)."""
-    if rec is None:
+    if rec is None or rec.get("status") == "not applicable":
         return []
     lines = ["", "## Discretisation error", ""]
     if rec.get("status") == "estimated":
