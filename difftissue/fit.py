@@ -541,7 +541,7 @@ class FitResult:
         lines.extend(f"warning: {w}" for w in self.warnings)
         if self.effective_modulus is not None:
             lines.append(effective_modulus_line(self.effective_modulus))
-        if self.discretisation is not None:
+        if self.discretisation is not None and self.discretisation.get("status") != "not applicable":
             lines.append(discretisation_line(self.discretisation))
         if self.quality is not None:
             lines.append(f"quality: {self.quality.summary()}")
