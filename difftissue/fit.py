@@ -730,7 +730,8 @@ class QualityFlag:
 
     Attributes:
         name: ``non_finite``, ``not_converged``, ``at_bound``, ``implausible_value`` (errors:
-            the answer is unusable), ``poor_fit`` or ``systematic_residuals`` (warnings).
+            the answer is unusable), ``poor_fit``, ``systematic_residuals`` or
+            ``discretisation_error`` (warnings; the last from :func:`with_discretisation`).
         severity: ``"error"`` or ``"warning"``.
         subject: the field or scenario it concerns (None for the whole fit).
         message: one line for people.
@@ -2022,7 +2023,8 @@ def _quality_md(quality: "FitQuality | None") -> list[str]:
     lines += ["", f"Thresholds: errors for a parameter within {BOUND_FRACTION:g} of a transform bound, a value outside its plausible range "
               f"(E in [{PLAUSIBLE['youngs_modulus'][0]:g}, {PLAUSIBLE['youngs_modulus'][1]:g}] Pa unless fit.plausible says otherwise), "
               f"non-finite values, no convergence; warnings for rms residual/sigma > {RMS_LIMIT:g}, lag-1 autocorrelation > "
-              f"{AUTOCORRELATION_LIMIT:g} or runs test p < {RUNS_P_LIMIT:g} (judged where rms >= {STRUCTURE_MIN_RMS:g})."]
+              f"{AUTOCORRELATION_LIMIT:g} or runs test p < {RUNS_P_LIMIT:g} (judged where rms >= {STRUCTURE_MIN_RMS:g}); "
+              "a warning where the mesh's estimated share of a value's error exceeds its standard error (discretisation_error)."]
     return lines
 
 
