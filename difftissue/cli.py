@@ -527,7 +527,7 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
             tmp.write_bytes(Path(cfg.path).read_bytes())
     phases.phase("done", live=False)
     notes = [n for e in cfg.experiments for n in e.notes] + _start_notes(getattr(cfg, "start", None)) + list(extra_notes)
-    notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ not in ("IdentifiabilityWarning", "FitQualityWarning")]
+    notes += [f"{w.category.__name__}: {_one_line(w.message)}" for w in caught if w.category.__name__ not in ("IdentifiabilityWarning", "FitQualityWarning", "DiscretisationWarning")]
     for sc in getattr(cfg, "last_scenarios", ()):
         fails = getattr(sc, "failures", None)
         if fails:
@@ -558,6 +558,10 @@ def _print_fit(result, cfg, out: Path, elapsed: float, console, notes) -> None:
         from .fit import effective_modulus_line
 
         console.print(effective_modulus_line(result.effective_modulus), markup=False, highlight=False)
+    if getattr(result, "discretisation", None) is not None and result.discretisation.get("status") != "not applicable":
+        from .fit import discretisation_line
+
+        console.print(discretisation_line(result.discretisation), markup=False, highlight=False)
     fixed = {k: v for k, v in result.material.to_dict().items() if k not in result.fields}
     console.print("fixed: " + ", ".join(f"{k} = {v:g}" for k, v in fixed.items()), markup=False, highlight=False)
     state = "converged" if result.converged else "NOT converged"

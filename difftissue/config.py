@@ -61,7 +61,7 @@ _TOP_KEYS = ("title", "description", "material", "fit", "experiment")
 _FIT_KEYS = (
     "parameters", "bounds", "method", "loss", "f_scale", "starts", "seed", "start_spread", "max_steps",
     "rtol", "atol", "learning_rate", "jac", "absolute_sigma", "checkpoint_every", "separate_compilation",
-    "plausible", "start",
+    "plausible", "start", "discretisation_check",
 )
 _COMMON_EXPERIMENT_KEYS = ("name", "scenario", "data", "sigma", "points", "length_unit")
 _EXPERIMENT_KEYS = {
@@ -377,6 +377,13 @@ class Experiment:
     #: the data's own modulus estimate for a data-driven start: ``(value [Pa], kind, how)`` with
     #: kind ``"effective"`` (E / (1 - nu^2), indentation) or ``"young"`` (E, compression)
     modulus_estimate: tuple[float, str, str] | None = None
+    #: builds the same experiment on a coarser mesh (about half the cells in each direction,
+    #: same geometry and protocol) for the discretisation estimate: a callable returning
+    #: ``(scenario, info)``, info ``{"fine_cells", "coarse_cells", "refinement_ratio"}``
+    #: (ratio: coarse / fine cell size [-]); None when it cannot be coarsened
+    coarsen: Any = None
+    #: why the experiment has no discretisation estimate (None when :attr:`coarsen` is given)
+    coarsen_skip: str | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -458,10 +465,53 @@ class FitConfig:
         from .fit import fit
 
         opts = {**self.options, **overrides}
+        check = opts.pop("discretisation_check", True)
         scenarios = self.fit_scenarios(opts.pop("separate_compilation", None))
         object.__setattr__(self, "last_scenarios", scenarios)  # for the failures of SeparatelyCompiled
         self.check_reaction_signs(scenarios)
-        return fit(scenarios, self.parameterization, self.material, **opts)
+        result = fit(scenarios, self.parameterization, self.material, **opts)
+        return self.check_discretisation(result) if check else result
+
+    def coarse_predictions(self, material) -> tuple[dict, dict]:
+        """Each coarsenable experiment's prediction at ``material`` on its coarser mesh (one
+        forward evaluation each, no refit), for :func:`~difftissue.fit.discretisation_estimate`.
+
+        Returns ``(coarse, skipped)``: ``{name: {"prediction" (unit of the data), "fine_cells",
+        "coarse_cells", "refinement_ratio"}}`` and ``{name: reason}`` for the experiments
+        without an estimate (no mesh, a mesh file, observed on given nodes, or a coarse
+        evaluation that failed: its message is the reason)."""
+        coarse, skipped = {}, {}
+        for e in self.experiments:
+            if e.coarsen is None:
+                skipped[e.name] = e.coarsen_skip or "this scenario cannot be coarsened"
+                continue
+            try:
+                sc, info = e.coarsen()
+                wrapped = SeparatelyCompiled(sc)
+                pred = np.asarray(wrapped.evaluate(material), dtype=float)
+            except DifftissueError as err:
+                skipped[e.name] = f"the coarser mesh could not be built: {err}"
+                continue
+            if not np.all(np.isfinite(pred)):
+                why = wrapped.failures[-1] if getattr(wrapped, "failures", None) else "non-finite prediction"
+                skipped[e.name] = f"the evaluation on the coarser mesh {info['coarse_cells']} failed: {why}"
+                continue
+            coarse[e.name] = {**info, "prediction": pred}
+        return coarse, skipped
+
+    def check_discretisation(self, result):
+        """``result`` with its discretisation estimate (``result.discretisation``, the
+        ``discretisation_error`` quality flag and :class:`~difftissue.errors.DiscretisationWarning`
+        where the estimate exceeds the standard error): one evaluation per experiment on a
+        coarser mesh at the fitted material (:meth:`coarse_predictions`). A fit of closed-form
+        scenarios only gets ``{"status": "not applicable", "reason"}`` (no mesh)."""
+        from .fit import DISCRETISATION_METHOD, discretisation_estimate, with_discretisation
+
+        if all(e.kind == "analytic_indentation" for e in self.experiments):
+            rec = {"method": DISCRETISATION_METHOD, "status": "not applicable", "reason": "closed-form scenarios only: no mesh, no discretisation error"}
+            return dataclasses.replace(result, discretisation=rec)
+        coarse, skipped = self.coarse_predictions(result.material)
+        return with_discretisation(result, discretisation_estimate(result, coarse, skipped), stacklevel=3)
 
     def check_reaction_signs(self, scenarios=None) -> None:
         """Before a fit: raise :class:`~difftissue.errors.ReactionSignError` for a ``fem_field``
@@ -779,6 +829,8 @@ def _parse_fit(value, material):
     if "plausible" in t:
         opts["plausible"] = _plausible_ranges(t["plausible"], params)
     opts["start"] = _choice(t.get("start", "data"), "fit.start", ("data", "material"))
+    if "discretisation_check" in t:
+        opts["discretisation_check"] = _bool(t["discretisation_check"], "fit.discretisation_check")
     opts["_bounds"] = {f: (float(b[0]), float(b[1])) for f, b in bounds.items()}
     return param, opts
 
@@ -1092,7 +1144,7 @@ def _analytic(e, path, name, base_dir) -> Experiment:
         _reraise(path, err)
     model = {"sphere": "hertz", "flat_punch": "sneddon_flat_punch", "cone": "sneddon_cone"}[kw["indenter"]] if solution == "half_space" else f"{solution}_{kw['indenter']}"
     return Experiment(name, "analytic_indentation", model, sc, (file,), notes, prov, _plausibility(path, depth, force, kw, curve),
-                      _indentation_estimate(depth, force, sigma, kw))
+                      _indentation_estimate(depth, force, sigma, kw), coarsen_skip="a closed-form solution: no mesh, no discretisation error")
 
 
 def _compression(e, path, name, base_dir) -> Experiment:
@@ -1119,6 +1171,7 @@ def _compression(e, path, name, base_dir) -> Experiment:
     p = _join(path, "specimen")
     spec = _table(e.get("specimen", {}), p, ("shape", "size", "cells", "diameter", "height", "cells_radial", "cells_height", "mesh", "length_unit", "reorient"))
     files = [file]
+    coarse_mesh, skip = None, _MESH_FILE_SKIP
     if "mesh" in spec:
         mesh, mfile = _mesh_file(spec, p, base_dir)
         files.append(mfile)
@@ -1135,6 +1188,7 @@ def _compression(e, path, name, base_dir) -> Experiment:
             size = _lengths(spec["size"], _join(p, "size"), unit) if "size" in spec else (h_data, h_data, h_data)
             cells = _counts(spec.get("cells", [2, 2, 2]), _join(p, "cells"))
             mesh = block(size, cells)
+            coarse_mesh, skip = _coarse_block(size, cells)
         else:
             for k in ("size", "cells"):
                 if k in spec:
@@ -1146,11 +1200,56 @@ def _compression(e, path, name, base_dir) -> Experiment:
             if model == "springs_volume":
                 _fail(_join(path, "model"), "a cylinder mesh has no cube lattice: use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean' (or a block: with frictionless platens any shape gives the same answer)")
             mesh = cylinder(dia, hei, nr, nh)
+            coarse_mesh, skip = _coarse_cylinder(dia, hei, nr, nh)
     try:
         sc = Compression(mesh, x, y, model=model, bonded=platens == "bonded", measure=measure, sigma=sigma, options=options, name=name)
     except DifftissueError as err:
         _reraise(path, err)
-    return Experiment(name, "compression", model, sc, tuple(files), notes, modulus_estimate=_compression_estimate(x, y))
+    coarsen = None
+    if coarse_mesh is not None:
+        def coarsen():
+            m, info = coarse_mesh()
+            return Compression(m, x, y, model=model, bonded=platens == "bonded", measure=measure, sigma=sigma, options=options, name=name), info
+    return Experiment(name, "compression", model, sc, tuple(files), notes, modulus_estimate=_compression_estimate(x, y),
+                      coarsen=coarsen, coarsen_skip=skip)
+
+
+#: Why an experiment on a mesh file has no discretisation estimate.
+_MESH_FILE_SKIP = "the specimen is a mesh file: difftissue cannot build a coarser version of it (give size and cells to get the estimate)"
+
+
+def _halved(counts) -> tuple[tuple[int, ...], list[float]]:
+    """Half the cells in each direction (at least 1) and each direction's fine / coarse ratio [-]."""
+    coarse = tuple(max(1, int(n) // 2) for n in counts)
+    return coarse, [n / c for n, c in zip(counts, coarse)]
+
+
+def _size_ratio(ratios) -> float:
+    """Coarse / fine cell size [-] from per-direction ratios: the geometric mean (h ~ cell volume^(1/3))."""
+    return float(np.prod(ratios) ** (1.0 / len(ratios)))
+
+
+def _coarse_block(size, cells, **kw):
+    """``(builder, None)`` of a block of about half the cells (``builder() -> (mesh, info)``), or
+    ``(None, reason)`` when every direction already has one cell."""
+    from .mesh import block
+
+    coarse, ratios = _halved(cells)
+    if coarse == tuple(cells):
+        return None, f"the specimen has one cell in each direction ({list(cells)}): there is no coarser mesh"
+    info = {"fine_cells": list(cells), "coarse_cells": list(coarse), "refinement_ratio": _size_ratio(ratios)}
+    return (lambda: (block(size, coarse, **kw), info)), None
+
+
+def _coarse_cylinder(dia, hei, nr, nh):
+    """Like :func:`_coarse_block` for a cylinder of ``nr`` radial and ``nh`` axial cells."""
+    from .scenarios import cylinder
+
+    (cr, ch), (rr, rh) = _halved((nr, nh))
+    if (cr, ch) == (nr, nh):
+        return None, "the cylinder has one radial and one axial cell: there is no coarser mesh"
+    info = {"fine_cells": {"radial": nr, "height": nh}, "coarse_cells": {"radial": cr, "height": ch}, "refinement_ratio": _size_ratio((rr, rr, rh))}
+    return (lambda: (cylinder(dia, hei, cr, ch), info)), None
 
 
 def _mesh_file(spec: dict, p: str, base_dir: Path):
@@ -1185,6 +1284,7 @@ def _indentation(e, path, name, base_dir) -> Experiment:
     spec = _table(e["specimen"], p, ("shape", "size", "cells", "symmetry", "refine", "mesh", "length_unit", "reorient"))
     files = [file]
     symmetry = "none"
+    coarse_mesh, skip = None, _MESH_FILE_SKIP
     if "mesh" in spec:
         mesh, mfile = _mesh_file(spec, p, base_dir)
         files.append(mfile)
@@ -1203,14 +1303,33 @@ def _indentation(e, path, name, base_dir) -> Experiment:
             mesh = indentation_block(size, cells, symmetry=symmetry, refine=refine)
         except DifftissueError as err:
             _reraise(p, err)
+        coarse_mesh, skip = _coarse_indentation_block(size, cells, symmetry, refine)
         if depth.max() >= size[2]:
             _fail(_join(path, "max_depth"), f"the deepest point ({depth.max():.3g} m) reaches the specimen's height ({size[2]:.3g} m)")
     try:
         sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
     except DifftissueError as err:
         _reraise(path, err)
+    coarsen = None
+    if coarse_mesh is not None:
+        def coarsen():
+            m, info = coarse_mesh()
+            return Indentation(m, depth, force, model=model, base=base, symmetry=symmetry, penalty=penalty, sigma=sigma, options=options, name=name, **kw), info
     return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve),
-                      _indentation_estimate(depth, force, sigma, kw))
+                      _indentation_estimate(depth, force, sigma, kw), coarsen=coarsen, coarsen_skip=skip)
+
+
+def _coarse_indentation_block(size, cells, symmetry: str, refine):
+    """Like :func:`_coarse_block` for :func:`~difftissue.scenarios.indentation_block`: half the
+    cells, the same size and symmetry; a graded block doubles its first cell ``refine`` [m]."""
+    from .scenarios import indentation_block
+
+    coarse, ratios = _halved(cells)
+    if coarse == tuple(cells):
+        return None, f"the specimen has one cell in each direction ({list(cells)}): there is no coarser mesh"
+    info = {"fine_cells": list(cells), "coarse_cells": list(coarse), "refinement_ratio": _size_ratio(ratios)}
+    r2 = None if refine is None else 2.0 * refine
+    return (lambda: (indentation_block(size, coarse, symmetry=symmetry, refine=r2), info)), None
 
 
 def _node_set_spec(value, path: str):
@@ -1277,7 +1396,8 @@ def _fem_field(e, path, name, base_dir) -> Experiment:
         sc = FEMField(result.mesh, result.displacement, prescribed=prescribed, model=model, observe=observe, reaction=reaction, displacement_sigma=ds, force_sigma=fs, options=options, name=name)
     except DifftissueError as err:
         _reraise(path, err)
-    return Experiment(name, "fem_field", model, sc, (file,), notes)
+    return Experiment(name, "fem_field", model, sc, (file,), notes,
+                      coarsen_skip="the displacements are observed on the nodes of the given mesh: a coarser mesh has no such nodes")
 
 
 # ============================================================================ incision
@@ -1423,4 +1543,5 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     except DifftissueError as err:
         _reraise(path, err)
     notes = (f"{path}: {cut.quality}",)
-    return Experiment(name, "incision", model, sc, tuple(files), notes)
+    return Experiment(name, "incision", model, sc, tuple(files), notes,
+                      coarsen_skip="the cut is snapped to this mesh's nodes: a coarser mesh makes a different cut, so the change would not be the mesh's alone")

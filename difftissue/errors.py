@@ -353,3 +353,15 @@ class EffectiveModulusError(DifftissueError):
     """A material card holds an effective modulus ``E / (1 - nu^2)`` (a Hertz/Sneddon fit with
     nu fixed as a placeholder) and a simulator needs E and nu separately: state nu
     (``--nu``), pass ``--approximate``, or refit with nu fixed at the tissue's value."""
+
+
+# ====================================================================== discretisation error
+# (appended block: issue 17 -- the mesh's share of a fitted parameter's error)
+__all__ += ["DiscretisationWarning"]
+
+
+class DiscretisationWarning(FitQualityWarning):
+    """The estimated discretisation error of a fitted parameter (one evaluation on a coarser
+    mesh at the optimum, Richardson first order: :func:`difftissue.fit.discretisation_estimate`)
+    exceeds its statistical standard error: the mesh, not the noise, limits the answer. Refine
+    the specimen's cells; the message names the parameter, both numbers and the relative bias."""

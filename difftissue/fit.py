@@ -50,6 +50,7 @@ from .errors import (
     CheckpointError,
     CheckpointMismatchError,
     FitError,
+    DiscretisationWarning,
     FitQualityWarning,
     IdentifiabilityWarning,
     OutputError,
@@ -67,6 +68,8 @@ __all__ = [
     "parameter_statistics",
     "identifiability_diagnostics",
     "assess_quality",
+    "discretisation_estimate",
+    "with_discretisation",
     "effective_modulus",
     "FitQuality",
     "QualityFlag",
@@ -482,6 +485,9 @@ class FitResult:
         effective_modulus: for a half-space indentation fit (Hertz/Sneddon) with nu not
             fitted, what the data determine: ``E* = E / (1 - nu^2)`` [Pa] with its standard
             error, the assumed nu and the meaning (:func:`effective_modulus`); else None.
+        discretisation: the mesh's share of the error of each fitted value
+            (:func:`discretisation_estimate`; set by a config fit, ``fit.discretisation_check``);
+            None when not checked.
     """
 
     material: Material
@@ -518,6 +524,7 @@ class FitResult:
     resumed_from: int = 0
     quality: "FitQuality | None" = None
     effective_modulus: dict | None = None
+    discretisation: dict | None = None
 
     @property
     def scenario_names(self) -> tuple[str, ...]:
@@ -534,6 +541,8 @@ class FitResult:
         lines.extend(f"warning: {w}" for w in self.warnings)
         if self.effective_modulus is not None:
             lines.append(effective_modulus_line(self.effective_modulus))
+        if self.discretisation is not None and self.discretisation.get("status") != "not applicable":
+            lines.append(discretisation_line(self.discretisation))
         if self.quality is not None:
             lines.append(f"quality: {self.quality.summary()}")
         return "\n".join(lines)
@@ -721,7 +730,8 @@ class QualityFlag:
 
     Attributes:
         name: ``non_finite``, ``not_converged``, ``at_bound``, ``implausible_value`` (errors:
-            the answer is unusable), ``poor_fit`` or ``systematic_residuals`` (warnings).
+            the answer is unusable), ``poor_fit``, ``systematic_residuals`` or
+            ``discretisation_error`` (warnings; the last from :func:`with_discretisation`).
         severity: ``"error"`` or ``"warning"``.
         subject: the field or scenario it concerns (None for the whole fit).
         message: one line for people.
@@ -886,6 +896,123 @@ def assess_quality(result: "FitResult", parameterization=None, *, plausible: Map
                                      {"value": v, "range": [lo, hi]}))
     res_flags, stats = _residual_flags(result.scenarios)
     return FitQuality(tuple(flags + res_flags), stats)
+
+
+# ============================================================================ discretisation error
+#: How :func:`discretisation_estimate` turns a coarse-mesh prediction into a parameter error.
+DISCRETISATION_METHOD = "richardson_first_order"
+#: Assumed order of convergence of the predictions in the cell size h [-] (P1 tets and the
+#: spring lattice converge at first order in force: docs/experiments.md, experiment 1).
+DISCRETISATION_ORDER = 1.0
+
+
+def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], skipped: Mapping[str, str] | None = None) -> dict:
+    """The mesh's share of the error of each fitted value, from one evaluation per scenario on
+    a coarser mesh at the optimum (no refit).
+
+    Per scenario with a coarse prediction ``p_c`` (fine prediction ``p_f`` at the optimum, cell
+    size ratio ``r = h_coarse / h_fine``), Richardson extrapolation with the assumed order
+    ``q`` (:data:`DISCRETISATION_ORDER`, first order) estimates the fine mesh's error in the
+    prediction: ``e = p_f - p_exact ~ (p_c - p_f) / (r^q - 1)``. The fit matched ``p_f`` to the
+    data, so the mesh-converged model would have needed parameters differing by the linearised
+    ``theta_fit - theta_converged ~ -(J^T J)^-1 J^T (e / sigma)`` (``J``: the fit's Jacobian of
+    the scaled residuals at the optimum; rows of scenarios without an estimate count as zero).
+
+    Args:
+        result: the fit (its predictions, sigmas, Jacobian, values and standard errors).
+        coarse: ``{scenario name: {"prediction": array (unit of the data), "fine_cells",
+            "coarse_cells", "refinement_ratio": r [-]}}``.
+        skipped: ``{scenario name: reason}`` for the scenarios without an estimate.
+
+    Returns:
+        ``{"method", "order", "status": "estimated" | "not estimated", "reason" (when not),
+        "scenarios": {name: {"status", "reason" | "fine_cells", "coarse_cells",
+        "refinement_ratio", "prediction_change_relative", "rms_error_over_sigma"}},
+        "estimate": {field: theta_fit - theta_converged (SI)}, "relative": {field: estimate /
+        value [-]}, "corrected": {field: value - estimate (SI)}, "standard_error": {field},
+        "ratio_to_standard_error": {field: |estimate| / standard error [-]}}``.
+    """
+    skipped = dict(skipped or {})
+    rec: dict = {"method": DISCRETISATION_METHOD, "order": DISCRETISATION_ORDER, "scenarios": {}}
+    rows = []
+    for s in result.scenarios:
+        c = coarse.get(s.name)
+        if c is None:
+            rec["scenarios"][s.name] = {"status": "not estimated", "reason": skipped.get(s.name, "no coarse-mesh prediction")}
+            rows.append(np.zeros(s.observed.size))
+            continue
+        e, info = _fine_mesh_error(s, c)
+        rec["scenarios"][s.name] = info
+        rows.append(e / np.asarray(s.sigma, dtype=float))
+    if not any(v["status"] == "estimated" for v in rec["scenarios"].values()):
+        reasons = "; ".join(f"{k}: {v['reason']}" for k, v in rec["scenarios"].items())
+        return {**rec, "status": "not estimated", "reason": reasons}
+    J = np.asarray(result.jacobian, dtype=float)
+    if not np.all(np.isfinite(J)):
+        return {**rec, "status": "not estimated", "reason": "the fit's Jacobian is not finite"}
+    delta = -np.linalg.lstsq(J, np.concatenate(rows), rcond=None)[0]
+    est = {f: float(delta[i]) for i, f in enumerate(result.fields)}
+    se = dict(result.standard_errors)
+    return {**rec, "status": "estimated", "estimate": est,
+            "relative": {f: est[f] / abs(result.values[f]) if result.values[f] != 0 else float("nan") for f in est},
+            "corrected": {f: result.values[f] - est[f] for f in est},
+            "standard_error": se,
+            "ratio_to_standard_error": {f: abs(est[f]) / se[f] if se[f] > 0 and math.isfinite(se[f]) else float("nan") for f in est}}
+
+
+def _fine_mesh_error(s: "ScenarioFit", c: Mapping) -> tuple[np.ndarray, dict]:
+    """Richardson estimate of the fine mesh's error ``p_f - p_exact`` (unit of the data) of one
+    scenario, and its record (cells, ratio, relative change of the prediction [-])."""
+    pf = np.asarray(s.predicted, dtype=float)
+    pc = np.asarray(c["prediction"], dtype=float)
+    r = float(c["refinement_ratio"])
+    e = (pc - pf) / (r**DISCRETISATION_ORDER - 1.0)
+    norm = float(np.linalg.norm(pf))
+    info = {"status": "estimated", "fine_cells": c.get("fine_cells"), "coarse_cells": c.get("coarse_cells"), "refinement_ratio": r,
+            "prediction_change_relative": float(np.linalg.norm(pc - pf) / norm) if norm > 0 else float("nan"),
+            "rms_error_over_sigma": float(np.sqrt(np.mean((e / np.asarray(s.sigma, dtype=float)) ** 2)))}
+    return e, info
+
+
+def _discretisation_flags(rec: Mapping, units: Mapping[str, str]) -> list[QualityFlag]:
+    """``discretisation_error`` (a warning) for each field whose estimate exceeds its standard error."""
+    if rec.get("status") != "estimated":
+        return []
+    out = []
+    for f, d in rec["estimate"].items():
+        se, ratio = rec["standard_error"][f], rec["ratio_to_standard_error"][f]
+        if math.isfinite(ratio) and ratio > 1.0:
+            unit = _unit_text(units.get(f, ""))
+            out.append(QualityFlag("discretisation_error", "warning", f,
+                                   f"{f}: the mesh's estimated share of the error {d:+.3g} {unit} ({100 * rec['relative'][f]:+.2g} %) exceeds its "
+                                   f"standard error {se:.3g} {unit} ({ratio:.3g} x): refine the specimen's cells; the mesh-converged "
+                                   f"value is about {rec['corrected'][f]:.4g} {unit}".replace("  ", " "),
+                                   {"estimate": d, "relative": rec["relative"][f], "standard_error": se, "ratio": ratio}))
+    return out
+
+
+def with_discretisation(result: "FitResult", rec: dict, *, stacklevel: int = 2) -> "FitResult":
+    """``result`` with ``discretisation = rec`` and its ``discretisation_error`` quality flags
+    added (each also emitted as :class:`~difftissue.errors.DiscretisationWarning`)."""
+    flags = _discretisation_flags(rec, result.units)
+    for flag in flags:
+        warnings.warn(f"{flag.severity}: {flag.message}", DiscretisationWarning, stacklevel=stacklevel + 1)
+    quality = result.quality
+    if quality is not None:
+        quality = FitQuality(quality.flags + tuple(flags), quality.scenarios)
+    return dataclasses.replace(result, discretisation=rec, quality=quality)
+
+
+def discretisation_line(rec: Mapping) -> str:
+    """One line for people: each field's estimate (relative) and its ratio to the standard
+    error, or why it was not estimated."""
+    if rec.get("status") == "not applicable":
+        return f"discretisation error: not applicable ({rec.get('reason', '')})"
+    if rec.get("status") != "estimated":
+        return f"discretisation error: not estimated ({rec.get('reason', '')})"
+    parts = [f"{f} {100 * rec['relative'][f]:+.3g} % ({rec['ratio_to_standard_error'][f]:.3g} x its standard error)" for f in rec["estimate"]]
+    cells = "; ".join(f"{k} cells {v['fine_cells']} vs {v['coarse_cells']}" for k, v in rec["scenarios"].items() if v["status"] == "estimated")
+    return f"discretisation error (mesh, Richardson first order from {cells}): " + ", ".join(parts)
 
 
 # ============================================================================ effective modulus
@@ -1693,6 +1820,7 @@ def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -
         "identifiability_warnings": list(result.warnings),
         "quality": result.quality.to_json() if result.quality is not None else None,
         "effective_modulus": _jsonable(result.effective_modulus),
+        "discretisation": _jsonable(result.discretisation),
         "unidentified": list(result.unidentified),
         "model": model_name,
         "scenarios": [
@@ -1898,7 +2026,33 @@ def _quality_md(quality: "FitQuality | None") -> list[str]:
     lines += ["", f"Thresholds: errors for a parameter within {BOUND_FRACTION:g} of a transform bound, a value outside its plausible range "
               f"(E in [{PLAUSIBLE['youngs_modulus'][0]:g}, {PLAUSIBLE['youngs_modulus'][1]:g}] Pa unless fit.plausible says otherwise), "
               f"non-finite values, no convergence; warnings for rms residual/sigma > {RMS_LIMIT:g}, lag-1 autocorrelation > "
-              f"{AUTOCORRELATION_LIMIT:g} or runs test p < {RUNS_P_LIMIT:g} (judged where rms >= {STRUCTURE_MIN_RMS:g})."]
+              f"{AUTOCORRELATION_LIMIT:g} or runs test p < {RUNS_P_LIMIT:g} (judged where rms >= {STRUCTURE_MIN_RMS:g}); "
+              "a warning where the mesh's estimated share of a value's error exceeds its standard error (discretisation_error)."]
+    return lines
+
+
+def _discretisation_md(rec: Mapping | None) -> list[str]:
+    """The report's "Discretisation error" section (nothing when the check was off)."""
+    if rec is None or rec.get("status") == "not applicable":
+        return []
+    lines = ["", "## Discretisation error", ""]
+    if rec.get("status") == "estimated":
+        lines += ["| parameter | estimate (fit - mesh-converged) | relative | standard error | estimate / SE | mesh-converged value |", "|---|---|---|---|---|---|"]
+        for f, d in rec["estimate"].items():
+            lines.append(f"| {f} | {d:+.4g} | {100 * rec['relative'][f]:+.3g} % | {rec['standard_error'][f]:.4g} | "
+                         f"{rec['ratio_to_standard_error'][f]:.3g} | {rec['corrected'][f]:.6g} |")
+        lines.append("")
+    lines.append("| scenario | status | cells (fit / coarse) | prediction change | reason |")
+    lines.append("|---|---|---|---|---|")
+    for k, v in rec["scenarios"].items():
+        if v["status"] == "estimated":
+            lines.append(f"| {k} | estimated | {v['fine_cells']} / {v['coarse_cells']} | {100 * v['prediction_change_relative']:.3g} % | - |")
+        else:
+            lines.append(f"| {k} | not estimated | - | - | {v['reason']} |")
+    lines += ["", "One evaluation at the fitted values on a mesh of about half the cells in each direction, no refit; "
+              "Richardson extrapolation assuming first-order convergence in the cell size gives the fit mesh's error in the "
+              "predictions, converted to the parameters through the fit's Jacobian (linearised). An estimate, not a bound: "
+              "see docs/fitting.md, \"Discretisation error\"."]
     return lines
 
 
@@ -1928,6 +2082,7 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     if record["fixed_parameters"]:
         lines += ["", "Fixed: " + ", ".join(f"{k} = {d['value']:g}{' ' + _unit_text(d['unit']) if _unit_text(d['unit']) else ''}" for k, d in record["fixed_parameters"].items()) + "."]
     lines += _quality_md(result.quality)
+    lines += _discretisation_md(result.discretisation)
     if len(result.fields) > 1:
         lines += ["", "## Correlations", "", "| | " + " | ".join(result.fields) + " |", "|---" * (len(result.fields) + 1) + "|"]
         for i, f in enumerate(result.fields):

@@ -481,6 +481,9 @@ def test_shipped_compression_config_fits_a_10x_stiffer_silicone(tmp_path, capsys
     (tmp_path / "stiff.toml").write_text(cfg)
     assert main(["fit", str(tmp_path / "stiff.toml"), "--out", str(tmp_path / "out")]) == 0, capsys.readouterr().err
     rec = json.loads((tmp_path / "out" / "fit.json").read_text())
+    # one cube: no coarser mesh, and the summary and fit.json say so (issue 17)
+    assert "discretisation error: not estimated (ecoflex: the specimen has one cell in each direction" in " ".join(capsys.readouterr().out.split())
+    assert rec["discretisation"]["status"] == "not estimated"
     assert rec["method"] == "levenberg_marquardt" and rec["converged"] and rec["quality"]["usable"]
     assert rec["parameters"]["youngs_modulus"]["value"] == pytest.approx(158403, rel=0.01)  # bundled curve: 15.84 kPa
     assert rec["parameters"]["cubic_coefficient"]["value"] == pytest.approx(-1.643, abs=0.01)

