@@ -236,18 +236,19 @@ def _plot(rows, path):
     }
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
     for ax, model in zip(axes, ("fem_linear", "springs_volume")):
-        for solver, style in (("multigrid", "o-"), ("multigrid-direct", "o-."), ("pyamg", "s--"), ("skfem", "^:"), ("sparse", "d-."), ("superlu", "x-.")):
+        for k, (solver, style) in enumerate((("multigrid", "o-"), ("multigrid-direct", "o-."), ("pyamg", "s--"), ("skfem", "^:"), ("sparse", "d-."), ("superlu", "x-."))):
             pts = sorted((r["unknowns"], cpu(r)) for r in rows if r["model"] == model and r["solver"] == solver and "error" not in r)
             if pts:
                 x, y = np.array(pts).T
-                ax.loglog(x, y, style, label=labels[solver])
+                ax.loglog(x, y, style, color=f"C{k}", label=labels[solver])
         xs = np.array([5e3, 1.2e6])
         ax.loglog(xs, 3e-5 * xs ** 1.0, "k:", lw=0.8, label="slope 1")
         ax.set_title(f"{model}: block under a flat punch, nu = 0.45")
         ax.set_xlabel("unknowns")
         ax.grid(True, which="both", alpha=0.3)
     axes[0].set_ylabel("process CPU time [s]")
-    axes[0].legend(fontsize=7)
+    for ax in axes:
+        ax.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=110)
 
