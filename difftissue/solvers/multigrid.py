@@ -74,11 +74,6 @@ class EllMatrix(eqx.Module):
         """``A x`` for ``x`` of shape ``(m,)``."""
         return jnp.sum(self.data * x[self.cols], axis=1)
 
-    def diagonal(self):
-        """The diagonal ``(n,)`` (rows must contain their diagonal entry)."""
-        rows = jnp.arange(self.cols.shape[0])[:, None]
-        return jnp.sum(jnp.where(self.cols == rows, self.data, 0.0), axis=1)
-
 
 def _ell_layout(indptr: np.ndarray, indices: np.ndarray, n: int):
     """ELL columns ``(n, w)`` and the flat ELL slot of every CSR entry."""
@@ -187,12 +182,13 @@ class SparseLayout(eqx.Module):
 _LAYOUTS: dict[str, SparseLayout] = {}
 
 
-def sparse_layout(node_arrays, n_nodes: int) -> SparseLayout:
+def sparse_layout(node_arrays, n_nodes: int, *, key: str | None = None) -> SparseLayout:
     """The :class:`SparseLayout` of element terms with node arrays ``[(E_t, k_t), ...]`` on
     ``n_nodes`` nodes: the node-pair pattern (every two nodes of an element couple), from one
-    sort of the element node pairs. Cached by content."""
+    sort of the element node pairs. Cached by content (``key``: a precomputed
+    ``cache_key(n_nodes, *node_arrays)``, so that callers hashing the mesh anyway do it once)."""
     arrays = [np.ascontiguousarray(np.asarray(a, dtype=np.int64)) for a in node_arrays]
-    key = cache_key(np.asarray(n_nodes), *arrays)
+    key = cache_key(np.asarray(n_nodes), *arrays) if key is None else key
     if key in _LAYOUTS:
         return _LAYOUTS[key]
     N = int(n_nodes)
@@ -246,6 +242,7 @@ class _Level(eqx.Module):
     P: EllMatrix  # prolongation to this level from the next coarser one
     R: EllMatrix  # restriction (P^T)
     lambda_max: jax.Array  # estimated largest eigenvalue of D^-1 A (reference)
+    inv_diag: jax.Array  # inverse diagonal of the reference operator (0 where the diagonal is 0)
 
 
 class MultigridHierarchy(eqx.Module):
@@ -338,7 +335,7 @@ class MultigridPreconditioner(eqx.Module):
             def mv(x):
                 return self.scale * A.mv(x)
 
-            inv_diag = _safe_inverse(self.scale * A.diagonal())
+            inv_diag = h.levels[k].inv_diag / self.scale
             lam = SPECTRAL_MARGIN * h.levels[k].lambda_max
         lvl = h.levels[k]
         x = _chebyshev(mv, inv_diag, lam, b, jnp.zeros_like(b))
@@ -480,7 +477,7 @@ def multigrid_setup(A, points, free_dofs, *, max_coarse: int = 60, key: str | No
         dinv = np.where(d > 0, 1.0 / np.where(d > 0, d, 1.0), 0.0)
         lam = pyamg.util.linalg.approximate_spectral_radius(sps.diags(dinv) @ Al, maxiter=15, restart=0)
         A_ell = None if not levels else ell_from_csr(Al)
-        levels.append(_Level(A_ell, ell_from_csr(lvl.P), ell_from_csr(lvl.R), np.asarray(float(lam))))
+        levels.append(_Level(A_ell, ell_from_csr(lvl.P), ell_from_csr(lvl.R), np.asarray(float(lam)), dinv))
         sizes.append(Al.shape[0])
     Ac = np.asarray(sps.csr_matrix(ml.levels[-1].A).toarray())
     sizes.append(Ac.shape[0])

@@ -531,11 +531,14 @@ def _reference_material(material, preconditioner_material):
 def _multigrid_for(model, material, fixed, node_arrays, preconditioner_material):
     """The block-ELL layout (cached per mesh) and the multigrid hierarchy (cached per mesh,
     fixed DOFs and reference material) of ``model``'s projected Hessian."""
-    layout = sparse_layout(node_arrays, model.n_nodes)
+    # One hash of the connectivity for both caches (a direct-call loop on a big mesh hashes it per call).
+    arrays = [np.asarray(a) for a in node_arrays]
+    mesh_key = cache_key(np.asarray(model.n_nodes), *arrays)
+    layout = sparse_layout(arrays, model.n_nodes, key=mesh_key)
     ref = jax.tree_util.tree_map(lambda v: np.asarray(v, dtype=float), _reference_material(material, preconditioner_material))
     free = 1.0 - np.asarray(fixed, dtype=float).reshape(-1)
     rest = np.asarray(model.rest_points, dtype=float)
-    key = cache_key(*[np.asarray(a) for a in node_arrays], free, rest, *jax.tree_util.tree_leaves(ref))
+    key = cache_key(np.frombuffer(mesh_key.encode(), np.uint8), free, rest, *jax.tree_util.tree_leaves(ref))
     hierarchy = multigrid_cached(key)
     if hierarchy is None:
         A = _reference_matrix(model, jax.tree_util.tree_map(np.asarray, ref), layout, np.asarray(free)).to_scipy()
