@@ -32,7 +32,6 @@ and residual.
 
 from __future__ import annotations
 
-import hashlib
 from typing import Any
 
 import equinox as eqx
@@ -44,6 +43,7 @@ import scipy.linalg
 import scipy.sparse as sps
 
 from ..errors import ModelError
+from .sparse import cache_key
 
 __all__ = ["EllMatrix", "BlockEllMatrix", "SparseLayout", "sparse_layout", "MultigridHierarchy", "multigrid_setup", "PreconditionedCG", "JacobiPreconditioner", "MultigridPreconditioner", "rigid_body_modes", "pcg"]
 
@@ -503,13 +503,3 @@ def multigrid_setup(A, points, free_dofs, *, max_coarse: int = 60, key: str | No
 def multigrid_cached(key: str) -> MultigridHierarchy | None:
     """The cached hierarchy for ``key`` (see :func:`multigrid_setup`), or None."""
     return _CACHE.get(key)
-
-
-def cache_key(*parts) -> str:
-    """A content hash of arrays and values (for :func:`multigrid_setup`'s cache)."""
-    h = hashlib.sha256()
-    for p in parts:
-        a = np.asarray(p)
-        h.update(str(a.dtype).encode() + str(a.shape).encode())
-        h.update(np.ascontiguousarray(a).tobytes())
-    return h.hexdigest()

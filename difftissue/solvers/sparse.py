@@ -62,14 +62,21 @@ class SparsePattern:
 _CACHE: dict[str, SparsePattern] = {}
 
 
+def cache_key(*parts) -> str:
+    """A content hash of arrays and values (dtype, shape and bytes of each): the key of the
+    sparse-pattern, block-layout and multigrid-hierarchy caches."""
+    h = hashlib.sha256()
+    for p in parts:
+        a = np.asarray(p)
+        h.update(str(a.dtype).encode() + str(a.shape).encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()
+
+
 def sparse_pattern(node_arrays, n_nodes: int) -> SparsePattern:
     """The CSR pattern for element terms with node arrays ``[(E_t, k_t), ...]`` on ``n_nodes`` nodes."""
-    h = hashlib.sha256(str(n_nodes).encode())
     arrays = [np.ascontiguousarray(np.asarray(a, dtype=np.int64)) for a in node_arrays]
-    for a in arrays:
-        h.update(str(a.shape).encode())
-        h.update(a.tobytes())
-    digest = h.hexdigest()
+    digest = cache_key(np.asarray(n_nodes), *arrays)
     if digest in _CACHE:
         return _CACHE[digest]
     n = 3 * int(n_nodes)
