@@ -31,8 +31,8 @@ from ..boundary import BoundaryConditions, _validate_values, check_rigid_modes
 from ..errors import ConvergenceError, LinearSolverError, ModelError
 from ..materials import Material
 from ..models import ElasticModel
-from .multigrid import BlockEllMatrix, JacobiPreconditioner, MultigridPreconditioner, PreconditionedCG, cache_key, multigrid_cached, multigrid_setup, sparse_layout
-from .sparse import SparseLU, assemble_csr_data, sparse_pattern
+from .multigrid import BlockEllMatrix, JacobiPreconditioner, MultigridPreconditioner, PreconditionedCG, multigrid_cached, multigrid_setup, sparse_layout
+from .sparse import SparseLU, assemble_csr_data, cache_key, sparse_pattern
 
 __all__ = ["StaticSolution", "StaticResult", "solve_static", "element_hessian_operator", "auto_linear_solver", "LINEAR_SOLVERS"]
 
