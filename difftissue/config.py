@@ -457,7 +457,8 @@ class FitConfig:
         if not sep:
             return self.scenarios
         mode = "reverse" if (self.options.get("method") in ("adam", "lbfgs") or self.options.get("jac") == "bwd") else "forward"
-        return tuple(SeparatelyCompiled(e.scenario, mode=mode) if e.kind != "analytic_indentation" else e.scenario for e in self.experiments)
+        n_tangents = len(self.parameterization.fields)
+        return tuple(SeparatelyCompiled(e.scenario, mode=mode, n_tangents=n_tangents) if e.kind != "analytic_indentation" else e.scenario for e in self.experiments)
 
     def run(self, **overrides):
         """Fit: :func:`difftissue.fit.fit` with the config's options updated by ``overrides``
@@ -530,6 +531,24 @@ class FitConfig:
                 _reraise(f"experiment[{i}]", err)
 
 
+def _compiled_once(fn, *structs):
+    """``fn`` compiled ahead of time for arguments of the shapes ``structs``, on first use.
+
+    A ``jax.jit`` function called both inside a callback (a fit's compiled step calls the
+    scenario through :func:`jax.pure_callback`) and outside it is compiled twice: JAX keys its
+    cache on that context. The ahead-of-time executable is one compilation for both."""
+    import jax
+
+    compiled = []
+
+    def call(*args):
+        if not compiled:
+            compiled.append(jax.jit(fn).lower(*structs).compile())
+        return compiled[0](*args)
+
+    return call
+
+
 _MATERIAL_LEAVES = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
 
 
@@ -553,7 +572,15 @@ class SeparatelyCompiled:
     failures' messages are kept in :attr:`failures`.
     """
 
-    def __init__(self, scenario, *, mode: str = "forward"):
+    def __init__(self, scenario, *, mode: str = "forward", n_tangents: int = 1):
+        """
+        Args:
+            scenario: a scenario with ``predict(material)`` and the data attributes.
+            mode: ``"forward"`` or ``"reverse"`` (see the class docstring).
+            n_tangents: forward mode: the number of tangents a Jacobian call pushes through
+                (the number of fitted parameters); primal-only calls run the same program with
+                that many zero tangents, so one program serves both.
+        """
         import jax
         import jax.numpy as jnp
 
@@ -568,45 +595,72 @@ class SeparatelyCompiled:
         for k in ("name", "observed", "sigma", "abscissa", "x_label", "y_label"):
             setattr(self, k, getattr(scenario, k))
         n = int(np.asarray(scenario.observed).size)
+        n_leaves = len(_MATERIAL_LEAVES)
 
         def f(v):
-            return scenario.predict(Material(*(v[i] for i in range(len(_MATERIAL_LEAVES)))))
+            return scenario.predict(Material(*(v[i] for i in range(n_leaves))))
 
-        fwd = jax.jit(f)
         out = jax.ShapeDtypeStruct((n,), jnp.float64)
-        vec = jax.ShapeDtypeStruct((len(_MATERIAL_LEAVES),), jnp.float64)
-
-        nan = np.full(n, np.nan)
+        vec = jax.ShapeDtypeStruct((n_leaves,), jnp.float64)
 
         def valid(v) -> bool:
             v = np.asarray(v, dtype=float)
             return bool(np.all(np.isfinite(v)) and v[0] > 0 and -1.0 < v[1] < 0.5 and v[3] > 0 and v[4] > 0)
 
-        def guarded(fn, v, *args):
+        def guarded(fn, v, *args, shape=(n,)):
             # An invalid material (optimistix evaluates the Jacobian of a discarded branch at an
             # all-zero placeholder) or a failed solve gives NaN instead of an exception, so the
             # optimiser rejects that trial point instead of the whole fit aborting.
             if not valid(v):
-                return nan
+                return np.full(shape, np.nan)
             try:
-                return np.asarray(fn(jnp.asarray(v), *(jnp.asarray(a) for a in args)), dtype=np.float64)
+                return fn(jnp.asarray(v, dtype=jnp.float64), *(jnp.asarray(a, dtype=jnp.float64) for a in args))
             except Exception as e:  # a static solve that failed to converge, an inverted element, ...
                 self.failures.append(" ".join(str(e).split())[-300:])
-                return nan
-
-        def host_f(v):
-            return guarded(fwd, v)
-
-        self._host_f = host_f
-
-        def call_f(v):
-            return jax.pure_callback(host_f, out, v, vmap_method="sequential")
+                return np.full(shape, np.nan)
 
         if mode == "forward":
-            jvp = jax.jit(lambda v, t: jax.jvp(f, (v,), (t,))[1])
+            # ONE compiled program gives the prediction and its derivatives along a batch of
+            # tangents: the model is solved once, the tangents (one implicit linear solve each
+            # per load step) are batched. A primal-only call runs it with zero tangents (their
+            # linear solves stop at once), so nothing is compiled twice.
+            both = jax.jit(jax.vmap(lambda v, t: jax.jvp(f, (v,), (t,)), in_axes=(None, 0), out_axes=(None, 0)))
+            n_zero = max(int(n_tangents), 1)
+            # Compiled ahead of time per tangent count: a jitted function called inside a
+            # callback (the fit's step) and outside it (evaluate) would be compiled twice
+            # (JAX 0.10 keys its cache on that context).
+            compiled: dict[int, Any] = {}
+
+            def run(v, T):
+                B = T.shape[0]
+                if B not in compiled:
+                    compiled[B] = both.lower(vec, jax.ShapeDtypeStruct((B, n_leaves), jnp.float64)).compile()
+                y, JT = compiled[B](v, T)
+                return np.asarray(y, dtype=np.float64), np.asarray(JT, dtype=np.float64)
+
+            def host_f(v):
+                return guarded(lambda vv: run(vv, np.zeros((n_zero, n_leaves)))[0], v)
 
             def host_jvp(v, t):
-                return guarded(jvp, v, t)
+                # Called with the batch dimensions of every vmap around it (vmap_method
+                # "expand_dims": the Jacobian's tangents, and the starts of a multi-start fit):
+                # the rows that share a material are pushed through one call.
+                v, t = np.asarray(v, dtype=float), np.asarray(t, dtype=float)
+                lead = np.broadcast_shapes(v.shape[:-1], t.shape[:-1])
+                V = np.broadcast_to(v, (*lead, n_leaves)).reshape(-1, n_leaves)
+                T = np.broadcast_to(t, (*lead, n_leaves)).reshape(-1, n_leaves)
+                res = np.empty((V.shape[0], n))
+                groups: dict[bytes, list[int]] = {}
+                for i, row in enumerate(V):
+                    groups.setdefault(row.tobytes(), []).append(i)
+                for rows in groups.values():
+                    res[rows] = guarded(lambda vv, tt: run(vv, tt)[1], V[rows[0]], T[rows], shape=(len(rows), n))
+                return res.reshape(*lead, n)
+
+            self._host_f = host_f
+
+            def call_f(v):
+                return jax.pure_callback(host_f, out, v, vmap_method="sequential")
 
             @jax.custom_jvp
             def call(v):
@@ -615,14 +669,23 @@ class SeparatelyCompiled:
             @call.defjvp
             def _call_jvp(primals, tangents):
                 (v,), (t,) = primals, tangents
-                return call_f(v), jax.pure_callback(host_jvp, out, v, t, vmap_method="sequential")
+                return call_f(v), jax.pure_callback(host_jvp, out, v, t, vmap_method="expand_dims")
 
         else:
-            vjp = jax.jit(lambda v, ct: jax.vjp(f, v)[1](ct)[0])
+            fwd = _compiled_once(f, vec)
+            vjp = _compiled_once(lambda v, ct: jax.vjp(f, v)[1](ct)[0], vec, out)
+
+            def host_f(v):
+                return np.asarray(guarded(fwd, v), dtype=np.float64)
+
+            self._host_f = host_f
+
+            def call_f(v):
+                return jax.pure_callback(host_f, out, v, vmap_method="sequential")
 
             def host_vjp(v, ct):
-                out = guarded(vjp, v, ct)
-                return out if out.shape == (len(_MATERIAL_LEAVES),) else np.full(len(_MATERIAL_LEAVES), np.nan)
+                out = np.asarray(guarded(vjp, v, ct), dtype=np.float64)
+                return out if out.shape == (n_leaves,) else np.full(n_leaves, np.nan)
 
             @jax.custom_vjp
             def call(v):

@@ -451,4 +451,11 @@ def test_separately_compiled_scenario_matches_the_scenario():
     np.testing.assert_allclose(jax.jacrev(fn(SeparatelyCompiled(sc, mode="reverse")))(v), J, rtol=1e-12)
     V = jax.numpy.array([[1e3, 0.3], [2e3, 0.4]])  # batched calls (several starts) run one by one
     np.testing.assert_allclose(jax.jit(jax.vmap(fn(fwd)))(V), jax.vmap(fn(sc))(V), rtol=1e-13)
+    # Jacobians of several starts at once (the fit's multi-start vmap around jacfwd): the
+    # tangents of each start go through one call of the one compiled program.
+    JV = np.asarray(jax.vmap(jax.jacfwd(fn(sc)))(V))
+    np.testing.assert_allclose(jax.jit(jax.vmap(jax.jacfwd(fn(fwd))))(V), JV, rtol=1e-12)
+    two = SeparatelyCompiled(sc, mode="forward", n_tangents=2)
+    np.testing.assert_allclose(jax.jit(jax.jacfwd(fn(two)))(v), J, rtol=1e-12)
+    np.testing.assert_allclose(two.predict(m), sc.predict(m), rtol=1e-13)
     assert fwd.name == "h" and fwd.observed is sc.observed
