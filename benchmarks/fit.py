@@ -39,7 +39,7 @@ from difftissue.materials import Material, MaterialParameterization, ScaledLogit
 from difftissue.scenarios import Indentation, SolverOptions, indentation_block  # noqa: E402
 
 
-def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fit_too: bool = True, linear_solver: str = "auto") -> dict:
+def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fit_too: bool = True, linear_solver: str = "auto", separate: bool = False) -> dict:
     R, H = 1e-3, 1.6e-3
     mesh = indentation_block((4e-3, 4e-3, H), cells, symmetry="quarter")
     truth = Material(12e3, 0.42)
@@ -55,6 +55,10 @@ def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fi
     if not fit_too:
         return dict(model=model, solver=solver, tets=mesh.n_tets, nodes=mesh.n_nodes, first_forward_s=t_first, forward_s=t_forward)
     sc = make(data)
+    if separate:  # the command line's path: the scenario compiled once, on its own (difftissue.config.SeparatelyCompiled)
+        from difftissue.config import SeparatelyCompiled
+
+        sc = SeparatelyCompiled(sc, n_tangents=2)
     param = MaterialParameterization(("youngs_modulus", "poisson_ratio"), transforms={"poisson_ratio": ScaledLogit(0.25 if model == "springs_volume" else 0.0, 0.499)})
     timed = []
     for _ in range(2):  # cold (compiles), then warm (the same fit again)
@@ -69,7 +73,7 @@ def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fi
         cold=timed[0],
         warm=timed[1],
         model=model,
-        solver=("condensed" if sc.condensation is not None else "full") + f" ({linear_solver})",
+        solver=("condensed" if probe.condensation is not None else "full") + f" ({linear_solver})" + (", separately compiled" if separate else ""),
         tets=mesh.n_tets,
         nodes=mesh.n_nodes,
         first_forward_s=t_first,
@@ -108,6 +112,7 @@ def main() -> None:
     ap.add_argument("--max-steps", type=int, default=30)
     ap.add_argument("--linear-solvers", default="auto", help="linear solvers of the static solves, comma-separated (auto, multigrid, sparse, dense)")
     ap.add_argument("--forward-only", action="store_true", help="time the forward protocol solves only")
+    ap.add_argument("--separate", action="store_true", help="fit through SeparatelyCompiled, as the command line does (one compiled program for the prediction and its tangents)")
     ap.add_argument("--baseline", default="fem_linear", help="models whose full (uncondensed) forward solve is timed as the baseline ('' for none)")
     args = ap.parse_args()
     cells = tuple(int(c) for c in args.cells.split(","))
@@ -119,7 +124,7 @@ def main() -> None:
         r = run(model, cells, args.points, args.max_steps, solver="full", fit_too=False)
         print(f"| {r['model']} | full (baseline) | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | - | - | - | - | - | - | - |")
     for model, ls in [(m, ls) for m in args.models.split(",") if m for ls in args.linear_solvers.split(",")]:
-        r = run(model, cells, args.points, args.max_steps, fit_too=not args.forward_only, linear_solver=ls)
+        r = run(model, cells, args.points, args.max_steps, fit_too=not args.forward_only, linear_solver=ls, separate=args.separate)
         if args.forward_only:
             print(f"| {r['model']} | {ls} | {r['tets']} | {r['first_forward_s']:.1f} | {r['forward_s']:.2f} | - | - | - | - | - | - | - |", flush=True)
             continue

@@ -399,7 +399,8 @@ class PreconditionedCG(lx.AbstractLinearSolver):
     of the true residual relative to the right-hand side (see :func:`pcg`).
 
     ``options`` must hold ``"preconditioner"``: a callable SPD approximation of the inverse
-    (a :class:`MultigridPreconditioner` V-cycle or a :class:`JacobiPreconditioner`). The
+    (a :class:`MultigridPreconditioner` V-cycle or a :class:`JacobiPreconditioner`), and may
+    hold ``"rtol"``, a tolerance for this solve in place of ``rtol`` (inexact Newton). The
     operator must be symmetric positive definite (transposed solves reuse it).
 
     Failure is carried by the values, not by lineax's result code: a solution whose relative
@@ -422,8 +423,10 @@ class PreconditionedCG(lx.AbstractLinearSolver):
     def compute(self, state, vector, options):
         operator, precond = state
         x0 = options.get("y0", jnp.zeros_like(vector))
-        x, steps, res, neg = pcg(operator.mv, precond, vector, x0, rtol=self.rtol, max_steps=self.max_steps)
-        x = jnp.where(res <= jnp.maximum(self.failure_rtol, self.rtol), x, jnp.nan)
+        # options["rtol"]: a per-solve tolerance (an inexact Newton step's forcing term).
+        rtol = options.get("rtol", self.rtol)
+        x, steps, res, neg = pcg(operator.mv, precond, vector, x0, rtol=rtol, max_steps=self.max_steps)
+        x = jnp.where(res <= jnp.maximum(self.failure_rtol, rtol), x, jnp.nan)
         return x, lx.RESULTS.successful, {"num_steps": steps, "relative_residual": res, "negative_curvature": neg}
 
     def transpose(self, state, options):

@@ -63,6 +63,12 @@ NEWTON_CG_FAILURE = 1e-4
 #: An implicit-gradient (tangent / adjoint) solve must reach this relative residual, else the
 #: tangent is NaN (never a silently wrong gradient).
 TANGENT_CG_FAILURE = 1e-7
+#: Inexact Newton (iterative linear solvers): the CG tolerance of a Newton step is the forcing
+#: term ``eta = min(NEWTON_FORCING_MAX, max(cg_rtol, |g| / |g_cold|))``, the current residual
+#: relative to the residual scale of the Newton tolerance (Eisenstat & Walker 1996): loose far
+#: from the solution, tightening with the residual, so the convergence stays quadratic while
+#: the early steps cost a few CG iterations instead of a solve to ``cg_rtol``.
+NEWTON_FORCING_MAX = 1e-2
 
 
 class StaticSolution(eqx.Module):
@@ -105,8 +111,11 @@ def _element_data(model: ElasticModel, x, material):
     out = []
     for term in model.terms(material):
         k = term.nodes.shape[1]
-        hess = jax.vmap(jax.hessian(term.energy))(x[term.nodes], *term.params)
-        hess = hess.reshape(hess.shape[0], 3 * k, 3 * k)
+        if term.hessian is not None:
+            hess = jax.vmap(term.hessian)(x[term.nodes], *term.params)
+        else:
+            hess = jax.vmap(jax.hessian(term.energy))(x[term.nodes], *term.params)
+            hess = hess.reshape(hess.shape[0], 3 * k, 3 * k)
         dofs = (3 * jnp.asarray(term.nodes)[:, :, None] + jnp.arange(3)).reshape(-1, 3 * k)
         out.append((hess, dofs))
     return out
@@ -269,15 +278,21 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     def cond(state):
         return ~state[4]
 
+    g_scale = jnp.maximum(jnp.linalg.norm(residual(cold)), jnp.finfo(u_init.dtype).tiny)
+
     def body(state):
         u, g, step, code, _, cg_max, _ = state
         op, solver, opts = _projected_operator(model, u, material, free, options)
+        if isinstance(solver, PreconditionedCG):
+            # Inexact Newton: the forcing term (NEWTON_FORCING_MAX).
+            eta = jnp.clip(jnp.linalg.norm(g) / g_scale, options.cg_rtol, max(NEWTON_FORCING_MAX, options.cg_rtol))
+            opts = {**opts, "rtol": eta}
         sol = lx.linear_solve(op, -g.reshape(-1), solver, options=opts, throw=False)
         cg_steps, cg_res = _linear_stats(sol)
         # Negative curvature (an indefinite Hessian away from the solution) is not a failure:
         # the Newton loop falls back to a scaled gradient step as with a direct solver.
         negative_curvature = jnp.asarray(sol.stats.get("negative_curvature", False), dtype=bool)
-        linear_failed = (cg_res > NEWTON_CG_FAILURE) & ~negative_curvature
+        linear_failed = (cg_res > jnp.maximum(NEWTON_CG_FAILURE, opts.get("rtol", 0.0))) & ~negative_curvature
         d = sol.value.reshape(u.shape)
         gd = jnp.vdot(g, d)
         bad = ~jnp.all(jnp.isfinite(d)) | (gd >= 0)
