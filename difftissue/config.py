@@ -408,8 +408,13 @@ class FitConfig:
     options: dict
     experiments: tuple[Experiment, ...]
     #: where the initial values came from when the data chose them (``fit.start = "data"``):
-    #: ``{field: {"value", "config_value", "from"}}``; None when the config's [material] is the start
+    #: ``{field: {"value", "config_value", "from"}}``; None when the config's [material] is the start.
+    #: E is chosen when the config is read; the cubic coefficient b by :meth:`run` (it needs two
+    #: model evaluations, see :meth:`start_cubic_coefficient`)
     start: dict | None = None
+    #: ``fit.start``: ``"data"`` (E and b from the data unless ...) or ``"material"`` (the
+    #: config's [material] is the start)
+    start_mode: str = "data"
 
     @property
     def scenarios(self) -> tuple:
@@ -469,6 +474,7 @@ class FitConfig:
         scenarios = self.fit_scenarios(opts.pop("separate_compilation", None))
         object.__setattr__(self, "last_scenarios", scenarios)  # for the failures of SeparatelyCompiled
         self.check_reaction_signs(scenarios)
+        self.start_cubic_coefficient(scenarios)
         result = fit(scenarios, self.parameterization, self.material, **opts)
         return self.check_discretisation(result) if check else result
 
@@ -512,6 +518,57 @@ class FitConfig:
             return dataclasses.replace(result, discretisation=rec)
         coarse, skipped = self.coarse_predictions(result.material)
         return with_discretisation(result, discretisation_estimate(result, coarse, skipped), stacklevel=3)
+
+    def start_cubic_coefficient(self, scenarios=None) -> dict | None:
+        """Before a fit (``fit.start = "data"``, the default, and b in ``fit.parameters``): start
+        the cubic coefficient b from the data. Each compression or simulated indentation
+        experiment is evaluated at the start (E from the data) with the config's b and with b
+        one unit away (two forward solves; with separate compilation through the function the
+        fit then reuses) and :func:`_cubic_estimate` gives the b that matches the measured
+        curve; several experiments give their mean. The start is kept inside
+        ``fit.bounds.cubic_coefficient`` (:func:`_inside`). Updates :attr:`material` and
+        :attr:`start` (``start["cubic_coefficient"]``: ``value``, ``config_value``, ``from``)
+        and returns that record; None (and the config's b stays the start) when the start is
+        pinned, b is not fitted, or no experiment determines it (the reason is then recorded
+        with ``value`` = the config's b)."""
+        from .materials import Material
+
+        field = "cubic_coefficient"
+        if self.start_mode != "data" or field not in self.parameterization.fields or (self.start or {}).get(field):
+            return None
+        scenarios = self.fit_scenarios() if scenarios is None else scenarios
+        b0 = float(self.material.cubic_coefficient)
+        t = dict(zip(self.parameterization.fields, self.parameterization.transforms))[field]
+        lo, hi = getattr(t, "lower", None), getattr(t, "upper", None)
+        b1 = b0 + 1.0 if hi is None or b0 + 1.0 < hi else b0 - 1.0 if lo is None or b0 - 1.0 > lo else 0.5 * (b0 + hi)
+        ests, why = [], []
+        for e, sc in zip(self.experiments, scenarios):
+            if e.kind not in _CUBIC_START_KINDS:
+                continue
+            at = []
+            for b in (b0, b1):
+                m = Material(**{**self.material.to_dict(), field: b})
+                at.append(sc.evaluate(m) if isinstance(sc, SeparatelyCompiled) else np.asarray(sc.predict(m), dtype=float))
+            est = _cubic_estimate(np.asarray(e.scenario.observed), np.asarray(e.scenario.sigma), at[0], at[1], b0, b1)
+            if isinstance(est, str):
+                why.append(f"{e.name}: {est}")
+            else:
+                ests.append((e.name, *est))
+        if not ests:
+            if why:
+                rec = {"value": b0, "config_value": b0, "from": f"the config's material.{field}", "no_estimate": "; ".join(why)}
+                object.__setattr__(self, "start", {**(self.start or {}), field: rec})
+            return None
+        b = float(np.mean([v for _, v, _ in ests]))
+        inside = _inside(b, lo, hi)
+        how = "; ".join(f"{name}: the model's curve at E = {float(self.material.youngs_modulus):.4g} Pa matched to the data's "
+                        f"(linearised in b between b = {b0:g} and {b1:g}, scale {alpha:.3g}) gives b = {v:.4g}" for name, v, alpha in ests)
+        if inside != b:
+            how += f"; kept inside fit.bounds.cubic_coefficient = [{lo:g}, {hi:g}] (estimate {b:.4g})"
+        rec = {"value": inside, "config_value": b0, "from": how}
+        object.__setattr__(self, "material", Material(**{**self.material.to_dict(), field: inside}))
+        object.__setattr__(self, "start", {**(self.start or {}), field: rec})
+        return rec
 
     def check_reaction_signs(self, scenarios=None) -> None:
         """Before a fit: raise :class:`~difftissue.errors.ReactionSignError` for a ``fem_field``
@@ -696,7 +753,8 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
     built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir, material=material) for i, e in enumerate(exps))
     _check_model_ranges(built, material, param)
     start = None
-    if options.pop("start", "data") == "data" and "youngs_modulus" in param.fields:
+    start_mode = options.pop("start", "data")
+    if start_mode == "data" and "youngs_modulus" in param.fields:
         material, start = _data_start(built, material, options)
         if start is not None:  # the transforms are scaled at the start (u = 0 there)
             param, _ = _parse_fit(top["fit"], material)
@@ -709,6 +767,7 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
         options=options,
         experiments=built,
         start=start,
+        start_mode=start_mode,
     )
 
 
@@ -1026,6 +1085,52 @@ def _compression_estimate(strain, stress) -> tuple[float, str, str] | None:
     if not (math.isfinite(E) and E > 0):
         return None
     return E, "young", f"small-strain slope of stress vs strain (strain <= {x.max():.3g})"
+
+
+#: Experiment kinds whose prediction is proportional to E at fixed nu and b (stress or force):
+#: the data-driven start of the cubic coefficient uses them.
+_CUBIC_START_KINDS = ("compression", "indentation")
+
+
+def _cubic_estimate(observed, sigma, at_b0, at_b1, b0: float, b1: float) -> tuple[float, float] | str:
+    """The cubic coefficient b [-] that best matches a measured curve, from two model
+    predictions at the start's E: ``at_b0`` with b = ``b0`` and ``at_b1`` with b = ``b1``
+    (same unit as ``observed``, Pa or N; ``sigma`` its uncertainty).
+
+    A compression stress or indentation force is proportional to E at fixed nu and b, and
+    nearly linear in b over a few units, so ``observed ~ alpha (s0 + (b - b0) d)`` with
+    ``d = (s1 - s0) / (b1 - b0)``: weighted linear least squares in ``(alpha, alpha (b - b0))``,
+    then ``b = b0 + gamma / alpha``. ``alpha`` [-] is the factor between the data's modulus and
+    the start's. The model's own nonlinearity (large strain, volume term) is in ``s0``, so it is
+    not mistaken for strain stiffening: a polynomial ``E (eps + b eps^3)`` fitted to the data
+    alone would not give the model's b (:doc:`fitting`, Starting values).
+
+    Returns ``(b, alpha)``, or a reason (str) when there is no estimate: an evaluation failed,
+    the prediction does not depend on b (a model without cubic springs), or ``alpha <= 0``.
+    """
+    y = np.asarray(observed, dtype=float)
+    s0, s1 = np.asarray(at_b0, dtype=float), np.asarray(at_b1, dtype=float)
+    if not (np.all(np.isfinite(s0)) and np.all(np.isfinite(s1))):
+        return "the model evaluation at the start failed"
+    d = (s1 - s0) / (b1 - b0)
+    if not np.max(np.abs(d)) > 1e-9 * np.max(np.abs(s0)):
+        return "the model's prediction does not depend on the cubic coefficient"
+    w = 1.0 / np.broadcast_to(np.asarray(sigma, dtype=float), y.shape)
+    (alpha, gamma), *_ = np.linalg.lstsq(np.c_[s0 * w, d * w], y * w, rcond=None)
+    if not (math.isfinite(alpha) and alpha > 0 and math.isfinite(gamma)):
+        return f"the data do not match the model's curve at any positive scale (scale {alpha:.3g})"
+    return float(b0 + gamma / alpha), float(alpha)
+
+
+def _inside(value: float, lower: float | None, upper: float | None, margin: float = 0.05) -> float:
+    """``value`` kept strictly inside ``(lower, upper)`` (None: unbounded): a value outside (or
+    within ``margin`` of the range from a finite bound) moves to that distance from the bound."""
+    if lower is not None and upper is not None and math.isfinite(lower) and math.isfinite(upper):
+        pad = margin * (upper - lower)
+        return float(min(max(value, lower + pad), upper - pad))
+    if lower is not None and math.isfinite(lower) and value <= lower:
+        return float(lower + margin * max(abs(lower), 1.0))
+    return float(value)
 
 
 def _data_start(experiments, material, options: Mapping) -> tuple[Any, dict | None]:
