@@ -542,7 +542,12 @@ def test_cubic_coefficient_starts_from_the_data_over_100x_in_E(tmp_path, capsys,
         p = fj["parameters"][f]
         assert abs(p["value"] - true) < 3 * p["standard_error"] and p["standard_error"] < 0.05 * abs(true), (f, p)
     assert fj["start"]["cubic_coefficient"]["value"] == pytest.approx(_B_TRUE, abs=0.3)
-    assert "| cubic_coefficient | " in (tmp_path / "out" / "report.md").read_text().split("## Starting values")[1]
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "| cubic_coefficient | " in report.split("## Starting values")[1]
+    # compression rows are accounted for as indentation rows are: CLI note, fit.json, report.md
+    assert "note: experiment[0]: the fit uses 20 of the 20 rows loaded from curve.csv" in out
+    assert fj["data_rows"][0]["rows_used"] == 20 and fj["data_rows"][0]["used"] == list(range(2, 22)) and fj["data_warnings"] == []
+    assert "| phantom | `curve.csv` | 20 | 20 (every data row of the file) | - |" in report
 
 
 def test_a_pinned_or_bounded_cubic_start_is_respected(tmp_path):
