@@ -409,7 +409,8 @@ class FitConfig:
         path: the config file (None when parsed from a mapping).
         raw: the parsed TOML (a dict).
         material: initial :class:`~difftissue.materials.Material` (SI): the config's
-            [material], with E from the data unless ``fit.start = "material"``.
+            [material], with E from the data unless ``fit.start = "material"`` (and, once
+            :meth:`run` has chosen it, the cubic coefficient: :meth:`start_cubic_coefficient`).
         parameterization: fitted fields and their transforms.
         options: keyword arguments for :func:`difftissue.fit.fit` (method, loss, starts, ...).
         experiments: the built experiments, in file order.

@@ -332,7 +332,7 @@ def _compression_case(case):
         "loading_then_unloading": ({"strain": np.r_[_EPS, _EPS[::-1][1:]], "stress": np.r_[_STRESS, 0.7 * _STRESS[::-1][1:]]}, fraction, {}),
         "precontact_rows": ({"strain": np.r_[-0.01, 0.0, _EPS], "stress": np.r_[0.0, 0.0, _STRESS]}, fraction, {}),
         "strain_in_percent_declared_fraction": ({"strain": 100 * _EPS, "stress": _STRESS}, fraction, {}),
-        "fractions_declared_percent": ({"strain": _EPS / 100, "stress": _STRESS}, {**fraction, "strain": {"name": "strain", "unit": "%"}}, {}),
+        "fractions_declared_percent": ({"strain": _EPS, "stress": _STRESS}, {**fraction, "strain": {"name": "strain", "unit": "%"}}, {}),
         "strain_beyond_0.9": ({"strain": np.linspace(0.05, 0.95, 20), "stress": _STRESS}, fraction, {}),
         "displacement_beyond_height": ({"displacement": 30 * _EPS, "stress": _STRESS},  # mm; height 10 mm
                                        {"displacement": {"name": "displacement", "unit": "mm"}, "stress": fraction["stress"]}, {"height": "10 mm"}),
@@ -350,7 +350,7 @@ COMPRESSION_INPUT = [
                                      "the unloading segment", None),
     ("precontact_rows", None, "left out 2 (file lines [2, 3]): strain <= 0 (at or before the platen touches; the model needs strain > 0)", None),
     ("strain_in_percent_declared_fraction", ("ImplausibleMagnitudeError", "above the plausible range"), None, None),
-    ("fractions_declared_percent", None, "uses 20 of the 20", "most likely fractions declared as percent"),
+    ("fractions_declared_percent", None, "uses 20 of the 20", "declared in % and its largest value is 0.4 % (a strain of 0.004): most likely fractions declared as percent"),
     ("strain_beyond_0.9", None, "uses 20 of the 20", "the largest nominal compressive strain used is 0.95, beyond 0.9"),
     ("displacement_beyond_height", ("ConfigError", "experiment[0].data: the largest nominal compressive strain used is 1.2 (>= 1: the platen would "
                                     "pass through the specimen); the strain is displacement / height (displacement in mm, height 0.01 m)"), None, None),
