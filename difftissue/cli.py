@@ -538,7 +538,8 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
 
 def _start_notes(start) -> list[str]:
     """One note per field whose start came from the data (``fit.start = "data"``)."""
-    return [f"start: {f} = {d['value']:.4g} from the data ({d['from']}); the config's material.{f} = {d['config_value']:.4g} "
+    return [f"start: {f} = {d['value']:.4g} from the config's material.{f}: no estimate from the data ({d['no_estimate']})" if d.get("no_estimate") else
+            f"start: {f} = {d['value']:.4g} from the data ({d['from']}); the config's material.{f} = {d['config_value']:.4g} "
             f"is not the start (fit.start = \"material\" pins it)" for f, d in (start or {}).items()]
 
 

@@ -232,7 +232,7 @@ def _downsample_rows(x: np.ndarray, *, x_max: float | None, points: int | None, 
     keep = np.ones(x.size, dtype=bool) if x_max is None else cm <= x_max * (1 + 1e-12)
     n_keep = int(np.sum(keep))
     if points is None:
-        sel = np.flatnonzero(keep & (x >= 0))
+        sel = np.flatnonzero(keep & (x > 0))  # x <= 0: at or before contact (recorded by _record_thinning)
     else:
         if n_keep == 0 or cm[n_keep - 1] <= 0:
             sel = np.array([], dtype=int)
@@ -245,12 +245,6 @@ def _downsample_rows(x: np.ndarray, *, x_max: float | None, points: int | None, 
         limit = f" up to {key} = {x_max:g} {unit}" if x_max is not None else ""
         _fail(path, f"only {sel.size} usable data point(s){limit}; the data reach {np.max(x) if x.size else float('nan'):.4g} {unit}")
     return sel
-
-
-def _downsample(x: np.ndarray, y: np.ndarray, *, x_max: float | None, points: int | None, path: str, key: str, unit: str):
-    """``(x[sel], y[sel])`` for the rows :func:`_downsample_rows` keeps."""
-    sel = _downsample_rows(x, x_max=x_max, points=points, path=path, key=key, unit=unit)
-    return np.asarray(x, dtype=float)[sel], np.asarray(y, dtype=float)[sel]
 
 
 # ====================================================================== rows used (provenance)
@@ -275,9 +269,9 @@ def _cite_rows(labels: np.ndarray, idx, kind: str, limit: int = 8) -> str:
 
 
 def _out_of_order(x: np.ndarray) -> np.ndarray:
-    """Indices where depth breaks 'rise to the deepest point, then (optionally) fall': a step
-    back of more than :data:`_OUT_OF_ORDER` of the depth range before the deepest point, or a
-    rise after it."""
+    """Indices where the abscissa (depth, strain) breaks 'rise to the largest value, then
+    (optionally) fall': a step back of more than :data:`_OUT_OF_ORDER` of its range before the
+    largest value, or a rise after it."""
     if x.size < 3:
         return np.array([], dtype=int)
     tol = _OUT_OF_ORDER * float(np.ptp(x))
@@ -288,52 +282,73 @@ def _out_of_order(x: np.ndarray) -> np.ndarray:
     return np.concatenate([back, again]).astype(int)
 
 
-def _loading_rows(curve, *, sort: bool, path: str, record: list) -> np.ndarray:
-    """Indices of the curve's loading segment, in loading order; appends what was reordered
-    or left out (and why) to ``record``.
+#: The abscissa of each kind of measured curve, as :func:`_loading_order` and
+#: :func:`_record_thinning` name it: (quantity, "the deepest point"-style phrase, max key, unit,
+#: why rows <= 0 are left out).
+_ABSCISSA = {
+    "depth": ("depth", "the deepest point", "max_depth", "m", "at or before the contact point; the models need depth > 0"),
+    "strain": ("strain", "the largest strain", "max_strain", "", "at or before the platen touches; the model needs strain > 0"),
+}
 
-    The loading segment ends at the loader's turnaround (the Chiaro's piezo reversal) or at the
-    deepest point; the rows after it (unloading) are left out. Rows in another order (a depth
-    that falls back before the deepest point or rises after it) are refused
+
+def _loading_order(x: np.ndarray, labels: np.ndarray, kind: str, *, turnaround: int | None, sort: bool, path: str, record: list,
+                   what: str = "depth") -> np.ndarray:
+    """Indices of a curve's loading segment, in loading order; appends what was reordered or
+    left out (and why) to ``record``. ``x``: the abscissa (depth [m] or strain [-]);
+    ``labels``/``kind``: the rows' names (:func:`_row_labels`); ``what``: a key of :data:`_ABSCISSA`.
+
+    The loading segment ends at ``turnaround`` (a loader's, e.g. the Chiaro's piezo reversal)
+    or at the largest ``x``; the rows after it (unloading) are left out. Rows in another order
+    (``x`` falling back before its largest value or rising after it) are refused
     (:class:`~difftissue.errors.NonMonotonicError`, naming them) unless ``sort``: then all rows
-    are sorted by depth.
+    are sorted by ``x``.
     """
     from .errors import NonMonotonicError
 
-    x = np.asarray(curve.depth, dtype=float)
-    labels, kind = _row_labels(curve)
-    if curve.metadata.get("turnaround_index") is None:
+    name, top_name = _ABSCISSA[what][:2]
+    x = np.asarray(x, dtype=float)
+    if turnaround is None:
         bad = _out_of_order(x)
         if bad.size and not sort:
             top = int(np.argmax(x))
             raise NonMonotonicError(
-                f"{path}: the depth column is not a loading curve (nor loading then unloading): its rows are out of order at "
-                f"{_cite_rows(labels, bad, kind)}; a fit would keep only the rows up to the deepest point "
+                f"{path}: the {name} column is not a loading curve (nor loading then unloading): its rows are out of order at "
+                f"{_cite_rows(labels, bad, kind)}; a fit would keep only the rows up to {top_name} "
                 f"({kind[:-1]} {labels[top]}, {top + 1} of {x.size} rows). Sort the file's rows "
-                f"by depth, or set sort = true in the experiment's data table if they are one loading curve in another order",
+                f"by {name}, or set sort = true in the experiment's data table if they are one loading curve in another order",
                 rows=bad, lines=labels[bad] if kind == "file lines" else ())
         if sort:
             order = np.argsort(x, kind="stable")
             if np.any(order != np.arange(x.size)):
-                record.append({"action": "reordered", "rows": [int(i) for i in labels[order]], "reason": "sorted by depth (data.sort = true)"})
+                record.append({"action": "reordered", "rows": [int(i) for i in labels[order]], "reason": f"sorted by {name} (data.sort = true)"})
             return order
-    top = curve.turnaround_index
+    top = int(np.argmax(x)) if turnaround is None else int(turnaround)
     if top + 1 < x.size:
         rest = np.arange(top + 1, x.size)
         record.append({"action": "left out", "rows": [int(i) for i in labels[rest]],
-                       "reason": f"after the deepest point ({kind[:-1]} {labels[top]}): the unloading segment"})
+                       "reason": f"after {top_name} ({kind[:-1]} {labels[top]}): the unloading segment"})
     return np.arange(top + 1)
 
 
-def _record_thinning(labels: np.ndarray, rows: np.ndarray, sel: np.ndarray, depth: np.ndarray, *, x_max, points, record: list) -> None:
-    """Append the loading rows not in ``sel`` to ``record``, by reason: depth <= 0, beyond
-    ``max_depth``, or not among the ``points`` samples kept."""
+def _loading_rows(curve, *, sort: bool, path: str, record: list) -> np.ndarray:
+    """:func:`_loading_order` of a force-depth curve (its depth; the loader's turnaround, if any)."""
+    labels, kind = _row_labels(curve)
+    turn = curve.turnaround_index if curve.metadata.get("turnaround_index") is not None else None
+    return _loading_order(np.asarray(curve.depth, dtype=float), labels, kind, turnaround=turn, sort=sort, path=path, record=record)
+
+
+def _record_thinning(labels: np.ndarray, rows: np.ndarray, sel: np.ndarray, x: np.ndarray, *, x_max, points, record: list,
+                     what: str = "depth") -> None:
+    """Append the loading rows not in ``sel`` to ``record``, by reason: ``x`` (depth or strain,
+    ``what``: a key of :data:`_ABSCISSA`) <= 0, beyond ``x_max``, or not among the ``points``
+    samples kept."""
+    name, _, key, unit, why_zero = _ABSCISSA[what]
     left = np.setdiff1d(np.arange(rows.size), sel)
-    d = depth[rows]
+    d = x[rows]
     cm = np.maximum.accumulate(d) if d.size else d
     reasons = (
-        (d[left] <= 0, "depth <= 0 (at or before the contact point; the models need depth > 0)"),
-        (cm[left] > (np.inf if x_max is None else x_max * (1 + 1e-12)), f"beyond max_depth = {x_max:.4g} m" if x_max is not None else ""),
+        (d[left] <= 0, f"{name} <= 0 ({why_zero})"),
+        (cm[left] > (np.inf if x_max is None else x_max * (1 + 1e-12)), f"beyond {key} = {x_max:.4g}{' ' + unit if unit else ''}" if x_max is not None else ""),
     )
     done = np.zeros(left.size, dtype=bool)
     for mask, why in reasons:
@@ -342,7 +357,7 @@ def _record_thinning(labels: np.ndarray, rows: np.ndarray, sel: np.ndarray, dept
             record.append({"action": "left out", "rows": [int(i) for i in labels[rows[left[m]]]], "reason": why})
         done |= m
     if (~done).any():
-        why = (f"thinned to points = {points} samples evenly spread in depth" if points is not None else "a step back in depth (noise)")
+        why = (f"thinned to points = {points} samples evenly spread in {name}" if points is not None else f"a step back in {name} (noise)")
         record.append({"action": "left out", "rows": [int(i) for i in labels[rows[left[~done]]]], "reason": why})
 
 
@@ -394,7 +409,8 @@ class FitConfig:
         path: the config file (None when parsed from a mapping).
         raw: the parsed TOML (a dict).
         material: initial :class:`~difftissue.materials.Material` (SI): the config's
-            [material], with E from the data unless ``fit.start = "material"``.
+            [material], with E from the data unless ``fit.start = "material"`` (and, once
+            :meth:`run` has chosen it, the cubic coefficient: :meth:`start_cubic_coefficient`).
         parameterization: fitted fields and their transforms.
         options: keyword arguments for :func:`difftissue.fit.fit` (method, loss, starts, ...).
         experiments: the built experiments, in file order.
@@ -408,8 +424,13 @@ class FitConfig:
     options: dict
     experiments: tuple[Experiment, ...]
     #: where the initial values came from when the data chose them (``fit.start = "data"``):
-    #: ``{field: {"value", "config_value", "from"}}``; None when the config's [material] is the start
+    #: ``{field: {"value", "config_value", "from"}}``; None when the config's [material] is the start.
+    #: E is chosen when the config is read; the cubic coefficient b by :meth:`run` (it needs two
+    #: model evaluations, see :meth:`start_cubic_coefficient`)
     start: dict | None = None
+    #: ``fit.start``: ``"data"`` (E and b from the data unless ...) or ``"material"`` (the
+    #: config's [material] is the start)
+    start_mode: str = "data"
 
     @property
     def scenarios(self) -> tuple:
@@ -470,6 +491,7 @@ class FitConfig:
         scenarios = self.fit_scenarios(opts.pop("separate_compilation", None))
         object.__setattr__(self, "last_scenarios", scenarios)  # for the failures of SeparatelyCompiled
         self.check_reaction_signs(scenarios)
+        self.start_cubic_coefficient(scenarios)
         result = fit(scenarios, self.parameterization, self.material, **opts)
         return self.check_discretisation(result) if check else result
 
@@ -513,6 +535,57 @@ class FitConfig:
             return dataclasses.replace(result, discretisation=rec)
         coarse, skipped = self.coarse_predictions(result.material)
         return with_discretisation(result, discretisation_estimate(result, coarse, skipped), stacklevel=3)
+
+    def start_cubic_coefficient(self, scenarios=None) -> dict | None:
+        """Before a fit (``fit.start = "data"``, the default, and b in ``fit.parameters``): start
+        the cubic coefficient b from the data. Each compression or simulated indentation
+        experiment is evaluated at the start (E from the data) with the config's b and with b
+        one unit away (two forward solves; with separate compilation through the function the
+        fit then reuses) and :func:`_cubic_estimate` gives the b that matches the measured
+        curve; several experiments give their mean. The start is kept inside
+        ``fit.bounds.cubic_coefficient`` (:func:`_inside`). Updates :attr:`material` and
+        :attr:`start` (``start["cubic_coefficient"]``: ``value``, ``config_value``, ``from``)
+        and returns that record; None (and the config's b stays the start) when the start is
+        pinned, b is not fitted, or no experiment determines it (the reason is then recorded
+        with ``value`` = the config's b)."""
+        from .materials import Material
+
+        field = "cubic_coefficient"
+        if self.start_mode != "data" or field not in self.parameterization.fields or (self.start or {}).get(field):
+            return None
+        scenarios = self.fit_scenarios() if scenarios is None else scenarios
+        b0 = float(self.material.cubic_coefficient)
+        t = dict(zip(self.parameterization.fields, self.parameterization.transforms))[field]
+        lo, hi = getattr(t, "lower", None), getattr(t, "upper", None)
+        b1 = b0 + 1.0 if hi is None or b0 + 1.0 < hi else b0 - 1.0 if lo is None or b0 - 1.0 > lo else 0.5 * (b0 + hi)
+        ests, why = [], []
+        for e, sc in zip(self.experiments, scenarios):
+            if e.kind not in _CUBIC_START_KINDS:
+                continue
+            at = []
+            for b in (b0, b1):
+                m = Material(**{**self.material.to_dict(), field: b})
+                at.append(sc.evaluate(m) if isinstance(sc, SeparatelyCompiled) else np.asarray(sc.predict(m), dtype=float))
+            est = _cubic_estimate(np.asarray(e.scenario.observed), np.asarray(e.scenario.sigma), at[0], at[1], b0, b1)
+            if isinstance(est, str):
+                why.append(f"{e.name}: {est}")
+            else:
+                ests.append((e.name, *est))
+        if not ests:
+            if why:
+                rec = {"value": b0, "config_value": b0, "from": f"the config's material.{field}", "no_estimate": "; ".join(why)}
+                object.__setattr__(self, "start", {**(self.start or {}), field: rec})
+            return None
+        b = float(np.mean([v for _, v, _ in ests]))
+        inside = _inside(b, lo, hi)
+        how = "; ".join(f"{name}: the model's curve at E = {float(self.material.youngs_modulus):.4g} Pa matched to the data's "
+                        f"(linearised in b between b = {b0:g} and {b1:g}, scale {alpha:.3g}) gives b = {v:.4g}" for name, v, alpha in ests)
+        if inside != b:
+            how += f"; kept inside fit.bounds.cubic_coefficient = [{lo:g}, {hi:g}] (estimate {b:.4g})"
+        rec = {"value": inside, "config_value": b0, "from": how}
+        object.__setattr__(self, "material", Material(**{**self.material.to_dict(), field: inside}))
+        object.__setattr__(self, "start", {**(self.start or {}), field: rec})
+        return rec
 
     def check_reaction_signs(self, scenarios=None) -> None:
         """Before a fit: raise :class:`~difftissue.errors.ReactionSignError` for a ``fem_field``
@@ -759,7 +832,8 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
     built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir, material=material) for i, e in enumerate(exps))
     _check_model_ranges(built, material, param)
     start = None
-    if options.pop("start", "data") == "data" and "youngs_modulus" in param.fields:
+    start_mode = options.pop("start", "data")
+    if start_mode == "data" and "youngs_modulus" in param.fields:
         material, start = _data_start(built, material, options)
         if start is not None:  # the transforms are scaled at the start (u = 0 there)
             param, _ = _parse_fit(top["fit"], material)
@@ -772,6 +846,7 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
         options=options,
         experiments=built,
         start=start,
+        start_mode=start_mode,
     )
 
 
@@ -966,10 +1041,12 @@ def _load_data(e: Mapping, path: str, kind: str, base_dir: Path):
         d["kind"] = want
     d["path"] = str(file)
     if "sort" in d:
-        if kind not in ("analytic_indentation", "indentation"):
-            _fail(_join(p, "sort"), "only force-depth data (indentation experiments) can be sorted by depth")
+        if kind not in ("analytic_indentation", "indentation", "compression"):
+            _fail(_join(p, "sort"), "only force-depth (indentation) and compression data can be sorted (by depth, by strain)")
         d["sort"] = _bool(d["sort"], _join(p, "sort"))
     sort = d.pop("sort", False)
+    if fmt == "instron":  # rows out of order: refused (or sorted) by the config with the rows named, as for indentation
+        d.setdefault("monotonic", False)
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -977,7 +1054,7 @@ def _load_data(e: Mapping, path: str, kind: str, base_dir: Path):
     except DifftissueError as err:
         _reraise(p, err)
     notes = tuple(f"{p}: {w.category.__name__}: {' '.join(str(w.message).split())}" for w in caught)
-    if kind in ("analytic_indentation", "indentation"):
+    if kind in ("analytic_indentation", "indentation", "compression"):
         return dataset, file, notes, sort
     return dataset, file, notes
 
@@ -1089,6 +1166,52 @@ def _compression_estimate(strain, stress) -> tuple[float, str, str] | None:
     if not (math.isfinite(E) and E > 0):
         return None
     return E, "young", f"small-strain slope of stress vs strain (strain <= {x.max():.3g})"
+
+
+#: Experiment kinds whose prediction is proportional to E at fixed nu and b (stress or force):
+#: the data-driven start of the cubic coefficient uses them.
+_CUBIC_START_KINDS = ("compression", "indentation")
+
+
+def _cubic_estimate(observed, sigma, at_b0, at_b1, b0: float, b1: float) -> tuple[float, float] | str:
+    """The cubic coefficient b [-] that best matches a measured curve, from two model
+    predictions at the start's E: ``at_b0`` with b = ``b0`` and ``at_b1`` with b = ``b1``
+    (same unit as ``observed``, Pa or N; ``sigma`` its uncertainty).
+
+    A compression stress or indentation force is proportional to E at fixed nu and b, and
+    nearly linear in b over a few units, so ``observed ~ alpha (s0 + (b - b0) d)`` with
+    ``d = (s1 - s0) / (b1 - b0)``: weighted linear least squares in ``(alpha, alpha (b - b0))``,
+    then ``b = b0 + gamma / alpha``. ``alpha`` [-] is the factor between the data's modulus and
+    the start's. The model's own nonlinearity (large strain, volume term) is in ``s0``, so it is
+    not mistaken for strain stiffening: a polynomial ``E (eps + b eps^3)`` fitted to the data
+    alone would not give the model's b (:doc:`fitting`, Starting values).
+
+    Returns ``(b, alpha)``, or a reason (str) when there is no estimate: an evaluation failed,
+    the prediction does not depend on b (a model without cubic springs), or ``alpha <= 0``.
+    """
+    y = np.asarray(observed, dtype=float)
+    s0, s1 = np.asarray(at_b0, dtype=float), np.asarray(at_b1, dtype=float)
+    if not (np.all(np.isfinite(s0)) and np.all(np.isfinite(s1))):
+        return "the model evaluation at the start failed"
+    d = (s1 - s0) / (b1 - b0)
+    if not np.max(np.abs(d)) > 1e-9 * np.max(np.abs(s0)):
+        return "the model's prediction does not depend on the cubic coefficient"
+    w = 1.0 / np.broadcast_to(np.asarray(sigma, dtype=float), y.shape)
+    (alpha, gamma), *_ = np.linalg.lstsq(np.c_[s0 * w, d * w], y * w, rcond=None)
+    if not (math.isfinite(alpha) and alpha > 0 and math.isfinite(gamma)):
+        return f"the data do not match the model's curve at any positive scale (scale {alpha:.3g})"
+    return float(b0 + gamma / alpha), float(alpha)
+
+
+def _inside(value: float, lower: float | None, upper: float | None, margin: float = 0.05) -> float:
+    """``value`` kept strictly inside ``(lower, upper)`` (None: unbounded): a value outside (or
+    within ``margin`` of the range from a finite bound) moves to that distance from the bound."""
+    if lower is not None and upper is not None and math.isfinite(lower) and math.isfinite(upper):
+        pad = margin * (upper - lower)
+        return float(min(max(value, lower + pad), upper - pad))
+    if lower is not None and math.isfinite(lower) and value <= lower:
+        return float(lower + margin * max(abs(lower), 1.0))
+    return float(value)
 
 
 def _data_start(experiments, material, options: Mapping) -> tuple[Any, dict | None]:
@@ -1214,19 +1337,9 @@ def _compression(e, path, name, base_dir) -> Experiment:
     from .mesh import block
     from .scenarios import Compression, cylinder
 
-    curve, file, notes = _load_data(e, path, "compression", base_dir)
-    curve = curve.loading()
+    curve, file, notes, x, y, prov = _stress_strain(e, path, base_dir)
     measure = _choice(e.get("measure", "engineering"), _join(path, "measure"), ("engineering", "true"))
-    if measure == "engineering":
-        x, y = curve.strain, curve.stress
-    else:
-        if curve.true_strain is None or curve.true_stress is None:
-            _fail(_join(path, "measure"), "'true' needs true strain and true stress columns in the data; use 'engineering'")
-        x, y = curve.true_strain, curve.true_stress
-    max_strain = None
-    if "max_strain" in e:
-        max_strain = _number(e["max_strain"], _join(path, "max_strain"), check=lambda v: 0 < v < 1, rule="a strain in (0, 1)")
-    x, y = _downsample(x, y, x_max=max_strain, points=_points(e, path), path=_join(path, "max_strain" if max_strain else "data"), key="max_strain", unit="")
+    plausibility = _compression_plausibility(path, curve, x, y, measure)
     sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), y, "Pa")
     platens = _choice(e.get("platens", "frictionless"), _join(path, "platens"), ("frictionless", "bonded"))
     model = _model(e, path, "springs_volume")
@@ -1273,8 +1386,93 @@ def _compression(e, path, name, base_dir) -> Experiment:
         def coarsen():
             m, info = coarse_mesh()
             return Compression(m, x, y, model=model, bonded=platens == "bonded", measure=measure, sigma=sigma, options=options, name=name), info
-    return Experiment(name, "compression", model, sc, tuple(files), notes, modulus_estimate=_compression_estimate(x, y),
+    return Experiment(name, "compression", model, sc, tuple(files), notes, prov, plausibility, _compression_estimate(x, y),
                       coarsen=coarsen, coarsen_skip=skip)
+
+
+def _stress_strain(e, path, base_dir):
+    """Load a compression curve and choose the rows the fit uses, as :func:`_force_depth` does
+    for indentation: the loading segment (unloading left out), rows out of order refused or
+    sorted (``data.sort``), strain <= 0 and beyond ``max_strain`` left out, thinned to
+    ``points``; every row accounted for. Returns ``curve, file, notes, strain, stress,
+    provenance`` (strain [-] and stress [Pa] in the ``measure`` asked for; see
+    :attr:`Experiment.provenance`)."""
+    curve, file, notes, sort = _load_data(e, path, "compression", base_dir)
+    measure = _choice(e.get("measure", "engineering"), _join(path, "measure"), ("engineering", "true"))
+    if measure == "engineering":
+        x, y = curve.strain, curve.stress
+    else:
+        if curve.true_strain is None or curve.true_stress is None:
+            _fail(_join(path, "measure"), "'true' needs true strain and true stress columns in the data; use 'engineering'")
+        x, y = curve.true_strain, curve.true_stress
+    x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+    max_strain = None
+    if "max_strain" in e:
+        max_strain = _number(e["max_strain"], _join(path, "max_strain"), check=lambda v: 0 < v < 1, rule="a strain in (0, 1)")
+    if x.size and np.max(x) <= 0:
+        _fail(_join(path, "data"), "no positive strain in the data (compression is positive: set the strain or displacement column's sign to -1 or \"auto\")")
+    steps: list[dict] = []
+    labels, kind_name = _row_labels(curve)
+    rows = _loading_order(x, labels, kind_name, turnaround=None, sort=sort, path=_join(path, "data"), record=steps, what="strain")
+    points = _points(e, path)
+    sel = _downsample_rows(x[rows], x_max=max_strain, points=points, path=_join(path, "max_strain" if max_strain else "data"), key="max_strain", unit="")
+    _record_thinning(labels, rows, sel, x, x_max=max_strain, points=points, record=steps, what="strain")
+    used = rows[sel]
+    prov = {"file": str(file), "rows_loaded": len(curve), "loaded": "every data row of the file", "rows_used": int(used.size),
+            "row_names": kind_name, "used": [int(i) for i in labels[used]], "steps": steps}
+    notes = tuple(notes) + (_provenance_note(path, prov),)
+    return curve, file, notes, x[used], y[used], prov
+
+
+#: Largest nominal compressive strain [-] considered plausible: beyond it the specimen would be
+#: squashed to a tenth of its height, which points to a unit or height mistake.
+PLAUSIBLE_MAX_STRAIN = 0.9
+#: Largest strain [-] below which a strain column declared in percent most likely holds fractions.
+PERCENT_SUSPECT_STRAIN = 0.01
+
+
+def _compression_plausibility(path: str, curve, strain: np.ndarray, stress: np.ndarray, measure: str) -> tuple[str, ...]:
+    """Warn (:class:`~difftissue.errors.ImplausibleUnitWarning`) when a compression curve's rows
+    used do not look like a soft-tissue test: a nominal strain beyond
+    :data:`PLAUSIBLE_MAX_STRAIN` (a displacement unit or specimen height off), a strain column
+    declared in % whose largest value is below :data:`PERCENT_SUSPECT_STRAIN` (fractions
+    declared as percent), or a small-strain modulus (:func:`_compression_estimate`) outside
+    :data:`PLAUSIBLE_MODULUS`. A nominal strain >= 1 (the platen through the specimen) is an
+    error. Returns the messages (also emitted as warnings)."""
+    from .errors import ImplausibleUnitWarning
+
+    units = (curve.metadata.get("units") or {}) if hasattr(curve, "metadata") else {}
+    strain_key = "strain" if measure == "engineering" else "true_strain"
+    declared = units.get(strain_key)
+    nominal = np.asarray(strain, dtype=float) if measure == "engineering" else -np.expm1(-np.asarray(strain, dtype=float))
+    smax = float(np.max(nominal)) if nominal.size else 0.0
+    if declared is None and curve.height is not None:
+        source = (f"displacement / height (displacement in {units.get('displacement', '?')}, height {curve.height:.4g} m): "
+                  "check the displacement column's unit and the specimen height")
+    else:
+        source = f"the {strain_key} column, declared in {declared or '?'}: check its unit"
+    out = []
+    if smax >= 1.0:
+        _fail(_join(path, "data"), f"the largest nominal compressive strain used is {smax:.4g} (>= 1: the platen would pass through the specimen); "
+              f"the strain is {source}, or set max_strain")
+    if smax > PLAUSIBLE_MAX_STRAIN:
+        out.append(f"{path}: the largest nominal compressive strain used is {smax:.4g}, beyond {PLAUSIBLE_MAX_STRAIN:g} (the specimen "
+                   f"squashed to {100 * (1 - smax):.2g} % of its height): most likely a unit or height mistake; the strain is {source}")
+    if declared is not None and declared.strip() == "%" and smax < PERCENT_SUSPECT_STRAIN:
+        out.append(f"{path}: the {strain_key} column is declared in % and its largest value is {100 * smax:.4g} % (a strain of {smax:.3g}): "
+                   f"most likely fractions declared as percent; if the file holds fractions give its unit as \"-\" "
+                   f"(a wrong unit scales the fitted modulus by 100)")
+    est = _compression_estimate(strain, stress)
+    if est is not None:
+        lo, hi = PLAUSIBLE_MODULUS
+        if not lo <= est[0] <= hi:
+            stress_key = "stress" if measure == "engineering" else "true_stress"
+            out.append(f"{path}: the {est[2]} is {est[0]:.3g} Pa, outside the {lo:g} Pa .. {hi:g} Pa of soft tissue: check the units of "
+                       f"the {stress_key} (declared: {units.get(stress_key) or ('force in ' + units.get('force', '?') + ' over the area')}) "
+                       f"and of the strain ({source})")
+    for msg in out:
+        warnings.warn(msg, ImplausibleUnitWarning, stacklevel=3)
+    return tuple(out)
 
 
 #: Why an experiment on a mesh file has no discretisation estimate.

@@ -2056,6 +2056,17 @@ def _discretisation_md(rec: Mapping | None) -> list[str]:
     return lines
 
 
+def _start_md(start) -> list[str]:
+    """report.md's "Starting values": each field whose start the data chose (or tried to)."""
+    if not start:
+        return []
+    lines = ["", "## Starting values", "", "| parameter | start | config's [material] | from |", "|---|---|---|---|"]
+    for f, d in start.items():
+        how = f"{d['from']} (no estimate from the data: {d['no_estimate']})" if d.get("no_estimate") else d["from"]
+        lines.append(f"| {f} | {d['value']:.6g} | {d['config_value']:.6g} | {how} |")
+    return lines + ["", 'fit.start = "material" starts from the config\'s [material] instead.']
+
+
 def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines = ["# Fit report", ""]
     lines.append(f"Model: {record['model'] or '(not given)'}; scenarios: {', '.join(names)}.")
@@ -2081,6 +2092,7 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines += ["", f"Standard errors from the Gauss-Newton covariance {cov_txt}; condition number of J^T J (scaled) {result.condition_number:.3g}."]
     if record["fixed_parameters"]:
         lines += ["", "Fixed: " + ", ".join(f"{k} = {d['value']:g}{' ' + _unit_text(d['unit']) if _unit_text(d['unit']) else ''}" for k, d in record["fixed_parameters"].items()) + "."]
+    lines += _start_md(record.get("start"))
     lines += _quality_md(result.quality)
     lines += _discretisation_md(result.discretisation)
     if len(result.fields) > 1:

@@ -489,6 +489,79 @@ def test_shipped_compression_config_fits_a_10x_stiffer_silicone(tmp_path, capsys
     assert rec["parameters"]["cubic_coefficient"]["value"] == pytest.approx(-1.643, abs=0.01)
 
 
+_B_TRUE = 1.5
+
+
+def _compression_config(tmp_path, E, b=_B_TRUE, extra_fit="", bounds="[-3.0, 5.0]"):
+    """A curve of the springs_volume cube itself (nu = 0.49, cubic coefficient ``b``, 0.5 % noise)
+    to 40 % strain, and the shipped compression config's [material] and [fit] for it (start
+    E = 10 kPa, b = 0, bounds b in [-3, 5])."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from difftissue import Material, block
+    from difftissue.scenarios import Compression
+
+    eps = np.linspace(0.02, 0.4, 20)
+    stress = np.asarray(Compression(block((0.01,) * 3, (1, 1, 1)), eps).predict(Material(E, 0.49, cubic_coefficient=b)))
+    stress = stress * (1.0 + 0.005 * np.random.default_rng(2).normal(size=eps.size))
+    (tmp_path / "curve.csv").write_text("strain,stress\n" + "".join(f"{a:.9g},{s:.9g}\n" for a, s in zip(eps, stress)))
+    head = _SHIPPED.joinpath("ecoflex_compression.toml").read_text().split("[[experiment]]")[0]
+    assert "cubic_coefficient = 0.0" in head and "youngs_modulus = 1.0e4" in head
+    head = head.replace("bounds = { cubic_coefficient = [-3.0, 5.0] }", f"bounds = {{ cubic_coefficient = {bounds} }}")
+    (tmp_path / "fit.toml").write_text(head.replace("[fit]\n", "[fit]\n" + extra_fit) + '''[[experiment]]
+name = "phantom"
+scenario = "compression"
+data = { format = "table", path = "curve.csv", columns = { strain = { name = "strain", unit = "-" }, stress = { name = "stress", unit = "Pa" } } }
+points = "all"
+sigma = { relative = 0.01 }
+specimen = { size = [0.01, 0.01, 0.01], cells = [1, 1, 1] }
+''')
+    return tmp_path / "fit.toml"
+
+
+@pytest.mark.parametrize("E", [3e3, 3e5])
+def test_cubic_coefficient_starts_from_the_data_over_100x_in_E(tmp_path, capsys, E):
+    """Issue 17: b starts from the data (the model's curve at the data's E with the config's b
+    and b + 1, matched to the measured curve), within 0.3 of the b that made the curve, for a
+    soft and a stiff specimen 100 x apart; the fit converges to it; fit.json, the CLI note and
+    report.md say where the start came from."""
+    from difftissue.config import load_config
+
+    cfg = load_config(_compression_config(tmp_path, E))
+    assert cfg.start["youngs_modulus"]["value"] == pytest.approx(E, rel=0.2)
+    rec = cfg.start_cubic_coefficient()
+    assert rec["value"] == pytest.approx(_B_TRUE, abs=0.3) == cfg.material.cubic_coefficient and rec["config_value"] == 0.0
+    assert cfg.config_material.cubic_coefficient == 0.0 and cfg.start_cubic_coefficient() is None  # once
+    assert main(["fit", str(tmp_path / "fit.toml"), "--out", str(tmp_path / "out")]) == 0, capsys.readouterr().err
+    out = " ".join(capsys.readouterr().out.split())
+    assert "note: start: cubic_coefficient = " in out and "the config's material.cubic_coefficient = 0 is not the start" in out
+    fj = json.loads((tmp_path / "out" / "fit.json").read_text())
+    assert fj["converged"] and fj["quality"]["usable"]
+    for f, true in (("cubic_coefficient", _B_TRUE), ("youngs_modulus", E)):  # the truth within 3 standard errors (0.5 % noise)
+        p = fj["parameters"][f]
+        assert abs(p["value"] - true) < 3 * p["standard_error"] and p["standard_error"] < 0.05 * abs(true), (f, p)
+    assert fj["start"]["cubic_coefficient"]["value"] == pytest.approx(_B_TRUE, abs=0.3)
+    report = (tmp_path / "out" / "report.md").read_text()
+    assert "| cubic_coefficient | " in report.split("## Starting values")[1]
+    # compression rows are accounted for as indentation rows are: CLI note, fit.json, report.md
+    assert "note: experiment[0]: the fit uses 20 of the 20 rows loaded from curve.csv" in out
+    assert fj["data_rows"][0]["rows_used"] == 20 and fj["data_rows"][0]["used"] == list(range(2, 22)) and fj["data_warnings"] == []
+    assert "| phantom | `curve.csv` | 20 | 20 (every data row of the file) | - |" in report
+
+
+def test_a_pinned_or_bounded_cubic_start_is_respected(tmp_path):
+    """fit.start = "material" keeps the config's b (no model evaluation); an estimate outside
+    fit.bounds.cubic_coefficient starts 5 % of the range inside the bound."""
+    from difftissue.config import load_config
+
+    cfg = load_config(_compression_config(tmp_path, 3e4, extra_fit='start = "material"\n'))
+    assert cfg.start is None and cfg.start_cubic_coefficient() is None and cfg.material.cubic_coefficient == 0.0
+    cfg = load_config(_compression_config(tmp_path, 3e4, b=4.0, bounds="[-1.0, 3.0]"))
+    rec = cfg.start_cubic_coefficient()
+    assert rec["value"] == pytest.approx(3.0 - 0.05 * 4.0) and "kept inside fit.bounds.cubic_coefficient = [-1, 3]" in rec["from"]
+
+
 def test_progress_lines_off_a_terminal_for_fit_and_simulate(tmp_path, capsys, monkeypatch):
     """stderr is not a terminal under pytest: plain 'difftissue: [t s] phase' lines every
     PROGRESS_EVERY seconds (10 s by default; shortened here), for fit and simulate; none with --no-progress."""

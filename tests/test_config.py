@@ -298,9 +298,10 @@ def test_rows_out_of_order_are_refused_or_sorted_and_every_row_is_accounted_for(
     assert [st["action"] for st in prov["steps"]] == ["reordered"]
     assert prov["steps"][0]["rows"] == [int(2 + i) for i in np.argsort(order)]  # the file lines in depth order
     assert "reordered 30" in fc.experiments[0].notes[-1] and fc.data_warnings == []
-    comp = {"scenario": "compression", "data": {"format": "instron", "path": "EF10_50T_A1.csv", "sort": True}}
-    with pytest.raises(ConfigError, match=r"data\.sort: only force-depth data"):
-        parse_config({**cfg, "experiment": [comp]}, base_dir=ROOT / "data" / "compression")
+    (tmp_path / "ref.vtu").write_text("")  # never read: the sort key is refused first
+    fem = {"scenario": "fem_field", "data": {"format": "fem", "path": "ref.vtu", "sort": True}, "prescribed": [{"set": "bottom"}]}
+    with pytest.raises(ConfigError, match=r"data\.sort: only force-depth \(indentation\) and compression data can be sorted"):
+        parse_config({**cfg, "experiment": [fem]}, base_dir=tmp_path)
 
 
 def test_depths_that_do_not_fit_the_indenter_warn_with_the_likely_unit_mistake(hertz_csv):
@@ -312,6 +313,85 @@ def test_depths_that_do_not_fit_the_indenter_warn_with_the_likely_unit_mistake(h
     with pytest.warns(ImplausibleUnitWarning, match=r"0\.0001 x the indenter radius 1 m .*most likely depths given in mm but declared as um"):
         fc = parse_config(cfg, base_dir=hertz_csv.parent)
     assert len(fc.data_warnings) == 1 and fc.data_warnings[0].startswith("experiment[0]: the deepest point 0.0001 m")
+
+
+# Compression data get the treatment of indentation data (issue 17): rows kept / left out and
+# why, unsorted rows refused or sorted, and plausibility warnings for a likely unit mistake.
+_EPS = np.linspace(0.02, 0.4, 20)
+_STRESS = 3.0e4 * (_EPS + 0.5 * _EPS**3)  # Pa
+
+
+def _compression_case(case):
+    """(column name -> values as written, column specs, extra data keys)."""
+    perm = np.random.default_rng(0).permutation(_EPS.size)
+    fraction = {"strain": {"name": "strain", "unit": "-"}, "stress": {"name": "stress", "unit": "Pa"}}
+    return {
+        "clean": ({"strain": _EPS, "stress": _STRESS}, fraction, {}),
+        "unsorted": ({"strain": _EPS[perm], "stress": _STRESS[perm]}, fraction, {}),
+        "unsorted_sort_true": ({"strain": _EPS[perm], "stress": _STRESS[perm]}, fraction, {"sort": True}),
+        "loading_then_unloading": ({"strain": np.r_[_EPS, _EPS[::-1][1:]], "stress": np.r_[_STRESS, 0.7 * _STRESS[::-1][1:]]}, fraction, {}),
+        "precontact_rows": ({"strain": np.r_[-0.01, 0.0, _EPS], "stress": np.r_[0.0, 0.0, _STRESS]}, fraction, {}),
+        "strain_in_percent_declared_fraction": ({"strain": 100 * _EPS, "stress": _STRESS}, fraction, {}),
+        "fractions_declared_percent": ({"strain": _EPS, "stress": _STRESS}, {**fraction, "strain": {"name": "strain", "unit": "%"}}, {}),
+        "strain_beyond_0.9": ({"strain": np.linspace(0.05, 0.95, 20), "stress": _STRESS}, fraction, {}),
+        "displacement_beyond_height": ({"displacement": 30 * _EPS, "stress": _STRESS},  # mm; height 10 mm
+                                       {"displacement": {"name": "displacement", "unit": "mm"}, "stress": fraction["stress"]}, {"height": "10 mm"}),
+        "stress_kPa_declared_Pa_soft_gel": ({"strain": _EPS, "stress": _STRESS / 4e4}, fraction, {}),  # E = 0.75 Pa
+    }[case]
+
+
+# case, error (type, message) or None, text of the row record (provenance note), data warning
+COMPRESSION_INPUT = [
+    ("clean", None, "the fit uses 20 of the 20 rows loaded from curve.csv (every data row of the file)", None),
+    ("unsorted", ("NonMonotonicError", "experiment[0].data: the strain column is not a loading curve (nor loading then unloading): its rows are "
+                  "out of order at file lines"), None, None),
+    ("unsorted_sort_true", None, "reordered 20 (file lines [", None),
+    ("loading_then_unloading", None, "left out 19 (file lines [22, 23, 24, 25, 26, 27, ... (19 in all)]): after the largest strain (file line 21): "
+                                     "the unloading segment", None),
+    ("precontact_rows", None, "left out 2 (file lines [2, 3]): strain <= 0 (at or before the platen touches; the model needs strain > 0)", None),
+    ("strain_in_percent_declared_fraction", ("ImplausibleMagnitudeError", "above the plausible range"), None, None),
+    ("fractions_declared_percent", None, "uses 20 of the 20", "declared in % and its largest value is 0.4 % (a strain of 0.004): most likely fractions declared as percent"),
+    ("strain_beyond_0.9", None, "uses 20 of the 20", "the largest nominal compressive strain used is 0.95, beyond 0.9"),
+    ("displacement_beyond_height", ("ConfigError", "experiment[0].data: the largest nominal compressive strain used is 1.2 (>= 1: the platen would "
+                                    "pass through the specimen); the strain is displacement / height (displacement in mm, height 0.01 m)"), None, None),
+    ("stress_kPa_declared_Pa_soft_gel", None, "uses 20 of the 20", "outside the 1 Pa .. 1e+09 Pa of soft tissue: check the units of the stress"),
+]
+
+
+@pytest.mark.parametrize("case, error, note, warning", COMPRESSION_INPUT, ids=[c[0] for c in COMPRESSION_INPUT])
+def test_compression_rows_are_accounted_for_and_unit_mistakes_named(tmp_path, case, error, note, warning):
+    import warnings as _w
+
+    from difftissue.errors import ImplausibleUnitWarning
+
+    cols, specs, extra = _compression_case(case)
+    names = list(cols)
+    (tmp_path / "curve.csv").write_text(",".join(names) + "\n" + "".join(",".join(f"{cols[k][i]:.9g}" for k in names) + "\n" for i in range(len(cols[names[0]]))))
+    cfg = {"material": {"youngs_modulus": 1.0e4, "poisson_ratio": 0.45}, "fit": {"parameters": ["youngs_modulus"]},
+           "experiment": [{"name": "phantom", "scenario": "compression", "points": "all",
+                           "data": {"format": "table", "path": "curve.csv", "columns": specs, **extra}}]}
+    if error is not None:
+        with pytest.raises(DifftissueError) as err:
+            parse_config(cfg, base_dir=tmp_path)
+        assert type(err.value).__name__ == error[0] and error[1] in " ".join(str(err.value).split()), str(err.value)
+        return
+    with _w.catch_warnings(record=True) as caught:
+        _w.simplefilter("always")
+        fc = parse_config(cfg, base_dir=tmp_path)
+    implausible = [str(w.message) for w in caught if issubclass(w.category, ImplausibleUnitWarning)]
+    assert implausible == list(fc.data_warnings)
+    assert note in fc.experiments[0].notes[-1], fc.experiments[0].notes
+    prov = fc.data_provenance[0]
+    assert prov["experiment"] == "phantom" and prov["rows_loaded"] == len(cols[names[0]]) and prov["rows_used"] == len(prov["used"])
+    assert prov["rows_used"] + sum(len(st["rows"]) for st in prov["steps"] if st["action"] == "left out") == prov["rows_loaded"]
+    sc = fc.scenarios[0]
+    assert np.all(np.diff(sc.abscissa) > 0) and np.all(sc.abscissa > 0)
+    if warning is None:
+        assert fc.data_warnings == []
+        np.testing.assert_allclose(sc.abscissa, _EPS, rtol=1e-8)  # every case keeps exactly the loading rows with strain > 0
+        np.testing.assert_allclose(sc.observed, _STRESS, rtol=1e-8)
+    else:
+        assert len(fc.data_warnings) == 1 and warning in fc.data_warnings[0] and fc.data_warnings[0].startswith("experiment[0]: ")
 
 
 def _write(tmp_path, cfg, name="fit.toml"):
