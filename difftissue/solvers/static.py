@@ -111,14 +111,64 @@ def _element_data(model: ElasticModel, x, material):
     out = []
     for term in model.terms(material):
         k = term.nodes.shape[1]
-        if term.hessian is not None:
-            hess = jax.vmap(term.hessian)(x[term.nodes], *term.params)
-        else:
-            hess = jax.vmap(jax.hessian(term.energy))(x[term.nodes], *term.params)
-            hess = hess.reshape(hess.shape[0], 3 * k, 3 * k)
+        hess = _element_hessian(term, x[term.nodes], *term.params)
         dofs = (3 * jnp.asarray(term.nodes)[:, :, None] + jnp.arange(3)).reshape(-1, 3 * k)
         out.append((hess, dofs))
     return out
+
+
+#: Element Hessians are computed and scattered into the block-ELL matrix in chunks of at most
+#: this many elements per term (a ``fori_loop``), so the peak memory of an assembly is one
+#: chunk's Hessians and their intermediates instead of the whole mesh's (1M unknowns: ~1.5M tets).
+ASSEMBLY_CHUNK = 65_536
+
+
+def _element_hessian(term, xe, *params):
+    """``(E, 3k, 3k)`` Hessians of ``term``'s elements at positions ``xe (E, k, 3)``."""
+    k = xe.shape[1]
+    if term.hessian is not None:
+        return jax.vmap(term.hessian)(xe, *params)
+    hess = jax.vmap(jax.hessian(term.energy))(xe, *params)
+    return hess.reshape(hess.shape[0], 3 * k, 3 * k)
+
+
+def _assemble_ell(layout, model: ElasticModel, x, material, free_dofs, *, chunk: int | None = None) -> BlockEllMatrix:
+    """The block-ELL matrix ``P H P + (I - P)`` at positions ``x`` (``free_dofs`` ``(3N,)``
+    floats), the element Hessians computed and scattered ``chunk`` elements at a time
+    (default :data:`ASSEMBLY_CHUNK`; a term with fewer elements in one go)."""
+    chunk = ASSEMBLY_CHUNK if chunk is None else int(chunk)
+    terms = model.terms(material)
+    small = [(_element_hessian(t, x[t.nodes], *t.params), (3 * jnp.asarray(t.nodes)[:, :, None] + jnp.arange(3)).reshape(-1, 3 * t.nodes.shape[1])) for t in terms if t.nodes.shape[0] <= chunk]
+    if len(small) == len(terms):
+        return layout.assemble(small, free_dofs)
+    P = free_dofs
+    n, w = layout.cols.shape
+    flat = jnp.zeros((n * w, 3, 3), dtype=P.dtype)
+    for term, slots in zip(terms, layout.term_slots):
+        nodes = np.asarray(term.nodes)
+        E, k = nodes.shape
+        m = -(-E // chunk)
+        pad = m * chunk - E
+        # Padding elements repeat element 0 with zero weight.
+        idx = np.concatenate([np.arange(E), np.zeros(pad, dtype=np.int64)]).reshape(m, chunk)
+        weight = jnp.asarray((np.arange(m * chunk) < E).reshape(m, chunk), dtype=P.dtype)
+        slot_rows = np.asarray(slots).reshape(E, k * k)[idx]
+        node_rows = nodes[idx]
+
+        def body(i, flat, term=term, node_rows=node_rows, slot_rows=slot_rows, idx=idx, weight=weight, k=k):
+            nd = jnp.asarray(node_rows)[i]
+            params = [jnp.asarray(p)[jnp.asarray(idx)[i]] for p in term.params]
+            hess = _element_hessian(term, x[nd], *params)
+            dofs = (3 * nd[:, :, None] + jnp.arange(3)).reshape(chunk, 3 * k)
+            Pd = P[dofs] * weight[i][:, None]
+            masked = hess * Pd[:, :, None] * P[dofs][:, None, :]
+            blocks = masked.reshape(chunk, k, 3, k, 3).transpose(0, 1, 3, 2, 4).reshape(chunk * k * k, 3, 3)
+            return flat.at[jnp.asarray(slot_rows)[i].reshape(-1)].add(blocks)
+
+        flat = jax.lax.fori_loop(0, m, body, flat)
+    fixed = (1.0 - P).reshape(n, 3)
+    flat = flat.at[layout.diagonal_slots].add(fixed[:, :, None] * jnp.eye(3, dtype=P.dtype))
+    return BlockEllMatrix.from_blocks(flat.reshape(n, w, 3, 3), layout.cols)
 
 
 def element_hessian_operator(model: ElasticModel, x, material):
@@ -195,7 +245,7 @@ def _projected_operator(model, u, material, free, options: _Options, *, tangent:
     solver = PreconditionedCG(rtol=options.cg_rtol, max_steps=options.cg_max_steps, failure_rtol=TANGENT_CG_FAILURE if tangent else NEWTON_CG_FAILURE)
     if options.linear_solver == "multigrid":
         Pf = P.astype(x.dtype)
-        ell = options.layout.assemble(_element_data(model, x, material), Pf)
+        ell = _assemble_ell(options.layout, model, x, material, Pf)
         op = lx.FunctionLinearOperator(ell.mv, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
         return op, solver, {"preconditioner": MultigridPreconditioner.build(ell, options.hierarchy, Pf)}
     matvec, diag = element_hessian_operator(model, x, material)
@@ -576,7 +626,7 @@ def _reference_matrix(model, material, layout, free):
     def assemble(dynamic):
         model, layout, free = eqx.combine(dynamic, static)
         x = jnp.asarray(model.rest_points, dtype=free.dtype)
-        return layout.assemble(_element_data(model, x, material), free).data
+        return _assemble_ell(layout, model, x, material, free).data
 
     data = np.asarray(jax.jit(assemble).lower(dynamic).compile()(dynamic))
     if not np.all(np.isfinite(data)):
