@@ -247,8 +247,13 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = 
                               "use constraints='fem' (approximate) for other meshes")
         from .models import SpringVolumeModel
 
+        from .errors import ModelError
+
         model = SpringVolumeModel(mesh)
-        k, _ = model.spring_constants(card.material().replace(pre_stretch=1.0))  # pre-stretch is dropped (noted) for this target
+        try:
+            k, _ = model.spring_constants(card.material().replace(pre_stretch=1.0))  # pre-stretch is dropped (noted) for this target
+        except ModelError as e:
+            raise ExportError(f"pypbd: the scene is difftissue's spring lattice, which this mesh cannot carry: {e}") from None
         k = np.asarray(k, dtype=float)
         scene["distance_constraints"] = {"pairs": np.asarray(model.springs).tolist(), "stiffness": k.tolist(),
                                          "call": "addDistanceConstraint_XPBD(i, j, stiffness)", "unit": "N/m"}
