@@ -898,7 +898,8 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--unit", choices=_UNITS, default="mm", help="length unit of --specimen and --displacement (default mm); files are in metres")
     x.add_argument("--dt", type=float, default=None, help="time step [s] (xpbd: required; pbd: default 1/60)")
     x.add_argument("--iterations", type=int, default=None, help="iterations per substep (xpbd: required, recorded with the compliances; pbd: default 10)")
-    x.add_argument("--substeps", type=int, default=1, help="XPBD substeps per time step (default 1)")
+    x.add_argument("--substeps", type=int, default=None, help="XPBD substeps per time step (default 1; pbd: chosen with dt and "
+                   "iterations when none of the three is given)")
     x.add_argument("--constraints", choices=("xpbd", "fem"), default="xpbd",
                    help="pbd only: XPBD distance + volume constraints (default) or pypbd's PBD FEMTetConstraint (needs --approximate)")
     x.add_argument("--element", choices=("C3D4", "C3D4H", "C3D10", "C3D10H"), default="C3D4",

@@ -964,14 +964,55 @@ def recalibrated_card(card, spec: FittedSpecimen, law: str, *, approximate: bool
     return MaterialCard(model=LAW_MODELS[law], parameters=params, name=card.name, provenance=prov)
 
 
-_REFUSED = {
-    "pbd": ("pypbd fitted specimen: a pypbd scene holds fixed particles and one moved set, not per-node prescribed displacements, "
-            "region materials or a pre-stretch; export to febio, abaqus, xpbd or vtu"),
-}
+_REFUSED: dict[str, str] = {}
+_PBD_WHY = ("a pypbd scene holds fixed particles and one moved set (a particle is static, all components, or free), not per-node "
+            "prescribed displacements, region materials or a pre-stretch")
+
+
+def _write_fitted_pbd(card, path, spec: FittedSpecimen, *, approximate: bool, force: bool, dt, iterations, substeps) -> Path:
+    """pypbd scene of a fitted compression with bonded platens on a block (the only fitted experiment
+    a pypbd scene can hold), recalibrated for its budget on the protocol's strains
+    (:func:`difftissue.pbd.pbd_scene`, :mod:`difftissue.export_budget`)."""
+    from .errors import ModelError
+    from .export import _specimen_sets, _write_text
+    from .pbd import pbd_scene
+    from .scenarios import recover_lattice
+
+    if spec.experiment != "compression":
+        raise ExportError(f"pypbd fitted specimen ({spec.experiment}): {_PBD_WHY}; export to febio, abaqus, xpbd or vtu "
+                          "(pypbd takes a fitted compression with bonded platens, or --specimen indentation with a bonded flat punch)")
+    if spec.protocol["platens"] != "bonded":
+        raise ExportError(f"pypbd fitted compression {spec.scenario!r}: frictionless platens hold u_z only, and a pypbd particle is "
+                          "either static (all components) or free, so the platens cannot be written; export to febio, abaqus, "
+                          "xpbd or vtu")
+    if spec.region_materials:
+        raise ExportError(f"pypbd fitted compression {spec.scenario!r}: {_PBD_WHY}")
+    try:
+        mesh = recover_lattice(spec.mesh())
+    except ModelError as e:
+        raise ExportError(f"pypbd fitted compression {spec.scenario!r}: the pypbd scene is difftissue's spring lattice, which needs a "
+                          f"structured block ({e}); a cylinder cannot be written; export to febio, abaqus, xpbd or vtu") from None
+    base, top, _ = _specimen_sets(mesh)
+    want = np.zeros_like(spec.fixed)
+    want[base] = True
+    want[top] = True
+    if not np.array_equal(want, spec.fixed) or not np.allclose(spec.prescribed[top], [0.0, 0.0, spec.protocol["top_displacement"]]):
+        raise ExportError(f"pypbd fitted compression {spec.scenario!r}: the specimen's held components are not the bonded base and "
+                          "top faces of the block; " + _PBD_WHY)
+    fr = [float(v) for v in (np.asarray(spec.protocol["nominal_strains"], dtype=float) / spec.protocol["nominal_strains"][-1])]
+    if len(fr) > 4:
+        fr = _recalibration_fractions(spec)
+    scene = pbd_scene(card, mesh, dt=dt, iterations=iterations, substeps=substeps, approximate=approximate,
+                      displacement=float(spec.protocol["top_displacement"]), load_fractions=fr)
+    scene["header"] = scene["header"] + spec.describe()
+    scene["fitted_specimen"] = {"scenario": spec.scenario, "experiment": spec.experiment, "protocol": dict(spec.protocol),
+                                "note": "the protocol's strains are the load fractions of budget_calibration (nominal strain = "
+                                        "fraction x the last); engineering stress = reaction / protocol.area"}
+    return _write_text(path, json.dumps(scene, indent=1, allow_nan=False) + "\n", force)
 
 
 def write_fitted(card, to: str, path, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False,
-                 force: bool = False, dt: float | None = None, iterations: int | None = None, substeps: int = 1,
+                 force: bool = False, dt: float | None = None, iterations: int | None = None, substeps: int | None = None,
                  element: str = "C3D4") -> Path:
     """Write the complete model of the fitted specimen ``spec`` for target ``to``.
 
@@ -981,6 +1022,9 @@ def write_fitted(card, to: str, path, spec: FittedSpecimen, *, law: str | None =
     ``approximate``, which writes the card's values with the measured error noted."""
     from .export import TARGETS, _write_text, _xml_text
 
+    if to == "pbd":
+        return _write_fitted_pbd(card, path, spec, approximate=approximate, force=force, dt=dt, iterations=iterations,
+                                 substeps=substeps)
     if to in _REFUSED:
         raise ExportError(_REFUSED[to])
     if law == "springs":
@@ -1000,7 +1044,8 @@ def write_fitted(card, to: str, path, spec: FittedSpecimen, *, law: str | None =
     if to == "xpbd":
         if dt is None or iterations is None:
             raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")
-        doc = xpbd_fitted_parameters(card, spec, dt=dt, iterations=iterations, substeps=substeps, approximate=approximate)
+        doc = xpbd_fitted_parameters(card, spec, dt=dt, iterations=iterations, substeps=1 if substeps is None else substeps,
+                                     approximate=approximate)
         return _write_text(path, json.dumps(doc, indent=2, allow_nan=False) + "\n", force)
     if to == "vtu":
         from .mesh import write_mesh

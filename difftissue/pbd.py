@@ -60,6 +60,9 @@ __all__ = [
     "scene_forces",
     "scene_energy",
     "pbd_reference_model",
+    "scaled_scene",
+    "run_pbd_budget",
+    "PBDBudgetRun",
 ]
 
 #: Value of the ``"format"`` key of a scene file.
@@ -85,8 +88,13 @@ def _lumped_masses(points, tets, density) -> np.ndarray:
     return m
 
 
-def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 60.0, substeps: int = 1,
-              iterations: int = 10, approximate: bool = False, displacement: float | None = None, indentation=None) -> dict:
+#: The budget written when the user pins none: (dt [s], substeps, iterations).
+DEFAULT_BUDGET = (1.0 / 60.0, 1, 10)
+
+
+def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = None, substeps: int | None = None,
+              iterations: int | None = None, approximate: bool = False, displacement: float | None = None, indentation=None,
+              calibrate: bool = True, load_fractions=None) -> dict:
     """A pypbd scene for ``card`` (a :class:`~difftissue.export.MaterialCard`) as a JSON-ready dict.
 
     ``constraints="xpbd"`` (default): difftissue's spring lattice as XPBD distance constraints
@@ -126,6 +134,10 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 6
     """
     from .export import _approximations, _default_displacement, _finite, _header_lines, _specimen_sets
 
+    pinned = dt is not None or substeps is not None or iterations is not None
+    dt = DEFAULT_BUDGET[0] if dt is None else dt
+    substeps = DEFAULT_BUDGET[1] if substeps is None else substeps
+    iterations = DEFAULT_BUDGET[2] if iterations is None else iterations
     if constraints not in _CONSTRAINTS:
         raise ExportError(f"constraints = {constraints!r}: expected one of {list(_CONSTRAINTS)}")
     dt = _finite(dt, "dt")
@@ -235,8 +247,13 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 6
                               "use constraints='fem' (approximate) for other meshes")
         from .models import SpringVolumeModel
 
+        from .errors import ModelError
+
         model = SpringVolumeModel(mesh)
-        k, _ = model.spring_constants(card.material().replace(pre_stretch=1.0))  # pre-stretch is dropped (noted) for this target
+        try:
+            k, _ = model.spring_constants(card.material().replace(pre_stretch=1.0))  # pre-stretch is dropped (noted) for this target
+        except ModelError as e:
+            raise ExportError(f"pypbd: the scene is difftissue's spring lattice, which this mesh cannot carry: {e}") from None
         k = np.asarray(k, dtype=float)
         scene["distance_constraints"] = {"pairs": np.asarray(model.springs).tolist(), "stiffness": k.tolist(),
                                          "call": "addDistanceConstraint_XPBD(i, j, stiffness)", "unit": "N/m"}
@@ -250,18 +267,79 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float = 1.0 / 6
     else:
         scene["fem_constraints"] = {"tets": tets.tolist(), "youngs_modulus": E, "poisson_ratio": nu,
                                     "call": "addFEMTetConstraint(a, b, c, d, youngs_modulus, poisson_ratio)"}
+    if constraints == "xpbd":
+        if load_fractions is None:
+            load_fractions = _default_fractions(indentation)
+        scene = _calibrate_budget(scene, card, mesh, base, top, np.asarray(dvec, dtype=float), load_fractions,
+                                  pinned=pinned, approximate=approximate, calibrate=calibrate)
     return scene
 
 
-def write_pbd(card, path, *, mesh=None, constraints: str = "xpbd", dt: float = 1.0 / 60.0, substeps: int = 1,
-              iterations: int = 10, approximate: bool = False, displacement: float | None = None, force: bool = False,
-              indentation=None) -> Path:
+def _default_fractions(indentation) -> list[float]:
+    """Load fractions a scene is calibrated on: the indentation's depth steps (up to
+    :data:`~difftissue.export_budget.BUDGET_STATES`), else 1/4, 1/2, 3/4, 1 of the displacement."""
+    from .export_budget import load_fractions
+
+    return load_fractions(indentation.steps if indentation is not None else 4)
+
+
+def _calibrate_budget(scene, card, mesh, base, moved, dvec, fractions, *, pinned, approximate, calibrate):
+    """Recalibrate ``scene``'s stiffnesses at its budget on its specimen (:mod:`difftissue.export_budget`)."""
+    from .export_budget import card_reference_reactions, pbd_budget_calibration
+
+    st = scene["setting"]
+    if not calibrate:
+        scene["notes"].append(f"NOT calibrated for the budget (calibrate=False): the stiffnesses are the card's converged-limit "
+                              f"values; at dt = {st['dt']:.6g} s, {st['iterations']} iterations pypbd's rest state differs from the "
+                              "card's fitted response (run_pbd_budget measures it)")
+        return scene
+    n = len(scene["particles"]["positions"])
+    fixed = np.zeros((n, 3), dtype=bool)
+    fixed[np.asarray(base)] = True
+    fixed[np.asarray(moved)] = True
+    presc = np.zeros((n, 3))
+    presc[np.asarray(moved)] = dvec
+    observe = np.zeros((n, 3), dtype=bool)
+    observe[np.asarray(moved)] = True
+    try:
+        ref = card_reference_reactions(card, mesh, fixed, presc, observe, fractions)
+    except ExportError as e:
+        if not approximate:
+            raise ExportError(f"pypbd: {e}; pass approximate=True (--approximate) to write the card's converged-limit stiffnesses "
+                              "(the error at the budget unmeasured)") from None
+        scene["notes"].append(f"APPROXIMATION: not calibrated for the budget: {e}")
+        return scene
+    try:
+        scene, rec = pbd_budget_calibration(scene, ref, fractions, pinned=pinned, approximate=approximate)
+    except ExportError as e:
+        if approximate and "not installed" in str(e):
+            scene["notes"].append("APPROXIMATION: not calibrated for the budget (pypbd not installed here): the stiffnesses are the "
+                                  "card's converged-limit values and the error at the budget was not measured")
+            return scene
+        raise
+    rec["reference_model"] = card.model
+    st = scene["setting"]
+    fmt = lambda a: ", ".join(f"{100 * v:+.3g} %" for v in a)  # noqa: E731
+    scene["budget_calibration"] = rec
+    scene["notes"].append(
+        f"RECALIBRATED for the budget dt = {st['dt']:.6g} s, substeps = {st['substeps']}, iterations = {st['iterations']} "
+        f"({rec['budget']}): every constraint stiffness = {rec['factor']:.6g} x the card's lattice value, so that pypbd's rest "
+        f"state on this specimen (load fractions {[round(f, 4) for f in fractions]}) reproduces the card's {card.model} reactions "
+        f"{fmt(rec['signed_error_after'])} (the card's values would give {fmt(rec['signed_error_before'])}); valid for this "
+        "budget, mesh and loading only; gravity not included (pypbd applies it: the specimen's weight adds to the load)")
+    return scene
+
+
+def write_pbd(card, path, *, mesh=None, constraints: str = "xpbd", dt: float | None = None, substeps: int | None = None,
+              iterations: int | None = None, approximate: bool = False, displacement: float | None = None, force: bool = False,
+              indentation=None, calibrate: bool = True, load_fractions=None) -> Path:
     """Write :func:`pbd_scene` as JSON (``"format": "difftissue-pbd/1"``); load it with
     :func:`read_pbd_scene` and :func:`pbd_simulation_from_scene`."""
     from .export import _write_text
 
     scene = pbd_scene(card, mesh, constraints=constraints, dt=dt, substeps=substeps, iterations=iterations,
-                      approximate=approximate, displacement=displacement, indentation=indentation)
+                      approximate=approximate, displacement=displacement, indentation=indentation, calibrate=calibrate,
+                      load_fractions=load_fractions)
     return _write_text(path, json.dumps(scene, indent=1, allow_nan=False) + "\n", force)
 
 
@@ -498,6 +576,111 @@ def run_pbd_scene(scene: dict, *, dt: float | None = None, iterations: int = 20,
     x = np.array([pd.getPosition(i) for i in range(len(pts))])
     return PBDRun(positions=x, displacement=x - pts, reaction=reaction, residual=residual, steps=steps,
                   converged=converged, dt=float(dt), iterations=int(iterations))
+
+
+# ============================================================================ written budget
+def scaled_scene(scene: dict, factor: float) -> dict:
+    """A copy of ``scene`` with every distance and volume constraint stiffness multiplied by
+    ``factor`` (> 0): the energy scales by ``factor``, the ratio of the two constraint kinds
+    (the lattice's nu) is kept."""
+    factor = float(factor)
+    if not (math.isfinite(factor) and factor > 0):
+        raise ExportError(f"stiffness factor {factor!r} must be finite and > 0")
+    out = dict(scene)
+    for key in ("distance_constraints", "volume_constraints"):
+        if key in out:
+            out[key] = {**out[key], "stiffness": (np.asarray(out[key]["stiffness"], dtype=float) * factor).tolist()}
+    return out
+
+
+@dataclasses.dataclass
+class PBDBudgetRun:
+    """Result of :func:`run_pbd_budget`.
+
+    Attributes:
+        fractions: load fractions run (the moved particles at ``fraction * displacement``).
+        reactions: ``(len(fractions),)`` [N]: the summed reaction on the moved particles along the
+            boundary displacement ``d``, ``sum_i dU/dx_i . d / |d|`` (positive when the specimen
+            resists the motion; ``U`` the scene energy, :func:`scene_forces`: pypbd itself reports
+            no forces, so the force is the scene energy's at the positions pypbd reached).
+        positions: ``(len(fractions), N, 3)`` [m] rest states reached.
+        steps: pypbd steps taken per fraction; converged: whether each came to rest.
+        dt, substeps, iterations: the budget run (``substeps`` substeps of ``dt / substeps``).
+    """
+
+    fractions: np.ndarray
+    reactions: np.ndarray
+    positions: np.ndarray
+    steps: np.ndarray
+    converged: np.ndarray
+    dt: float
+    substeps: int
+    iterations: int
+
+
+def run_pbd_budget(scene: dict, fractions=(1.0,), *, tol: float = 1e-7, max_steps: int = 20_000) -> PBDBudgetRun:
+    """Run ``scene`` in pypbd **at its written budget** (``setting``: ``dt``, ``substeps``,
+    ``iterations``) to the state it comes to rest in, at each load fraction in turn.
+
+    This is the state a real-time pypbd loop with that budget settles to once the motion has
+    died out (pypbd resets the XPBD multipliers every step and runs a fixed number of
+    iterations, so this is the fixed point of one step, not the energy minimum that
+    :func:`run_pbd_scene` drives to): before every step each free particle gets the velocity
+    ``-g h`` (the semi-implicit Euler predictor then returns it to where it is: no inertia,
+    no gravity), and the run stops when no particle moves by more than ``tol`` times the
+    largest prescribed displacement in a step. A step of ``substeps`` substeps is run as
+    ``substeps`` pypbd steps of ``h = dt / substeps`` with one substep each (pypbd's substep
+    is a full semi-implicit Euler + projection of size ``h``; with the velocities zeroed the
+    two have the same rest states, and only this way is gravity cancelled in every substep).
+    The moved particles jump to each fraction's position (the fractions in the given order).
+    """
+    _need_pypbd()
+    pts, masses, tets = _scene_arrays(scene)
+    if "fem_constraints" in scene:
+        raise ExportError("run_pbd_budget: a PBD FEM scene has no energy to read a reaction from (module notes)")
+    st = scene.get("setting", {})
+    dt, substeps, iterations = float(st["dt"]), int(st["substeps"]), int(st["iterations"])
+    h = dt / substeps
+    sim, model = pbd_simulation_from_scene(scene, dt=h, iterations=iterations, substeps=1)
+    ts = sim.getTimeStep()
+    pd = model.getParticles()
+    g = np.asarray(scene.get("gravity", PYPBD_GRAVITY), dtype=float)
+    bnd = scene.get("boundary", {})
+    moved = np.asarray(bnd.get("moved", []), dtype=np.int64)
+    dvec = np.asarray(bnd.get("displacement", [0.0, 0.0, 0.0]), dtype=float)
+    if moved.size == 0 or not np.any(dvec):
+        raise ExportError("run_pbd_budget: the scene moves no particles (boundary.moved / displacement): no reaction to measure")
+    direction = dvec / np.linalg.norm(dvec)
+    dyn = np.flatnonzero(masses > 0)
+    v_pre = -g * h
+    x = pts.copy()
+    R, X, S, C = [], [], [], []
+    for f in np.asarray(fractions, dtype=float):
+        for i in moved:
+            pd.setPosition(int(i), pts[i] + f * dvec)
+        x[moved] = pts[moved] + f * dvec
+        limit = tol * max(abs(f) * float(np.max(np.abs(dvec))), 1e-300)
+        n, ok = 0, False
+        while n < max_steps:
+            for i in dyn:
+                pd.setVelocity(int(i), v_pre)
+            ts.step(model)
+            n += 1
+            xn = np.array([pd.getPosition(i) for i in range(len(pts))])
+            change = float(np.max(np.abs(xn - x)))
+            x = xn
+            if not np.all(np.isfinite(x)):
+                break
+            if change <= limit:
+                ok = True
+                break
+        grad = scene_forces(scene, x) if np.all(np.isfinite(x)) else np.full_like(x, np.nan)
+        R.append(float(np.sum(grad[moved] @ direction)))
+        X.append(x.copy())
+        S.append(n)
+        C.append(ok)
+    return PBDBudgetRun(fractions=np.asarray(fractions, dtype=float), reactions=np.asarray(R), positions=np.asarray(X),
+                        steps=np.asarray(S), converged=np.asarray(C), dt=dt, substeps=substeps, iterations=iterations)
 
 
 # ============================================================================ reference

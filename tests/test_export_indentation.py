@@ -346,7 +346,9 @@ def test_pypbd_flat_punch_round_trip(tmp_path):
 
     card = _card(tmp_path, model="springs_volume", nu=0.45)
     spec = _punch(card, radius=3.0e-3, cells=(4, 4, 2))  # 2.5 mm cubes, punch = 5 nodes
-    path = export(card, "pbd", tmp_path / "punch.json", indentation=spec)
+    from difftissue.pbd import write_pbd
+
+    path = write_pbd(card, tmp_path / "punch.json", indentation=spec, calibrate=False)  # the card's own lattice energy
     scene = read_pbd_scene(path)
     mesh = spec.mesh()
     s = indentation_sets(spec, mesh, card)
@@ -376,7 +378,7 @@ def test_xpbd_json_flat_punch_runs_to_the_static_force(tmp_path):
     stable neo-Hookean punch force on the same mesh."""
     card = _card(tmp_path, model="stable_neo_hookean")
     spec = _punch(card, radius=3.0e-3, cells=(4, 4, 2), steps=1)
-    doc = json.loads(export(card, "xpbd", tmp_path / "x.json", indentation=spec, dt=2e-4, iterations=10).read_text())
+    doc = xpbd_parameters(card, dt=2e-4, iterations=10, indentation=spec, calibrate=False)  # the card's own compliances
     run = run_xpbd_indentation(doc, tol=1e-10, max_steps=5000)
     sc = Indentation(spec.mesh(), [DEPTH], model="stable_neo_hookean", indenter="flat_punch", radius=3.0e-3, bonded_punch=True)
     f_ref = float(np.asarray(sc.predict(card.material()))[0])

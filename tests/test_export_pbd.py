@@ -71,8 +71,8 @@ def test_pbd_round_trip_static_response(tmp_path):
     z = np.asarray(mesh.points)[:, 2]
     bottom, top = np.flatnonzero(np.isclose(z, z.min())), np.flatnonzero(np.isclose(z, z.max()))
     u_top = -1.0e-4  # m, 1 % compression
-    comp_path = write_pbd(card, tmp_path / "compression.json", mesh=mesh, displacement=u_top)
-    weight_path = write_pbd(card, tmp_path / "weight.json", mesh=mesh, displacement=0.0)
+    comp_path = write_pbd(card, tmp_path / "compression.json", mesh=mesh, displacement=u_top, calibrate=False)
+    weight_path = write_pbd(card, tmp_path / "weight.json", mesh=mesh, displacement=0.0, calibrate=False)
     runs = _run_files(tmp_path, {"c": (comp_path, {}), "w": (weight_path, {"gravity": True})})
     comp, weight = runs["c"], runs["w"]
     scene = read_pbd_scene(comp_path)
@@ -174,7 +174,7 @@ def test_scene_energy_gradient_and_reference_model(tmp_path):
     difftissue's pbd_reference_model energy, at a random deformed state."""
     card = _card(tmp_path)
     mesh = block((0.01, 0.01, 0.01), (2, 2, 2))
-    scene = pbd_scene(card, mesh)
+    scene = pbd_scene(card, mesh, calibrate=False)
     rng = np.random.default_rng(0)
     x = np.asarray(mesh.points) + 3e-4 * rng.standard_normal(np.asarray(mesh.points).shape)
     g = scene_forces(scene, x)
@@ -199,14 +199,16 @@ def test_pbd_scene_contents(tmp_path):
     scene = read_pbd_scene(path)
     assert scene["format"] == "difftissue-pbd/1" and scene["constraints"] == "xpbd"
     assert scene["setting"] == {"dt": 1e-3, "substeps": 1, "iterations": 7}
+    c = scene["budget_calibration"]["factor"]  # the budget recalibration scales every stiffness by one factor
+    assert scene["budget_calibration"]["budget"] == "written as given" and 0.3 < c < 3.0
     mu, lam = card.shear_modulus, card.lame_lambda
     model = make_model(mesh, "springs_volume")
     k, _ = model.spring_constants(card.material())
-    np.testing.assert_allclose(scene["distance_constraints"]["stiffness"], np.asarray(k), rtol=1e-14)
+    np.testing.assert_allclose(scene["distance_constraints"]["stiffness"], c * np.asarray(k), rtol=1e-14)
     v0 = np.asarray(model.tet_volumes)
     kv = np.asarray(scene["volume_constraints"]["stiffness"])
-    np.testing.assert_allclose(kv, (lam - mu) / (6 * v0), rtol=1e-14)
-    np.testing.assert_allclose(6 * kv * v0 + mu, lam, rtol=1e-12)  # inverse: lambda = 6 k V0 + mu
+    np.testing.assert_allclose(kv, c * (lam - mu) / (6 * v0), rtol=1e-14)
+    np.testing.assert_allclose(6 * kv * v0 / c + mu, lam, rtol=1e-12)  # inverse: lambda = 6 k V0 / c + mu
     m = np.asarray(scene["particles"]["masses"])
     fixed, moved = scene["boundary"]["fixed"], scene["boundary"]["moved"]
     assert np.all(m[fixed] == 0) and np.all(m[moved] == 0)
@@ -226,7 +228,7 @@ def test_pbd_refusals(tmp_path):
     mesh = block((0.01, 0.01, 0.01), (2, 2, 2))
     with pytest.raises(ExportError, match="cubic_coefficient"):
         pbd_scene(_card(tmp_path, cubic_coefficient=2.0), mesh)
-    s = pbd_scene(_card(tmp_path, cubic_coefficient=2.0), mesh, approximate=True)
+    s = pbd_scene(_card(tmp_path, cubic_coefficient=2.0), mesh, approximate=True, calibrate=False)
     assert any("APPROXIMATION" in n for n in s["notes"])
     low_nu = MaterialCard(model="springs_volume", parameters={"youngs_modulus": {"value": E}, "poisson_ratio": {"value": 0.2}})
     with pytest.raises(ExportError, match="0.25"):
@@ -239,7 +241,7 @@ def test_pbd_refusals(tmp_path):
         pbd_scene(_card(tmp_path), mesh, constraints="springs")
     with pytest.raises(ExportError, match="iterations"):
         pbd_scene(_card(tmp_path), mesh, iterations=0)
-    neo = pbd_scene(_card(tmp_path, model="fem_neo_hookean"), mesh)
+    neo = pbd_scene(_card(tmp_path, model="fem_neo_hookean"), mesh, calibrate=False)
     assert any("finite strain" in n for n in neo["notes"])
     with pytest.raises(ExportError, match="difftissue-pbd"):
         (tmp_path / "x.json").write_text('{"format": "other"}')
