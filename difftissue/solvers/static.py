@@ -145,25 +145,25 @@ def _assemble_ell(layout, model: ElasticModel, x, material, free_dofs, *, chunk:
     n, w = layout.cols.shape
     flat = jnp.zeros((n * w, 3, 3), dtype=P.dtype)
     for term, slots in zip(terms, layout.term_slots):
-        nodes = np.asarray(term.nodes)
-        E, k = nodes.shape
+        E, k = term.nodes.shape
         m = -(-E // chunk)
         pad = m * chunk - E
-        # Padding elements repeat element 0 with zero weight.
-        idx = np.concatenate([np.arange(E), np.zeros(pad, dtype=np.int64)]).reshape(m, chunk)
+        # Padding elements repeat element 0 with zero weight. (Only shapes are used here: the
+        # node arrays may be traced, e.g. in the reference assembly.)
+        idx = jnp.asarray(np.concatenate([np.arange(E), np.zeros(pad, dtype=np.int64)]).reshape(m, chunk))
         weight = jnp.asarray((np.arange(m * chunk) < E).reshape(m, chunk), dtype=P.dtype)
-        slot_rows = np.asarray(slots).reshape(E, k * k)[idx]
-        node_rows = nodes[idx]
+        slot_rows = jnp.asarray(slots).reshape(E, k * k)[idx]
+        node_rows = jnp.asarray(term.nodes)[idx]
 
         def body(i, flat, term=term, node_rows=node_rows, slot_rows=slot_rows, idx=idx, weight=weight, k=k):
-            nd = jnp.asarray(node_rows)[i]
-            params = [jnp.asarray(p)[jnp.asarray(idx)[i]] for p in term.params]
+            nd = node_rows[i]
+            params = [jnp.asarray(p)[idx[i]] for p in term.params]
             hess = _element_hessian(term, x[nd], *params)
             dofs = (3 * nd[:, :, None] + jnp.arange(3)).reshape(chunk, 3 * k)
             Pd = P[dofs] * weight[i][:, None]
             masked = hess * Pd[:, :, None] * P[dofs][:, None, :]
             blocks = masked.reshape(chunk, k, 3, k, 3).transpose(0, 1, 3, 2, 4).reshape(chunk * k * k, 3, 3)
-            return flat.at[jnp.asarray(slot_rows)[i].reshape(-1)].add(blocks)
+            return flat.at[slot_rows[i].reshape(-1)].add(blocks)
 
         flat = jax.lax.fori_loop(0, m, body, flat)
     fixed = (1.0 - P).reshape(n, 3)
