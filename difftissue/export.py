@@ -1596,6 +1596,14 @@ def _ind_check(spec, target: str, *, cone: bool = True, sphere: bool = True, sli
                           f"written: {target} prescribes all three components of moved nodes; use bonded_punch=True (--bonded-punch)")
 
 
+def _indentation_card(card: MaterialCard, spec, law: str | None, approximate: bool) -> MaterialCard:
+    """A lattice card recalibrated on its fitted indentation for a continuum target
+    (:func:`~difftissue.export_indentation.indentation_card`)."""
+    from .export_indentation import indentation_card
+
+    return indentation_card(card, spec, law, approximate=approximate)
+
+
 FEBIO_INDENTER_MATERIAL = "rigid_indenter"
 
 
@@ -1705,6 +1713,7 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
     from .export_indentation import indentation_sets
 
     _ind_check(spec, "FEBio")
+    card = _indentation_card(card, spec, law, approximate)
     contact = spec.indenter in ("sphere", "cone")
     if contact and card.name == FEBIO_INDENTER_MATERIAL:
         raise ExportError(f"FEBio indentation specimen: the card's name {card.name!r} is the indenter's rigid material name; "
@@ -1909,6 +1918,7 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
     from .export_indentation import indentation_sets
 
     _ind_check(spec, "Abaqus")
+    card = _indentation_card(card, spec, law, approximate)
     mesh = spec.mesh()
     s = indentation_sets(spec, mesh, card)
     law = _law(card, law)
@@ -2019,6 +2029,7 @@ def sofa_indentation_scene(card: MaterialCard, spec, *, law: str | None = None, 
     from .export_indentation import indentation_sets
 
     _ind_check(spec, "SOFA", cone=False, sliding=False, frictionless_punch=False)
+    card = _indentation_card(card, spec, law, approximate)
     mesh = spec.mesh()
     s = indentation_sets(spec, mesh, card)
     law = _law(card, law)
