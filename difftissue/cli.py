@@ -891,7 +891,8 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--cells", default=None, metavar="NX,NY,NZ", help="indentation: uniform cells of the block (default: graded cells resolving the contact, see docs/export.md)")
     x.add_argument("--base", choices=("bonded", "sliding"), default=None, help="indentation: base condition (default: the record's, else bonded)")
     x.add_argument("--bonded-punch", action="store_true", help="indentation: flat punch face bonded (x, y held) instead of frictionless (default: the record's, else frictionless)")
-    x.add_argument("--penalty", type=float, default=100.0, help="indentation: difftissue's contact penalty factor (default 100)")
+    x.add_argument("--penalty", type=float, default=None,
+                   help="indentation: difftissue's contact penalty factor (default: the card's record, else 100)")
     x.add_argument("--steps", type=int, default=10, help="indentation: load increments (default 10)")
     x.add_argument("--scenario", default=None, help="indentation / fitted: the card's scenario record to use (default: the first indentation record; fitted: the only specimen)")
     x.add_argument("--displacement", type=float, default=None, help="top displacement along z in --unit (default: -10%% of the height)")

@@ -1650,6 +1650,14 @@ def _ind_check(spec, target: str, *, cone: bool = True, sphere: bool = True, sli
                           f"written: {target} prescribes all three components of moved nodes; use bonded_punch=True (--bonded-punch)")
 
 
+def _indentation_card(card: MaterialCard, spec, law: str | None, approximate: bool) -> MaterialCard:
+    """A lattice card recalibrated on its fitted indentation for a continuum target
+    (:func:`~difftissue.export_indentation.indentation_card`)."""
+    from .export_indentation import indentation_card
+
+    return indentation_card(card, spec, law, approximate=approximate)
+
+
 FEBIO_INDENTER_MATERIAL = "rigid_indenter"
 
 
@@ -1759,6 +1767,7 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
     from .export_indentation import indentation_sets
 
     _ind_check(spec, "FEBio")
+    card = _indentation_card(card, spec, law, approximate)
     contact = spec.indenter in ("sphere", "cone")
     if contact and card.name == FEBIO_INDENTER_MATERIAL:
         raise ExportError(f"FEBio indentation specimen: the card's name {card.name!r} is the indenter's rigid material name; "
@@ -1882,52 +1891,124 @@ def febio_indentation_model(card: MaterialCard, spec, *, law: str | None = None,
     return root
 
 
+#: Increments per top cell size of the cone's depth in the Abaqus / CalculiX deck (the tip moves
+#: at most h / this per increment; measured: h / 20 loses the node under the tip, h / 40 does not).
+CONE_INCREMENTS_PER_CELL = 50.0
+#: Local nodes of the faces S1..S4 of an Abaqus / CalculiX C3D4 (1-based face number = index + 1).
+_C3D4_FACES = ((0, 1, 2), (0, 3, 1), (1, 3, 2), (2, 3, 0))
+
+
+def abaqus_indenter_mesh(spec, height: float, spacing: float):
+    """The meshed rigid indenter of the Abaqus / CalculiX sphere and cone specimens (SI units).
+
+    The cap of :func:`febio_indenter_cap` (rings at most ``spacing / 2`` apart, up to 96
+    rings; called with ``spacing`` = half the tissue's top cell size, so the facets are at
+    most a quarter of a cell) closed into a fan of C3D4 tets towards one apex node on the axis
+    inside the indenter (sphere: its centre ``(0, 0, height + R)``; cone: ``(0, 0, height + 2
+    r_cap / tan(theta))``, above the cap's top ring). Each tet is ``(a, c, b, apex)`` for a cap
+    facet ``(a, b, c)`` whose normal faces the tissue, so its volume is positive and its face
+    S1 (local nodes 1-2-3) is the facet: the contact surface is ``INDENTER, S1``.
+
+    Returns ``(points (N, 3), tets (M, 4) 0-based, r_cap)``; the last point is the apex.
+    """
+    P, T, r_cap = febio_indenter_cap(spec, height, spacing, max_rings=96)
+    if spec.indenter == "sphere":
+        apex = np.array([0.0, 0.0, height + spec.radius])
+    else:
+        apex = np.array([0.0, 0.0, height + 2.0 * r_cap / math.tan(spec.half_angle)])
+    pts = np.vstack([P, apex])
+    tets = np.column_stack([T[:, 0], T[:, 2], T[:, 1], np.full(len(T), len(P))])
+    a, b, c, d = (pts[tets[:, k]] for k in range(4))
+    vol = np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
+    if not np.all(vol > 0):
+        raise ExportError(f"the meshed {spec.indenter} indenter has {int(np.sum(vol <= 0))} inverted tets (a bug)")
+    return pts, tets, r_cap
+
+
+def _tet_faces_on(tets, faces) -> tuple[np.ndarray, np.ndarray]:
+    """``(element index (F,), face number 1..4 (F,))`` of the C3D4 face of ``tets`` that each
+    boundary triangle of ``faces`` (F, 3) is (each boundary face belongs to one tet)."""
+    key = {}
+    for e, t in enumerate(np.asarray(tets)):
+        for k, loc in enumerate(_C3D4_FACES):
+            key.setdefault(tuple(sorted(int(t[i]) for i in loc)), []).append((e, k + 1))
+    out = []
+    for f in np.asarray(faces):
+        hit = key.get(tuple(sorted(int(v) for v in f)), [])
+        if len(hit) != 1:
+            raise ExportError(f"top face {f.tolist()} is not the face of exactly one tet ({len(hit)})")
+        out.append(hit[0])
+    arr = np.asarray(out, dtype=np.int64).reshape(-1, 2)
+    return arr[:, 0], arr[:, 1]
+
+
 def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None, approximate: bool = False) -> str:
-    """Abaqus input of an indentation specimen.
+    """Abaqus input of an indentation specimen, in the dialect that CalculiX 2.20 also runs.
 
-    Sphere and cone: an analytical rigid surface ``*SURFACE, TYPE=REVOLUTION, NAME=INDENTER``
-    (first data line: point a = origin of the local (r, z) system, point b on the symmetry
-    axis, local z pointing away from the tissue; then ``START`` and ``CIRCL`` (sphere: arc from
-    the equator (R, 0) to the tip (0, -R) about the centre) or ``LINE`` (cone: from r = the
-    block's half-diagonal down to the tip); the profile runs towards the tip, as in
-    Abaqus/CAE-written indenter inputs, so that the outward normal faces the tissue),
-    ``*RIGID BODY, ANALYTICAL SURFACE=INDENTER, REF NODE=<n>`` with the reference node at the
-    sphere centre / cone tip, ``*SURFACE INTERACTION`` with ``*FRICTION`` 0 (frictionless),
-    ``*CONTACT PAIR`` of the node-based top surface ``TOP_SURF`` with ``INDENTER`` (Abaqus's
-    default hard contact: no penalty), and ``*BOUNDARY`` on the reference node (dofs 1, 2,
-    4-6 zero, dof 3 = -depth). Flat punch: ``*BOUNDARY`` ``PUNCH, 3, 3, -depth`` (plus
-    ``PUNCH, 1, 2`` for a bonded punch). A bonded base is ``BASE, 1, 3``. The summed reaction
-    [N] of ``PUNCH`` (flat punch) or ``RP`` (sphere, cone) is printed to the ``.dat``
-    (:func:`abaqus_reaction_print`).
+    Sphere and cone: a **meshed rigid indenter** (CalculiX has no analytical rigid surface):
+    the cap of :func:`abaqus_indenter_mesh` as C3D4 tets (``ELSET=INDENTER``, a dummy linear
+    material ``RIGID_INDENTER``; every node of the indenter is prescribed, ``INDENTER, 1, 2``
+    zero and ``INDENTER, 3, 3, -depth``, so it only translates, rigidly, and its material
+    never enters), ``*SURFACE, TYPE=ELEMENT, NAME=INDENTER_SURF`` (the facets ``INDENTER, S1``,
+    the master), ``*SURFACE, TYPE=ELEMENT, NAME=TOP_SURF`` (the tissue's top faces, the slave),
+    ``*SURFACE INTERACTION`` with ``*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR`` and the
+    slope ``K = p E / h`` [Pa/m] (difftissue's per-node penalty ``kappa_i = p E sqrt(A_i)``
+    per tributary area ``A_i = h^2``, ``h`` of the top node on the axis: CalculiX's spring force
+    is ``K A_i`` times the overclosure, ``A_i`` a third of the slave faces at the node), no
+    ``*FRICTION`` (frictionless in both codes), ``*CONTACT PAIR, INTERACTION=INDENTER_CONTACT,
+    TYPE=NODE TO SURFACE`` with ``TOP_SURF, INDENTER_SURF``. The indentation force is minus the
+    summed z reaction of node set ``INDENTER``. Flat punch: ``*BOUNDARY`` ``PUNCH, 3, 3,
+    -depth`` (plus ``PUNCH, 1, 2`` for a bonded punch). A bonded base is ``BASE, 1, 3``. The
+    summed reaction [N] of ``PUNCH`` or ``INDENTER`` is printed to the ``.dat``
+    (:func:`abaqus_reaction_print`). ``NLGEOM=YES`` for the neo-Hookean law only (the linear
+    law is difftissue's small-strain ``fem_linear``; the contact is found in the deformed
+    configuration either way).
 
-    CalculiX: the flat-punch deck runs in CalculiX 2.20 (tests/test_export_calculix.py). The
-    sphere and cone decks are Abaqus-only: CalculiX has no analytical rigid surface and stops
-    on them ("unknown surface type" for ``*SURFACE, TYPE=REVOLUTION``, an error on
-    ``*RIGID BODY, ANALYTICAL SURFACE``); for CalculiX they would need a meshed indenter.
+    All decks run in CalculiX 2.20 (tests/test_export_calculix.py). For Abaqus the same deck is
+    valid; an Abaqus user who wants a reference node (force control) may replace the indenter's
+    ``*BOUNDARY`` lines by ``*RIGID BODY, ELSET=INDENTER, REF NODE=...`` (CalculiX puts the
+    rotations on a separate ``ROT NODE``, which Abaqus does not know: not one dialect).
     """
     from .export_indentation import indentation_sets
 
     _ind_check(spec, "Abaqus")
+    card = _indentation_card(card, spec, law, approximate)
     mesh = spec.mesh()
     s = indentation_sets(spec, mesh, card)
     law = _law(card, law)
     mat = abaqus_material(card, law=law, approximate=approximate)
     mname = abaqus_name(card.name)
     pts = np.asarray(mesh.points, dtype=float)
+    tets = np.asarray(mesh.tets)
     H = s["H"]
     lines = ["*HEADING", f"difftissue indentation specimen for material {mname} (SI units: m, N, Pa, kg)"]
     lines += [_abaqus_comment(t) for t in spec.describe()]
+    contact = spec.indenter in ("sphere", "cone")
+    if contact:
+        ipts, itets, r_cap = abaqus_indenter_mesh(spec, H, 0.5 * s["h"])
+        n0, e0 = len(pts), len(tets)
+        K = spec.penalty * card.youngs_modulus / s["h"]
+        lines += [_abaqus_comment(t) for t in (
+            f"meshed rigid {spec.indenter}: {len(itets)} facets out to r = {r_cap:.6g} m (the cap's C3D4 fan to one apex node, "
+            "face S1 of each tet is a facet); every indenter node is moved by (0, 0, -depth): a rigid translation",
+            f"frictionless penalty contact (node to surface): K = p E / h = {spec.penalty:g} x {card.youngs_modulus:.10g} Pa / "
+            f"{s['h']:.10g} m = {K:.10g} Pa/m; spring force K A_i x overclosure at the top node with tributary area A_i, "
+            "difftissue's kappa_i = p E sqrt(A_i) where A_i = h^2 (uniform top cells)",
+            "Abaqus: valid as written; for force control replace the INDENTER boundary lines by *RIGID BODY, ELSET=INDENTER, "
+            "REF NODE=<a new node> and load that node")]
     lines.append("*NODE")
     for i, p in enumerate(pts, start=1):
         lines.append(f"{i}, " + ", ".join(abaqus_number(c) for c in p))
-    contact = spec.indenter in ("sphere", "cone")
-    ref = len(pts) + 1
     if contact:
-        zr = H + spec.radius if spec.indenter == "sphere" else H
-        lines.append(f"{ref}, 0.0, 0.0, {abaqus_number(zr)}")
+        for i, p in enumerate(ipts, start=n0 + 1):
+            lines.append(f"{i}, " + ", ".join(abaqus_number(c) for c in p))
     lines.append("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")
-    for i, t in enumerate(np.asarray(mesh.tets), start=1):
+    for i, t in enumerate(tets, start=1):
         lines.append(f"{i}, " + ", ".join(str(int(n) + 1) for n in t))
+    if contact:
+        lines.append("*ELEMENT, TYPE=C3D4, ELSET=INDENTER")
+        for i, t in enumerate(itets, start=e0 + 1):
+            lines.append(f"{i}, " + ", ".join(str(int(n) + n0 + 1) for n in t))
     for name, arr in (("BASE", s["base"]), ("TOP", s["top"])):
         lines.append(f"*NSET, NSET={name}")
         lines += _wrap_ids(np.atleast_1d(arr) + 1)
@@ -1939,35 +2020,49 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
     lines += [f"*SOLID SECTION, ELSET=TISSUE, MATERIAL={mname}", ","]
     lines += mat
     if contact:
-        lines += ["*NSET, NSET=RP", str(ref), "*SURFACE, TYPE=NODE, NAME=TOP_SURF", "TOP,",
-                  "*SURFACE, TYPE=REVOLUTION, NAME=INDENTER", f"0.0, 0.0, {abaqus_number(zr)}, 0.0, 0.0, {abaqus_number(zr + 1.0)}"]
-        if spec.indenter == "sphere":
-            R = spec.radius
-            lines += [_abaqus_comment(f"sphere: local origin at the centre (0, 0, H + R = {zr:.10g}), profile from the equator (R, 0) to the tip (0, -R)"),
-                      f"START, {abaqus_number(R)}, 0.0", f"CIRCL, 0.0, {abaqus_number(-R)}, 0.0, 0.0"]
-        else:
-            rmax = 0.5 * math.hypot(spec.size[0], spec.size[1])
-            lines += [_abaqus_comment(f"cone: local origin at the tip (0, 0, H), half-angle {spec.half_angle:.10g} rad, profile from r = {rmax:.10g} m to the tip"),
-                      f"START, {abaqus_number(rmax)}, {abaqus_number(rmax / math.tan(spec.half_angle))}", "LINE, 0.0, 0.0"]
-        lines += [_abaqus_comment("contact: Abaqus's default hard (Lagrange) normal contact, frictionless: the penalty -> infinity "
-                                  "limit of difftissue's penalty contact (docs/export.md, Indentation specimens)"),
-                  "*RIGID BODY, ANALYTICAL SURFACE=INDENTER, REF NODE=RP",
-                  "*SURFACE INTERACTION, NAME=FRICTIONLESS", "*FRICTION", "0.0",
-                  "*CONTACT PAIR, INTERACTION=FRICTIONLESS", "TOP_SURF, INDENTER"]
-    lines += [f"*STEP, NLGEOM={'YES' if (law == 'neo_hookean' or contact) else 'NO'}", "*STATIC",
-              f"{abaqus_number(1.0 / spec.steps)}, 1.0, 1e-05, {abaqus_number(1.0 / spec.steps)}", "*BOUNDARY"]
+        el, face = _tet_faces_on(tets, s["top_faces"])
+        lines += ["*NSET, NSET=INDENTER, GENERATE", f"{n0 + 1}, {n0 + len(ipts)}, 1"]
+        for k in range(1, 5):
+            if np.any(face == k):
+                lines.append(f"*ELSET, ELSET=TOP_S{k}")
+                lines += _wrap_ids(np.sort(el[face == k]) + 1)
+        lines.append("*SURFACE, TYPE=ELEMENT, NAME=TOP_SURF")
+        lines += [f"TOP_S{k}, S{k}" for k in range(1, 5) if np.any(face == k)]
+        lines += ["*SURFACE, TYPE=ELEMENT, NAME=INDENTER_SURF", "INDENTER, S1",
+                  _abaqus_comment("the indenter's material: every indenter node is prescribed, so these constants never enter"),
+                  "*SOLID SECTION, ELSET=INDENTER, MATERIAL=RIGID_INDENTER", ",",
+                  "*MATERIAL, NAME=RIGID_INDENTER", "*ELASTIC", f"{abaqus_number(1e3 * card.youngs_modulus)}, 0.3",
+                  "*SURFACE INTERACTION, NAME=INDENTER_CONTACT", "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", abaqus_number(K),
+                  "*CONTACT PAIR, INTERACTION=INDENTER_CONTACT, TYPE=NODE TO SURFACE", "TOP_SURF, INDENTER_SURF"]
+    n_inc = spec.steps
+    axis_top = np.flatnonzero(np.hypot(pts[s["top"], 0], pts[s["top"], 1]) <= 1e-9 * H) if spec.indenter == "cone" else []
+    if spec.indenter == "cone":
+        # the node-to-surface pairing loses the node under the sharp tip when the tip moves more than ~h/40 per increment
+        n_inc = max(n_inc, int(math.ceil(CONE_INCREMENTS_PER_CELL * spec.depth / s["h"])))
+        lines.append(_abaqus_comment(
+            f"cone: {n_inc} increments (the tip moves at most h / {CONE_INCREMENTS_PER_CELL:g} per increment: with larger ones CalculiX's "
+            "node-to-surface search loses the node under the sharp tip)" + ("; the top node on the axis is held in x and y (the "
+            "axisymmetric solution: under a frictionless sharp tip it is in unstable equilibrium, and a faceted tip pushes it off "
+            "the axis)" if len(axis_top) else "")))
+        if len(axis_top):
+            lines += ["*NSET, NSET=AXIS_TOP", str(int(s["top"][axis_top[0]]) + 1)]
+    inc = abaqus_number(1.0 / n_inc)
+    lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}, INC={max(1000, 4 * n_inc)}", "*STATIC",
+              f"{inc}, 1.0, 1e-05, {inc}", "*BOUNDARY"]
     if spec.base == "bonded":
         lines.append("BASE, 1, 3")
     else:
         lines += ["BASE, 3, 3, 0.0", "BASE_ANCHOR, 1, 2, 0.0", "BASE_OTHER, 2, 2, 0.0"]
     if contact:
-        lines += ["RP, 1, 2, 0.0", "RP, 4, 6, 0.0", f"RP, 3, 3, {abaqus_number(-spec.depth)}"]
+        lines += ["INDENTER, 1, 2, 0.0", f"INDENTER, 3, 3, {abaqus_number(-spec.depth)}"]
+        if len(axis_top):
+            lines.append("AXIS_TOP, 1, 2, 0.0")
     else:
         lines.append(f"PUNCH, 3, 3, {abaqus_number(-spec.depth)}")
         if spec.bonded_punch:
             lines.append("PUNCH, 1, 2, 0.0")
     lines += ["*OUTPUT, FIELD", "*NODE OUTPUT", "U, RF", "*ELEMENT OUTPUT", "S, E"]
-    lines += abaqus_reaction_print("RP" if contact else "PUNCH")
+    lines += abaqus_reaction_print("INDENTER" if contact else "PUNCH")
     lines.append("*END STEP")
     return "\n".join(lines) + "\n"
 
@@ -1988,6 +2083,7 @@ def sofa_indentation_scene(card: MaterialCard, spec, *, law: str | None = None, 
     from .export_indentation import indentation_sets
 
     _ind_check(spec, "SOFA", cone=False, sliding=False, frictionless_punch=False)
+    card = _indentation_card(card, spec, law, approximate)
     mesh = spec.mesh()
     s = indentation_sets(spec, mesh, card)
     law = _law(card, law)

@@ -80,6 +80,7 @@ __all__ = [
     "write_fitted",
     "specimen_reactions",
     "recalibrated_card",
+    "recalibrated_from_reactions",
 ]
 
 #: Format tag of the specimen file (recorded in the card next to its sha256).
@@ -924,7 +925,7 @@ def recalibrated_card(card, spec: FittedSpecimen, law: str, *, approximate: bool
     Refused (one line) for an incision, a fem_field without reaction, fixed regions or a
     pre-stretch, and a cubic coefficient ``b != 0`` unless ``approximate`` (the law cannot
     follow the stiffening: E' is then a least-squares compromise, its residuals noted)."""
-    from .export import LAW_MODELS, MaterialCard, _model_parts, model_mismatch
+    from .export import LAW_MODELS, _model_parts, model_mismatch
 
     why = model_mismatch(card, law)
     own = next(m for m in _model_parts(card.model) if m in ("springs_volume",))
@@ -938,7 +939,24 @@ def recalibrated_card(card, spec: FittedSpecimen, law: str, *, approximate: bool
     fr = _recalibration_fractions(spec)
     ref = specimen_reactions(card, spec, own, fr)
     tgt = specimen_reactions(card, spec, LAW_MODELS[law], fr)
+    return recalibrated_from_reactions(card, law, own, why, ref, tgt, scenario=spec.scenario,
+                                       states=f"load fraction(s) {[round(f, 6) for f in fr]}", record={"load_fractions": fr})
+
+
+def recalibrated_from_reactions(card, law: str, own: str, why: str, ref, tgt, *, scenario: str, states: str,
+                                record: Mapping | None = None, extra_notes=()):
+    """The recalibrated card from the reactions [N] of the card's model ``own`` (``ref``: what
+    the fit matched) and of the target's continuum model at the card's values (``tgt``), one per
+    solved load state (same shapes): ``E' = c E`` with the least-squares ``c = <ref, tgt> /
+    <tgt, tgt>`` (every energy here is proportional to E, so one state is reproduced exactly),
+    nu kept, b dropped. ``provenance["recalibration"]`` records the factor, both reactions, the
+    signed errors before and after, ``record`` and the ``notes`` the file headers print."""
+    from .export import LAW_MODELS, MaterialCard
+
+    ref, tgt = np.asarray(ref, dtype=float), np.asarray(tgt, dtype=float)
     c = float(np.vdot(ref, tgt) / np.vdot(tgt, tgt))
+    if not (math.isfinite(c) and c > 0):
+        raise ExportError(f"recalibration to the {law} law failed: factor {c!r} from reactions {ref.tolist()} / {tgt.tolist()} N")
     before = tgt / ref - 1.0
     after = c * tgt / ref - 1.0
     params = {k: dict(v) for k, v in card.parameters.items()}
@@ -953,12 +971,12 @@ def recalibrated_card(card, spec: FittedSpecimen, law: str, *, approximate: bool
     notes = [f"RECALIBRATED for the continuum {law} law" + (" (APPROXIMATION: b dropped)" if b else "") + f": {why}",
              f"E = {c * E:.10g} Pa = {c:.6g} x the card's {E:.10g} Pa ({own}), nu = {card.poisson_ratio:.10g} kept"
              + (f", cubic_coefficient b = {b:g} dropped (absorbed into E at these strains)" if b else ""),
-             f"the fitted experiment {spec.scenario!r} solved in difftissue at load fraction(s) {[round(f, 6) for f in fr]}: "
+             f"the fitted experiment {scenario!r} solved in difftissue at {states}: "
              f"{LAW_MODELS[law]} at the card's values gives reaction error {fmt(before)} against {own} (what the fit matched); "
-             f"after recalibration {fmt(after)}"]
+             f"after recalibration {fmt(after)}", *extra_notes]
     prov = dict(card.provenance or {})
-    prov["recalibration"] = {"from_model": own, "to_model": LAW_MODELS[law], "law": law, "factor": c, "scenario": spec.scenario,
-                             "load_fractions": fr, "reaction_card_model": ref.tolist(), "reaction_law_at_card_values": tgt.tolist(),
+    prov["recalibration"] = {"from_model": own, "to_model": LAW_MODELS[law], "law": law, "factor": c, "scenario": scenario,
+                             **dict(record or {}), "reaction_card_model": ref.tolist(), "reaction_law_at_card_values": tgt.tolist(),
                              "signed_error_before": np.ravel(before).tolist(), "signed_error_after": np.ravel(after).tolist(),
                              "notes": notes}
     return MaterialCard(model=LAW_MODELS[law], parameters=params, name=card.name, provenance=prov)

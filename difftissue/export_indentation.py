@@ -20,10 +20,14 @@ What each target gets (conversions and citations in docs/export.md):
   -> a meshed rigid indenter (FEBio 4.0 has no analytical sphere or cone): a ``tri3`` shell cap
   of a ``rigid body`` material in frictionless ``sliding-elastic`` contact with the top face,
   moved by ``rigid_displacement``.
-* Abaqus: sphere and cone -> ``*SURFACE, TYPE=REVOLUTION`` analytical rigid surface with
-  ``*RIGID BODY, ANALYTICAL SURFACE=..., REF NODE=...``, frictionless ``*SURFACE
-  INTERACTION`` / ``*FRICTION`` 0, ``*CONTACT PAIR`` with the top node surface, ``*BOUNDARY``
-  on the reference node; flat punch -> ``*BOUNDARY`` on the punch nodes.
+* Abaqus (and CalculiX, which runs the same deck): sphere and cone -> a meshed rigid indenter
+  (C3D4 fan of the cap, every node moved by ``(0, 0, -depth)``) in frictionless node-to-surface
+  penalty contact (``*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR``, slope ``p E / h``) with
+  the tissue's top faces; flat punch -> ``*BOUNDARY`` on the punch nodes.
+
+A ``springs_volume`` card (lattice-effective E, nu) written for a continuum target (FEBio, SOFA,
+Abaqus) is recalibrated on the indentation it was fitted to (:func:`recalibrated_indentation_card`,
+from the card's simulated scenario record).
 * SOFA: sphere -> ``SphereForceField`` (penalty force field of ``Sofa.Component.MechanicalLoad``,
   fixed in space; the base is moved up by the depth, the same relative motion); flat punch ->
   ``LinearMovementProjectiveConstraint`` on the punch nodes (bonded punch only); cone refused;
@@ -43,7 +47,8 @@ import numpy as np
 
 from .errors import ExportError
 
-__all__ = ["IndentationSpecimen", "indentation_specimen", "scenario_record", "indentation_sets", "run_xpbd_indentation", "INDENTERS"]
+__all__ = ["IndentationSpecimen", "indentation_specimen", "scenario_record", "indentation_sets", "run_xpbd_indentation", "INDENTERS",
+           "recalibrated_indentation_card", "indentation_card"]
 
 INDENTERS = ("sphere", "cone", "flat_punch")
 
@@ -203,6 +208,20 @@ def scenario_record(scenario) -> dict | None:
             mult = float(getattr(scenario, "force_multiplier", 1.0))
             span = hi - lo
             rec["block_size"] = [float(span[0] * (2 if mult == 4.0 else 1)), float(span[1] * (2 if mult == 4.0 else 1)), float(span[2])]
+            rec["symmetry"] = "quarter" if mult == 4.0 else "none"
+            cells = _uniform_block_cells(scenario.model, rec["block_size"], rec["symmetry"])
+            if cells is not None:
+                rec["cells"] = cells
+                rec["cells_note"] = ("the fit's mesh: indentation_block(block_size, cells, symmetry='none') of uniform cells"
+                                     + (" (the fit modelled the x >= 0, y >= 0 quarter with half the x and y cells)" if mult == 4.0 else ""))
+        model = getattr(scenario, "model", None)
+        rec["model"] = str(getattr(getattr(model, "base", model), "kind", "")) or None
+        factors = getattr(model, "penalty_factors", None)
+        if factors is not None:  # ContactModel: penalty_factors = penalty sqrt(A_i)
+            from .contact import surface_node_areas
+
+            _, area = surface_node_areas(_model_mesh(model), np.asarray(model.contact_nodes))
+            rec["penalty"] = float(np.median(np.asarray(factors) / np.sqrt(area)))
     elif tname in ("FEMField", "Incision"):
         # the experiment itself goes into a specimen file beside the card (difftissue.export_fitted)
         rec["experiment"] = "fem_field" if tname == "FEMField" else "incision"
@@ -221,7 +240,41 @@ def scenario_record(scenario) -> dict | None:
     if x is not None and np.size(x) and rec.get("experiment") == "indentation":
         rec["max_depth"] = float(np.max(x))
         rec["points"] = int(np.size(x))
+        if tname == "Indentation":
+            rec["depths"] = [float(v) for v in np.asarray(x).reshape(-1)]
     return rec
+
+
+def _model_mesh(model):
+    """The :class:`~difftissue.mesh.TetMesh` of an elastic model (rest points, tets)."""
+    from .mesh import TetMesh
+
+    return TetMesh(np.asarray(model.rest_points), np.asarray(model.tets))
+
+
+def _uniform_block_cells(model, size, symmetry: str) -> list[int] | None:
+    """Full-block cell counts ``[nx, ny, nz]`` when the model's mesh is exactly
+    :func:`~difftissue.scenarios.indentation_block` ``(size, cells, symmetry)`` with uniform
+    cells (its quarter with half the x and y cells for ``symmetry="quarter"``), else None."""
+    from .scenarios import indentation_block
+
+    p = np.asarray(model.rest_points, dtype=float)
+    t = np.asarray(model.tets)
+    span = float(np.linalg.norm(np.ptp(p, axis=0)))
+    counts = []
+    for a in range(3):
+        c = np.sort(p[:, a])
+        counts.append(int(np.sum(np.diff(c) > 1e-9 * span)))
+    if min(counts) < 1 or len(t) != 6 * counts[0] * counts[1] * counts[2]:
+        return None
+    try:
+        ref = indentation_block(size, counts, symmetry=symmetry)
+    except Exception:
+        return None
+    if np.shape(ref.points) != p.shape or not np.allclose(ref.points, p, rtol=0, atol=1e-9 * span) or not np.array_equal(ref.tets, t):
+        return None
+    k = 2 if symmetry == "quarter" else 1
+    return [k * counts[0], k * counts[1], counts[2]]
 
 
 def _records(card) -> list[dict]:
@@ -231,7 +284,7 @@ def _records(card) -> list[dict]:
 
 def indentation_specimen(card=None, *, indenter: str | None = None, radius: float | None = None,
                          half_angle: float | None = None, depth: float | None = None, size=None, cells=None,
-                         base: str | None = None, bonded_punch: bool | None = None, penalty: float = 100.0, steps: int = 10,
+                         base: str | None = None, bonded_punch: bool | None = None, penalty: float | None = None, steps: int = 10,
                          scenario: str | None = None) -> IndentationSpecimen:
     """The indentation specimen for ``card``: explicit options first, then the card's
     ``provenance.scenario_records`` (the first indentation record, or the one named ``scenario``),
@@ -242,7 +295,9 @@ def indentation_specimen(card=None, *, indenter: str | None = None, radius: floa
     radius at ``depth``; a half-space represented by a finite block, see docs/export.md),
     lateral size ``2 H`` (or ``20 a``, whichever is larger); cells ``(10, 10, 6)``; base
     ``bonded`` (an analytic ``lubricated`` base becomes ``sliding``); ``bonded_punch`` the
-    record's (a simulated flat punch), else False (frictionless punch face).
+    record's (a simulated flat punch), else False (frictionless punch face). A simulated
+    record's block comes with the fit's uniform ``cells`` (used unless ``cells`` is given) and
+    contact ``penalty`` (used unless ``penalty`` is given; else 100).
     """
     rec: Mapping = {}
     recs = _records(card) if card is not None else []
@@ -307,6 +362,9 @@ def indentation_specimen(card=None, *, indenter: str | None = None, radius: floa
     if cells is not None:
         cells = tuple(int(v) for v in cells)
         src["cells"] = "explicit option (uniform cells)"
+    elif rec and rec.get("cells") and src.get("size", "").startswith(where) and list(size) == list(rec.get("block_size") or []):
+        cells = tuple(int(v) for v in rec["cells"])
+        src["cells"] = f"{where}: the fit's mesh (uniform cells)"
     else:
         # resolve the contact: first cell a/3 (punch: R/4), uniform within 1.2 a (1.1 R), 6 graded cells beyond
         refine = a / 3.0 if ind != "flat_punch" else a / 4.0
@@ -329,9 +387,14 @@ def indentation_specimen(card=None, *, indenter: str | None = None, radius: floa
     else:
         src["base"] = "explicit option"
     bp = pick("bonded_punch", bonded_punch) if ind == "flat_punch" else None
+    pen = pick("penalty", penalty) if ind != "flat_punch" else penalty
+    if pen is None:
+        pen = 100.0
+        if ind != "flat_punch":
+            src["penalty"] = "default (100)"
     return IndentationSpecimen(indenter=ind, depth=float(d), size=size, cells=cells, radius=None if r is None else float(r),
                                half_angle=None if th is None else float(th), base=base, bonded_punch=bool(bp),
-                               penalty=float(penalty), steps=int(steps), refine=refine, core=core, sources=src)
+                               penalty=float(pen), steps=int(steps), refine=refine, core=core, sources=src)
 
 
 def indentation_sets(spec: IndentationSpecimen, mesh, card) -> dict:
@@ -452,3 +515,115 @@ def run_xpbd_indentation(doc: Mapping, *, tol: float = 1e-9, max_steps: int = 10
         out["converged"].append(bool(sol.converged))
         out["steps"].append(int(sol.steps))
     return out
+
+
+# ============================================================================ recalibration
+#: Largest number of fitted depths an indentation recalibration solves (evenly picked, the last included).
+RECALIBRATION_DEPTHS = 4
+
+
+def _same(a, b) -> bool:
+    return a is not None and b is not None and math.isclose(float(a), float(b), rel_tol=1e-9, abs_tol=0.0)
+
+
+def _fit_record(card, spec: IndentationSpecimen, own: str) -> tuple[Mapping | None, list[str]]:
+    """The card's simulated indentation record that ``spec`` is the experiment of (fitted with
+    model ``own``), or None and the reasons each record does not fit."""
+    why = []
+    for r in _records(card):
+        name = r.get("name")
+        missing = [k for k in ("model", "depths", "block_size", "cells", "base") if not r.get(k)]
+        if r.get("type") != "Indentation":
+            why.append(f"{name!r} is a {r.get('type')} record (a closed form, no simulated specimen)")
+        elif missing:
+            why.append(f"{name!r} lacks {missing} (a card written before the record held the fit's mesh and depths, or a mesh that is "
+                       "no uniform indentation_block)")
+        elif r["model"] != own:
+            why.append(f"{name!r} was fitted with model {r['model']!r}, not {own!r}")
+        elif r.get("indenter") != spec.indenter or r.get("base") != spec.base or not all(
+                _same(a, b) for a, b in zip(r["block_size"], spec.size)) or (
+                spec.indenter == "cone" and not _same(r.get("half_angle"), spec.half_angle)) or (
+                spec.indenter != "cone" and not _same(r.get("radius"), spec.radius)) or (
+                spec.indenter == "flat_punch" and bool(r.get("bonded_punch")) != spec.bonded_punch):
+            why.append(f"{name!r} is another experiment (indenter, size, base or block differ from the specimen's)")
+        else:
+            return r, why
+    return None, why or ["the card records no indentation scenario"]
+
+
+def recalibrated_indentation_card(card, spec: IndentationSpecimen, law: str, *, approximate: bool = False):
+    """``card`` (a lattice model, :func:`~difftissue.export.model_mismatch`) recalibrated to the
+    continuum ``law`` on the indentation experiment it was fitted to.
+
+    The fitted experiment comes from the card's scenario record (:func:`scenario_record` of a
+    simulated :class:`~difftissue.scenarios.Indentation`: indenter, radius or half-angle, base,
+    block size, the fit's uniform cells and symmetry, penalty, depths, model) and must be the
+    experiment of ``spec`` (same indenter, size, base; the cells may differ). Two solves in
+    difftissue at up to :data:`RECALIBRATION_DEPTHS` of the fitted depths: the card's own model
+    on the fit's mesh at the card's values (what the fit matched to the data), and the target's
+    continuum model (:data:`~difftissue.export.LAW_MODELS`) on the specimen's mesh with the
+    specimen's contact, at the same values. Every energy here, the contact penalty included,
+    is proportional to E, so ``E' = c E`` with the least-squares ``c`` reproduces one depth
+    exactly, several up to the two models' different depth dependence (the residuals are
+    noted); nu is kept (a force-depth curve of one indenter does not determine it), b is
+    dropped (``approximate`` needed when b != 0). The mesh of ``spec`` enters the target's
+    solve, so a specimen meshed unlike the fit is recalibrated for its own discretisation.
+    Returns a new card (model ``fem_linear`` / ``fem_neo_hookean``) whose
+    ``provenance["recalibration"]`` holds the factor, both forces and the notes for the file
+    headers (:func:`difftissue.export_fitted.recalibrated_from_reactions`). Refused (one line)
+    when the card holds no matching simulated record."""
+    from .export import LAW_MODELS, _model_parts, model_mismatch
+    from .export_fitted import recalibrated_from_reactions
+    from .materials import Material
+    from .scenarios import Indentation, indentation_block
+
+    why = model_mismatch(card, law)
+    own = next(m for m in _model_parts(card.model) if m in ("springs_volume",))
+    rec, reasons = _fit_record(card, spec, own)
+    if rec is None:
+        raise ExportError(f"{why}; the indentation card cannot be recalibrated: no simulated {own} indentation record matches the "
+                          f"specimen ({'; '.join(reasons)}); pass approximate=True (--approximate) to write the card's values with the "
+                          "measured error noted")
+    if card.cubic_coefficient != 0.0 and not approximate:
+        raise ExportError(f"cubic_coefficient b = {card.cubic_coefficient:g} cannot be represented by the continuum {law} law; pass "
+                          "approximate=True (--approximate) to recalibrate E alone (b dropped, the residual per depth noted)")
+    depths = np.asarray([d for d in rec["depths"] if d > 0.0], dtype=float)
+    if depths.size == 0:
+        raise ExportError(f"indentation record {rec.get('name')!r} has no positive depth to recalibrate on")
+    idx = np.unique(np.round(np.linspace(0, depths.size - 1, min(RECALIBRATION_DEPTHS, depths.size))).astype(int))
+    sel = depths[idx]
+    sym = rec.get("symmetry", "none")
+    cells = [int(v) for v in rec["cells"]]
+    if sym == "quarter":
+        cells = [cells[0] // 2, cells[1] // 2, cells[2]]
+    geo = dict(indenter=spec.indenter, radius=spec.radius, half_angle=spec.half_angle, bonded_punch=spec.bonded_punch, base=spec.base)
+    fit = Indentation(indentation_block(rec["block_size"], cells, symmetry=sym), sel, model=own, symmetry=sym,
+                      penalty=float(rec.get("penalty") or 100.0), name=str(rec.get("name")), **geo)
+    ref = np.asarray(fit.predict(card.material()), dtype=float)
+    target = Indentation(spec.mesh(), sel, model=LAW_MODELS[law], symmetry="none", axis_xy=(0.0, 0.0), penalty=spec.penalty, **geo)
+    tgt = np.asarray(target.predict(Material(card.youngs_modulus, card.poisson_ratio)), dtype=float)
+    mesh_note = ("the specimen's mesh is the fit's" if list(spec.cells) == [int(v) for v in rec["cells"]] and spec.refine is None else
+                 f"the specimen's mesh ({spec.cells[0]} x {spec.cells[1]} x {spec.cells[2]} cells) differs from the fit's "
+                 f"({rec['cells'][0]} x {rec['cells'][1]} x {rec['cells'][2]}): E is recalibrated for the specimen's discretisation")
+    return recalibrated_from_reactions(
+        card, law, own, why, ref, tgt, scenario=str(rec.get("name")),
+        states=f"depth(s) {[float(f'{d:.6g}') for d in sel]} m (indentation force)",
+        record={"depths": sel.tolist()},
+        extra_notes=[f"indentation: {own} on the fit's mesh ({sym} symmetry) against {LAW_MODELS[law]} on the specimen with its "
+                     f"contact (penalty {spec.penalty:g}); {mesh_note}"])
+
+
+def indentation_card(card, spec: IndentationSpecimen, law: str | None, *, approximate: bool = False):
+    """The card a continuum target (FEBio, SOFA with a tet force field, Abaqus) writes for
+    the indentation specimen ``spec``: ``card`` itself, or for a lattice card
+    (:func:`~difftissue.export.model_mismatch`) the card recalibrated on its fitted indentation
+    (:func:`recalibrated_indentation_card`); where that is impossible, ``approximate`` keeps the
+    card's values (the file then notes the measured error) and otherwise it is refused."""
+    from .export import _law, model_mismatch
+
+    lw = _law(card, law)
+    if not model_mismatch(card, lw):
+        return card
+    if approximate and _fit_record(card, spec, "springs_volume")[0] is None:
+        return card
+    return recalibrated_indentation_card(card, spec, lw, approximate=approximate)

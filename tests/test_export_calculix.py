@@ -11,8 +11,8 @@ only a displacement print) and compares with difftissue's own solution of the sa
   bonded base and frictionless punch on a sliding base;
 * (d) the neo-Hookean variant of (b) (frictionless, 10 %) and of (a).
 
-Sphere and cone decks (analytical rigid surfaces) do not run in CalculiX: the last test
-checks that ccx stops on them with the errors docs/export.md quotes.
+* (e) sphere and cone indentation (a meshed rigid indenter in node-to-surface penalty contact),
+  linear, against difftissue's penalty contact with the analytic indenter (2 %).
 
 Linear: same P1 tetrahedra and energy, so the reaction and the displacement field agree to
 CalculiX's 7 printed digits (tolerance 1e-6 relative). Neo-Hookean: CalculiX's ``NEO HOOKE`` is
@@ -34,7 +34,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from calculix import ccx_or_skip, run_ccx, run_deck
+from calculix import ccx_or_skip, run_deck
 from scipy.optimize import brentq
 
 from difftissue.boundary import BoundaryConditions
@@ -273,15 +273,35 @@ def test_flat_punch_linear(base, bonded, tmp_path):
     assert f_ours > 1e-3 and du <= LINEAR_TOL and df <= LINEAR_TOL
 
 
-# ------------------------------------------------------- sphere / cone: Abaqus only
-@pytest.mark.parametrize("indenter, geometry", [("sphere", {"radius": 2 * MM}), ("cone", {"half_angle": 1.0})])
-def test_sphere_and_cone_decks_do_not_run_in_calculix(indenter, geometry, tmp_path):
-    """The analytical rigid indenters are Abaqus keywords CalculiX 2.20 does not have: it stops
-    (exit 201) on ``*SURFACE, TYPE=REVOLUTION`` ("unknown surface type") and on the rigid body.
-    If a CalculiX ever runs them, this fails and the docs' table needs the case."""
+# ------------------------------------------- (e) sphere / cone: meshed rigid indenter
+@pytest.mark.parametrize("indenter, geometry, depth", [("sphere", {"radius": 5 * MM}, 0.15 * MM),
+                                                       ("cone", {"half_angle": math.radians(70.0)}, 0.25 * MM)])
+def test_sphere_and_cone_linear(indenter, geometry, depth, tmp_path):
+    """(e): the sphere / cone deck (meshed rigid indenter, node-to-surface penalty contact with
+    difftissue's penalty K = p E / h) = difftissue's Indentation (fem_linear, penalty contact with
+    the analytic indenter) on the same 4 x 4 x 2 mm block of 8 x 8 x 4 cells: the contact
+    discretisations differ (faceted vs analytic indenter), so 2 % (issue 16); measured sphere
+    -0.50 % force, 0.78 % of max |u|; cone +0.015 % force, 0.22 % of max |u|."""
     card = _card("fem_linear")
-    spec = indentation_specimen(card, indenter=indenter, depth=1e-4, size=(10 * MM, 10 * MM, 5 * MM), cells=(2, 2, 1),
-                                steps=1, **geometry)
+    spec = indentation_specimen(card, indenter=indenter, depth=depth, size=(4 * MM, 4 * MM, 2 * MM), cells=(8, 8, 4), steps=4,
+                                **geometry)
     deck = export(card, "abaqus", tmp_path / f"{indenter}.inp", indentation=spec)
-    rc, out = run_ccx(deck.read_text(), tmp_path / "ccx")
-    assert rc != 0 and "*ERROR reading *SURFACE" in out and "*ERROR reading *RIGID BODY" in out  # 2.20: "unknown surface type"
+    text = deck.read_text()
+    assert "TYPE=REVOLUTION" not in text and "*CONTACT PAIR, INTERACTION=INDENTER_CONTACT, TYPE=NODE TO SURFACE" in text
+    run = run_deck(deck, tmp_path / "ccx")
+    mesh = spec.mesh()
+    sc = Indentation(mesh, [depth * (k + 1) / 4 for k in range(4)], model="fem_linear", indenter=indenter, base="bonded",
+                     radius=geometry.get("radius"), half_angle=geometry.get("half_angle"))
+    forces, us = sc.solve(card.material())
+    f_ours, u = float(np.asarray(forces)[-1]), np.asarray(us)[-1]
+    n = mesh.n_nodes
+    f_ccx = -run.totals["INDENTER"][2]
+    du, df = _rel_u(run.displacement[:n], u), (f_ccx - f_ours) / f_ours
+    _report(f"{indenter} bonded base (meshed rigid indenter)", du, df)
+    assert np.allclose(run.displacement[n:], [0.0, 0.0, -depth], rtol=0, atol=1e-6 * depth)  # the indenter translates rigidly
+    lateral = abs(run.totals["INDENTER"][:2]).max() / f_ccx
+    print(f"CALCULIX {indenter}: largest lateral indenter force / indentation force = {lateral:.2e}")
+    if indenter == "sphere":  # nearly none (measured 0.4 %: the facets are not axisymmetric)
+        assert lateral <= 0.01
+    # cone: measured 35 %: the node under the tip springs against ONE facet, whose lateral push its x, y hold (AXIS_TOP) takes
+    assert f_ours > 1e-3 and abs(df) <= 0.02 and du <= 0.02

@@ -158,38 +158,51 @@ def test_writers_structure_node_sets_and_penalty(tmp_path):
         assert froot.find("Material/material[@type='rigid body']") is not None
         assert froot.find("Contact/contact").get("type") == "sliding-elastic"
 
-    # Abaqus: analytical rigid revolution surface for sphere and cone, *BOUNDARY for the punch
+    # Abaqus: a meshed rigid indenter for sphere and cone (runs in CalculiX: tests/test_export_calculix.py), *BOUNDARY for the punch
+    from difftissue.export import abaqus_indenter_mesh
+
     for spec, shape in ((sphere, "sphere"), (cone, "cone"), (punch, "punch")):
         text = export(card, "abaqus", tmp_path / f"{shape}.inp", indentation=spec).read_text()
         lines = text.splitlines()
         assert lines[0] == "*HEADING" and "*MATERIAL, NAME=a_b___c__d" in lines
         assert not any(ln.startswith("*") and not ln.startswith("**") and "<" in ln for ln in lines)  # the raw name only in ** comments
-        node_ids = [int(ln.split(",")[0]) for ln in lines[lines.index("*NODE") + 1:lines.index("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")]]
         n = 405
-        assert node_ids == list(range(1, n + 1 + (shape != "punch")))  # 1-based; + the reference node
+        ipts, itets, _ = abaqus_indenter_mesh(spec, 4e-3, 0.5e-3) if shape != "punch" else (np.zeros((0, 3)), np.zeros((0, 4)), 0)
+        node_ids = [int(ln.split(",")[0]) for ln in lines[lines.index("*NODE") + 1:lines.index("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")]]
+        assert node_ids == list(range(1, n + len(ipts) + 1))  # 1-based; the indenter's nodes after the tissue's
         i = lines.index("*ELEMENT, TYPE=C3D4, ELSET=TISSUE")
         conn = np.array([[int(v) for v in ln.split(",")[1:]] for ln in lines[i + 1:i + 1 + 6 * 8 * 8 * 4]])
         assert conn.min() == 1 and conn.max() == n
         for kw in ("*NSET, NSET=BASE", "*NSET, NSET=TOP", "*SOLID SECTION, ELSET=TISSUE, MATERIAL=a_b___c__d",
-                   "*HYPERELASTIC, NEO HOOKE", "*STEP, NLGEOM=YES", "*STATIC", "*END STEP"):
+                   "*HYPERELASTIC, NEO HOOKE", "*STATIC", "*END STEP"):
             assert kw in lines, kw
+        assert any(ln.startswith("*STEP, NLGEOM=YES") for ln in lines)
         if shape == "punch":
             assert "*NSET, NSET=PUNCH" in lines and f"PUNCH, 3, 3, {-2e-4!r}" in lines and "PUNCH, 1, 2, 0.0" in lines
         else:
-            for kw in ("*SURFACE, TYPE=NODE, NAME=TOP_SURF", "*SURFACE, TYPE=REVOLUTION, NAME=INDENTER",
-                       "*RIGID BODY, ANALYTICAL SURFACE=INDENTER, REF NODE=RP", "*SURFACE INTERACTION, NAME=FRICTIONLESS",
-                       "*FRICTION", "*CONTACT PAIR, INTERACTION=FRICTIONLESS", "TOP_SURF, INDENTER", f"RP, 3, 3, {-2e-4!r}"):
+            assert "TYPE=REVOLUTION" not in text and "ANALYTICAL SURFACE" not in text
+            for kw in ("*ELEMENT, TYPE=C3D4, ELSET=INDENTER", "*SURFACE, TYPE=ELEMENT, NAME=TOP_SURF",
+                       "*SURFACE, TYPE=ELEMENT, NAME=INDENTER_SURF", "INDENTER, S1", "*SURFACE INTERACTION, NAME=INDENTER_CONTACT",
+                       "*SURFACE BEHAVIOR, PRESSURE-OVERCLOSURE=LINEAR", repr(100.0 * E / s["h"]),
+                       "*CONTACT PAIR, INTERACTION=INDENTER_CONTACT, TYPE=NODE TO SURFACE", "TOP_SURF, INDENTER_SURF",
+                       "INDENTER, 1, 2, 0.0", f"INDENTER, 3, 3, {-2e-4!r}", "*NODE PRINT, NSET=INDENTER, TOTALS=ONLY"):
                 assert kw in lines, kw
-            j = lines.index("*SURFACE, TYPE=REVOLUTION, NAME=INDENTER")
-            a_b = [float(v) for v in lines[j + 1].split(",")]
-            zc = 4e-3 + 1e-3 if shape == "sphere" else 4e-3  # sphere centre / cone tip on the surface at depth 0
-            assert a_b == [0.0, 0.0, zc, 0.0, 0.0, zc + 1.0]
-            seg = [ln for ln in lines[j + 2:j + 5] if not ln.startswith("**")]
+            # the indenter's nodes lie on the sphere / cone (the apex, last, inside it); the fan tets have positive volume
+            cap = ipts[:-1]
             if shape == "sphere":
-                assert seg[:2] == [f"START, {1e-3!r}, 0.0", f"CIRCL, 0.0, {-1e-3!r}, 0.0, 0.0"]
+                np.testing.assert_allclose(np.linalg.norm(cap - [0, 0, 5e-3], axis=1), 1e-3, rtol=1e-12)
             else:
-                r0, z0 = (float(v) for v in seg[0].split(",")[1:])
-                assert math.degrees(math.atan2(r0, z0)) == pytest.approx(30.0) and seg[1] == "LINE, 0.0, 0.0"
+                np.testing.assert_allclose(cap[:, 2] - 4e-3, np.hypot(cap[:, 0], cap[:, 1]) / math.tan(math.radians(30.0)), atol=1e-15)
+            # the slave surface: every top face of the tissue, once
+            j = lines.index("*SURFACE, TYPE=ELEMENT, NAME=TOP_SURF")
+            n_faces = 0
+            for ln in lines[j + 1:j + 5]:
+                if ln.startswith("TOP_S"):
+                    k = lines.index(f"*ELSET, ELSET={ln.split(',')[0]}")
+                    end = next(m for m in range(k + 1, len(lines)) if lines[m].startswith("*"))
+                    n_faces += len(", ".join(lines[k + 1:end]).split(","))
+            assert n_faces == 2 * 8 * 8
+            assert ("AXIS_TOP, 1, 2, 0.0" in lines) == (shape == "cone")
 
     # SOFA: sphere -> SphereForceField (stiffness p E h), punch -> projective constraints; cone refused
     root = ET.parse(export(card, "sofa", tmp_path / "s.scn", indentation=sphere)).getroot()
@@ -307,8 +320,8 @@ def test_cli_export_indentation(tmp_path, capsys):
     inp = tmp_path / "afm.inp"
     assert main(["export", str(cpath), "--to", "abaqus", "--specimen", "indentation", "--cells", "4,4,2", "--out", str(inp)]) == 0
     text = inp.read_text()
-    assert "*SURFACE, TYPE=REVOLUTION, NAME=INDENTER" in text and "** radius: card scenario record 'afm'" in text
-    assert f"RP, 3, 3, {-2e-4!r}" in text
+    assert "*SURFACE, TYPE=ELEMENT, NAME=INDENTER_SURF" in text and "** radius: card scenario record 'afm'" in text
+    assert f"INDENTER, 3, 3, {-2e-4!r}" in text
     capsys.readouterr()
     # the same record to FEBio: a meshed rigid sphere (tests/test_export_febio_sphere.py)
     assert main(["export", str(cpath), "--to", "febio", "--specimen", "indentation", "--cells", "4,4,2",
