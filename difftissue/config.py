@@ -639,6 +639,11 @@ class SeparatelyCompiled:
     after the other). The numbers are the same; only the compilation is shared. The material
     must have scalar fields.
 
+    In forward mode one call gives the prediction and all the tangents of a Jacobian (one
+    model solve per ``jax.jacfwd``), so it supports ``jax.jvp`` and ``jax.jacfwd`` (what the
+    fit's forward Jacobians use) but not ``jax.linearize`` or reverse mode: use
+    ``mode="reverse"`` for those.
+
     An evaluation at an invalid material (E <= 0, nu outside (-1, 0.5), non-finite values) or
     one whose static solve fails returns NaN instead of raising, so that Levenberg--Marquardt
     rejects that trial point (shrinking its trust region) rather than the fit aborting; the
@@ -685,12 +690,12 @@ class SeparatelyCompiled:
             # all-zero placeholder) or a failed solve gives NaN instead of an exception, so the
             # optimiser rejects that trial point instead of the whole fit aborting.
             if not valid(v):
-                return np.full(shape, np.nan)
+                return None if shape is None else np.full(shape, np.nan)
             try:
                 return fn(jnp.asarray(v, dtype=jnp.float64), *(jnp.asarray(a, dtype=jnp.float64) for a in args))
             except Exception as e:  # a static solve that failed to converge, an inverted element, ...
                 self.failures.append(" ".join(str(e).split())[-300:])
-                return np.full(shape, np.nan)
+                return None if shape is None else np.full(shape, np.nan)
 
         if mode == "forward":
             # ONE compiled program gives the prediction and its derivatives along a batch of
@@ -714,21 +719,39 @@ class SeparatelyCompiled:
             def host_f(v):
                 return guarded(lambda vv: run(vv, np.zeros((n_zero, n_leaves)))[0], v)
 
-            def host_jvp(v, t):
-                # Called with the batch dimensions of every vmap around it (vmap_method
-                # "expand_dims": the Jacobian's tangents, and the starts of a multi-start fit):
-                # the rows that share a material are pushed through one call.
-                v, t = np.asarray(v, dtype=float), np.asarray(t, dtype=float)
-                lead = np.broadcast_shapes(v.shape[:-1], t.shape[:-1])
-                V = np.broadcast_to(v, (*lead, n_leaves)).reshape(-1, n_leaves)
-                T = np.broadcast_to(t, (*lead, n_leaves)).reshape(-1, n_leaves)
-                res = np.empty((V.shape[0], n))
+            def host_tangents(v, T):
+                # One model solve, all the tangents of a Jacobian.
+                v, T = np.asarray(v, dtype=float), np.asarray(T, dtype=float)
+                res = guarded(lambda vv, tt: run(vv, tt), v, T, shape=None)
+                return res if res is not None else (np.full(n, np.nan), np.full((T.shape[0], n), np.nan))
+
+            def host_rows(V, T):
+                # Several materials (the starts of a multi-start fit): one call per material.
+                V, T = np.asarray(V, dtype=float), np.asarray(T, dtype=float)
+                ys, jts = np.empty((V.shape[0], n)), np.empty((V.shape[0], n))
                 groups: dict[bytes, list[int]] = {}
                 for i, row in enumerate(V):
                     groups.setdefault(row.tobytes(), []).append(i)
                 for rows in groups.values():
-                    res[rows] = guarded(lambda vv, tt: run(vv, tt)[1], V[rows[0]], T[rows], shape=(len(rows), n))
-                return res.reshape(*lead, n)
+                    y, jt = host_tangents(V[rows[0]], T[rows])
+                    ys[rows], jts[rows] = y, jt
+                return ys, jts
+
+            @jax.custom_batching.custom_vmap
+            def value_and_tangent(v, t):
+                y, jt = jax.pure_callback(host_tangents, (out, jax.ShapeDtypeStruct((1, n), jnp.float64)), v, t[None], vmap_method="sequential")
+                return y, jt[0]
+
+            @value_and_tangent.def_vmap
+            def _value_and_tangents(axis_size, in_batched, v, t):
+                v_batched, t_batched = in_batched
+                T = t if t_batched else jnp.broadcast_to(t, (axis_size, n_leaves))
+                if not v_batched:  # the Jacobian's tangents at one material: the prediction is not batched
+                    y, JT = jax.pure_callback(host_tangents, (out, jax.ShapeDtypeStruct((axis_size, n), jnp.float64)), v, T, vmap_method="sequential")
+                    return (y, JT), (False, True)
+                rows = jax.ShapeDtypeStruct((axis_size, n), jnp.float64)
+                Y, JT = jax.pure_callback(host_rows, (rows, rows), v, T, vmap_method="sequential")
+                return (Y, JT), (True, True)
 
             self._host_f = host_f
 
@@ -741,8 +764,10 @@ class SeparatelyCompiled:
 
             @call.defjvp
             def _call_jvp(primals, tangents):
+                # The prediction comes with its tangents from the same call (one model solve per
+                # Jacobian: jax.jacfwd's tangents arrive batched, see _value_and_tangents).
                 (v,), (t,) = primals, tangents
-                return call_f(v), jax.pure_callback(host_jvp, out, v, t, vmap_method="expand_dims")
+                return value_and_tangent(v, t)
 
         else:
             fwd = _compiled_once(f, vec)

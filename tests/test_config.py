@@ -535,6 +535,13 @@ def test_separately_compiled_scenario_matches_the_scenario():
     # tangents of each start go through one call of the one compiled program.
     JV = np.asarray(jax.vmap(jax.jacfwd(fn(sc)))(V))
     np.testing.assert_allclose(jax.jit(jax.vmap(jax.jacfwd(fn(fwd))))(V), JV, rtol=1e-12)
+    # jvp and linearize outside a Jacobian (one tangent at a time)
+    y, jt = jax.jvp(fn(fwd), (v,), (jax.numpy.array([1.0, 0.0]),))
+    np.testing.assert_allclose(jt, J[:, 0], rtol=1e-12)
+    # forward mode gives the prediction with its tangents from one call: jvp and jacfwd, not
+    # linearize (the fit linearises through its own forward Jacobian, fit._with_forward_jacobian)
+    with pytest.raises(ValueError, match="Linearization failed"):
+        jax.linearize(fn(fwd), v)
     two = SeparatelyCompiled(sc, mode="forward", n_tangents=2)
     np.testing.assert_allclose(jax.jit(jax.jacfwd(fn(two)))(v), J, rtol=1e-12)
     np.testing.assert_allclose(two.predict(m), sc.predict(m), rtol=1e-13)
