@@ -10,10 +10,11 @@ specimen whose starts have all stopped is frozen while the others go on. The res
 :class:`~difftissue.fit.FitResult` per specimen (parameters, standard errors, covariance,
 convergence), equal to what a serial loop of :func:`~difftissue.fit.fit` calls returns.
 
-With ``devices=`` the specimen axis is split across devices (``jax.sharding.Mesh`` with one
-axis ``"specimen"``, inputs placed with ``NamedSharding``; the compiler partitions the SAME
-jitted batched step along that axis, each device working on its share of the specimens); a batch that does not divide evenly is padded with copies of the
-first specimen that are frozen from the start and dropped from the result.
+With ``devices=`` the specimen axis is split across devices (a ``jax.sharding.Mesh`` with one
+axis ``"specimen"``): each device runs the SAME jitted batched step on its own share of the
+specimens, dispatched to all devices before any result is waited for, with no communication
+between devices; a batch that does not divide evenly is padded with copies of the first
+specimen that are frozen from the start and dropped from the result.
 
 What is batched: the measured data (``observed`` and ``sigma`` of every scenario), the
 initial parameters of every start, and any other floating-point leaf of the scenarios that
@@ -170,32 +171,52 @@ def specimen_mesh(devices=None) -> jax.sharding.Mesh:
     return jax.sharding.Mesh(np.array(devs), (AXIS,))
 
 
-def _to_host(x) -> np.ndarray:
-    """A (possibly multi-process) array as one NumPy array on this host."""
-    if isinstance(x, jax.Array) and not x.is_fully_addressable:
-        from jax.experimental import multihost_utils
+class _Split:
+    """A batched array split along its first (specimen) axis into one part per device
+    (``fit_batch(devices=...)``): each device runs the unsharded batched program on its own
+    part, with no communication between devices."""
 
-        return np.asarray(multihost_utils.process_allgather(x, tiled=True))
+    def __init__(self, parts):
+        self.parts = list(parts)
+
+
+def _is_split(x) -> bool:
+    return isinstance(x, _Split)
+
+
+def _to_host(x) -> np.ndarray:
+    """A batched array (one device, or split across devices) as one NumPy array on this host."""
+    if isinstance(x, _Split):
+        return np.concatenate([np.asarray(p) for p in x.parts])
     return np.asarray(x)
 
 
 def _place(tree, mesh):
-    """Every leaf split along its first axis over ``mesh`` (works with several processes:
-    each one supplies its own devices' shards from its full host copy)."""
+    """Every leaf split along its first axis into equal parts, one per device of ``mesh``
+    (a :class:`_Split`), each part placed on its device."""
     if mesh is None:
         return tree
-    sharding = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(AXIS))
+    devs = list(mesh.devices.reshape(-1))
+    if any(d.process_index != jax.process_index() for d in devs):
+        raise FitError("fit_batch(devices=...) runs on this process's own devices; with several processes call fit_batch in each one on "
+                       "its local devices (jax.local_devices()) and its share of the specimens")
 
-    def put(x):
-        if isinstance(x, jax.Array):
-            if not x.is_fully_addressable:
-                return x
-            x = np.asarray(x)
-        x = np.asarray(x)
-        x = x.astype(jax.dtypes.canonicalize_dtype(x.dtype), copy=False)
-        return jax.make_array_from_callback(x.shape, sharding, lambda idx: x[idx])
+    def split(x):
+        per = x.shape[0] // len(devs)
+        return _Split(jax.device_put(x[i * per : (i + 1) * per], d) for i, d in enumerate(devs))
 
-    return jax.tree_util.tree_map(put, tree)
+    return jax.tree_util.tree_map(split, tree)
+
+
+def _per_device(fn, n: int):
+    """``fn`` (a jitted batched function) called on every device's part of :class:`_Split`
+    arguments: dispatched to all devices before any result is waited for."""
+
+    def call(*args):
+        outs = [fn(*jax.tree_util.tree_map(lambda s: s.parts[i] if _is_split(s) else s, args, is_leaf=_is_split)) for i in range(n)]
+        return jax.tree_util.tree_map(lambda *xs: _Split(xs), *outs)
+
+    return call
 
 
 # ============================================================================ fit
@@ -236,11 +257,9 @@ def fit_batch(
             vector, as a serial loop of ``fit(..., seed=seed)`` calls would make).
         devices: ``None`` (default): one batch on the default device. ``"all"``, an int ``n``
             or a sequence of devices, or a :func:`specimen_mesh`: the specimens are split across
-            these devices (the inputs placed with ``NamedSharding`` along the mesh axis
-            ``"specimen"``, the same jitted batched step partitioned by the compiler); the batch
-            is padded to a multiple of the device count. On (simulated) CPU devices, batches of
-            simulated specimens with more than one specimen per device hung in XLA (a
-            ``RuntimeWarning`` says so; docs/scale.md).
+            these devices: each runs the same jitted batched step on its share (no
+            communication between devices); the batch is padded to a multiple of the device
+            count. The devices must belong to this process.
         labels: names of the specimens (default ``"0"``, ``"1"``, ...), used in messages.
         progress: show a rich progress bar (on stderr).
 
@@ -307,10 +326,6 @@ def fit_batch(
         data = jax.tree_util.tree_map(pad, data)
     done = np.zeros((B + padding, n_starts), dtype=bool)
     done[B:] = True  # padding: frozen from the start
-    if mesh is not None and (B + padding) > n_dev and all(d.platform == "cpu" for d in mesh.devices.reshape(-1)):
-        warnings.warn(f"sharded fit_batch with {(B + padding) // n_dev} specimens per CPU device: batches of simulated specimens with "
-                      "more than one specimen per (simulated) CPU device hung in XLA on jaxlib 0.10 (docs/scale.md, 'Limitations'; docs/dev/scale-investigation.md, 'Sharded batches "
-                      "on simulated CPU devices'); analytic scenarios ran", RuntimeWarning, stacklevel=2)
 
     U = jnp.asarray(U)
     first = jax.tree_util.tree_map(lambda x: x[0], data)
@@ -335,15 +350,7 @@ def fit_batch(
         task = bar.add_task("fit", total=max_steps, completed=0, loss=f"{np.nanmax(np.nanmin(history[-1][:B], axis=1)):.6g}" if history else "-")
     try:
         while step < max_steps and not finished.all():
-            try:
-                U, dyn, done_d, new_status, losses = fns["step"](U, dyn, done_d, data_d)
-            except ValueError as exc:
-                if mesh is None or "pytree structure" not in str(exc):
-                    raise
-                raise FitError(
-                    "sharded fit_batch (devices=...): the optimiser state changed its structure in the partitioned trace; run it "
-                    f"without devices= (one batch on one device). Underlying error: {str(exc).splitlines()[0]}"
-                ) from exc
+            U, dyn, done_d, new_status, losses = fns["step"](U, dyn, done_d, data_d)
             step += 1
             new_status = _to_host(new_status)
             status = np.where(new_status != 0, new_status, status).astype(np.int32)
@@ -460,7 +467,7 @@ def _shared_structure(problems: list[FitProblem], labels) -> list[FitProblem]:
 def _batched_functions(engine, mesh) -> dict[str, Any]:
     """The compiled batched step and evaluation of ``engine`` (kept with it, per mesh), from
     the same single-start step as :func:`difftissue.fit.fit`: ``vmap`` over the starts inside
-    ``vmap`` over the specimens, jitted with outputs sharded along the mesh axis when sharded."""
+    ``vmap`` over the specimens; with a mesh, called on each device's part of the batch."""
     cache = engine.__dict__.setdefault("_batch_functions", {})
     key = None if mesh is None else (tuple(d.id for d in mesh.devices.reshape(-1)), mesh.axis_names)
     hit = cache.get(key)
@@ -482,21 +489,17 @@ def _batched_functions(engine, mesh) -> dict[str, Any]:
     def final(U, dyn, data):
         return jax.vmap(single_final)(U, dyn, data)
 
-    if mesh is None:
-        fns = {"step": jax.jit(step), "evaluate": jax.jit(evaluate), "traces": traces}
-        if single_final is not None:
-            fns["final"] = jax.jit(final)
-    else:
-        # The inputs are placed split along the specimen axis (NamedSharding); the compiler
-        # (GSPMD) partitions the batched program along that axis and the outputs keep the same
-        # sharding. Its batched while-loop predicates and error checks become cross-device
-        # all-reduces (36 per LM step). jax.shard_map / jax.pmap (one local batch per device, no
-        # communication) were tried (2026-12-02): lineax 0.1.1 rejects the vectors inside them,
-        # whose abstract shapes carry the manual mesh (lineax issue #185).
-        sharded = jax.sharding.NamedSharding(mesh, jax.sharding.PartitionSpec(AXIS))
-        fns = {"step": jax.jit(step, out_shardings=sharded), "evaluate": jax.jit(evaluate, out_shardings=sharded), "traces": traces}
-        if single_final is not None:
-            fns["final"] = jax.jit(final, out_shardings=sharded)
+    fns = {"step": jax.jit(step), "evaluate": jax.jit(evaluate), "traces": traces}
+    if single_final is not None:
+        fns["final"] = jax.jit(final)
+    if mesh is not None:
+        # One program per device on its own specimens, no cross-device communication. (A
+        # GSPMD-partitioned program, inputs placed with NamedSharding, turned the batched
+        # while-loop predicates and error checks into 36 cross-device all-reduces per LM step,
+        # which hung XLA's CPU collectives with more than one specimen per simulated device;
+        # jax.shard_map / pmap are refused by lineax 0.1.1 (issue #185).)
+        n = mesh.devices.size
+        fns = {**{k: _per_device(f, n) for k, f in fns.items() if k != "traces"}, "traces": traces}
     cache[key] = fns
     return fns
 

@@ -32,6 +32,11 @@ def _components(spec) -> list[int]:
     return comps
 
 
+def _concrete(*values) -> bool:
+    """True when no value is a JAX tracer (they can be set up in NumPy)."""
+    return not any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(values))
+
+
 class BoundaryConditions(eqx.Module):
     """Prescribed displacement components and external nodal forces of a mesh.
 
@@ -55,7 +60,8 @@ class BoundaryConditions(eqx.Module):
     def free(cls, mesh) -> "BoundaryConditions":
         """No prescribed displacement and no force on any node."""
         n = int(np.shape(mesh.points)[0])
-        return cls(np.zeros((n, 3), dtype=bool), jnp.zeros((n, 3)), jnp.zeros((n, 3)))
+        zeros = jnp.asarray(np.zeros((n, 3)), dtype=jnp.result_type(float))
+        return cls(np.zeros((n, 3), dtype=bool), zeros, zeros)
 
     def _nodes(self, mesh, nodes) -> np.ndarray:
         if isinstance(nodes, dict) or hasattr(nodes, "mask"):
@@ -80,11 +86,17 @@ class BoundaryConditions(eqx.Module):
         """
         idx = self._nodes(mesh, nodes)
         comps = _components(components)
-        d = jnp.broadcast_to(jnp.asarray(displacement, dtype=self.displacement.dtype), (len(idx), 3))
         fixed = self.fixed.copy()
         mask = np.zeros((len(idx), 3), dtype=bool)
         mask[:, comps] = True
         fixed[idx[:, None], np.arange(3)[None, :]] |= mask
+        if _concrete(self.displacement, displacement):
+            # NumPy on concrete values: no per-operation compilation while a scenario is built.
+            disp = np.array(self.displacement)
+            d = np.broadcast_to(np.asarray(displacement, dtype=disp.dtype), (len(idx), 3))
+            disp[idx] = np.where(mask, d, disp[idx])
+            return BoundaryConditions(fixed, jnp.asarray(disp), self.force)
+        d = jnp.broadcast_to(jnp.asarray(displacement, dtype=self.displacement.dtype), (len(idx), 3))
         disp = self.displacement.at[idx].set(jnp.where(mask, d, self.displacement[idx]))
         return BoundaryConditions(fixed, disp, self.force)
 

@@ -670,6 +670,9 @@ class SeparatelyCompiled:
         self.mode = mode
         #: messages of the model evaluations that failed (returned NaN) during fits
         self.failures: list[str] = []
+        #: model solves run so far: ``"value"`` (prediction only) and ``"value_and_tangents"``
+        #: (prediction and the tangents of a Jacobian, forward mode)
+        self.calls = {"value": 0, "value_and_tangents": 0}
         for k in ("name", "observed", "sigma", "abscissa", "x_label", "y_label"):
             setattr(self, k, getattr(scenario, k))
         n = int(np.asarray(scenario.observed).size)
@@ -717,10 +720,12 @@ class SeparatelyCompiled:
                 return np.asarray(y, dtype=np.float64), np.asarray(JT, dtype=np.float64)
 
             def host_f(v):
+                self.calls["value"] += 1
                 return guarded(lambda vv: run(vv, np.zeros((n_zero, n_leaves)))[0], v)
 
             def host_tangents(v, T):
                 # One model solve, all the tangents of a Jacobian.
+                self.calls["value_and_tangents"] += 1
                 v, T = np.asarray(v, dtype=float), np.asarray(T, dtype=float)
                 res = guarded(lambda vv, tt: run(vv, tt), v, T, shape=None)
                 return res if res is not None else (np.full(n, np.nan), np.full((T.shape[0], n), np.nan))

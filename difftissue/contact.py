@@ -366,6 +366,12 @@ def _prescribe(bc: BoundaryConditions, nodes: np.ndarray, depth_or_value, compon
     for c in comps:
         mask[nodes, c] = True
     fixed |= mask
+    if not any(isinstance(v, jax.core.Tracer) for v in (bc.displacement, depth_or_value)):
+        # NumPy on concrete values: no per-operation compilation while a scenario is built.
+        current = np.asarray(bc.displacement)
+        target = np.zeros_like(current)
+        target[nodes, 2] = -np.asarray(depth_or_value, dtype=current.dtype)
+        return BoundaryConditions(fixed, jnp.asarray(np.where(mask, target, current)), bc.force)
     target = jnp.zeros_like(bc.displacement).at[nodes, 2].set(-jnp.asarray(depth_or_value, dtype=bc.displacement.dtype))
     disp = jnp.where(jnp.asarray(mask), target, bc.displacement)
     return BoundaryConditions(fixed, disp, bc.force)

@@ -331,8 +331,13 @@ class ElasticModel(eqx.Module):
         return m
 
 
+# Mesh set-up on concrete arrays: one compiled program each instead of one per operation.
+_jit_rest_shape = jax.jit(rest_shape)
+_jit_hexahedron_volumes = jax.jit(jax.vmap(hexahedron_volume))
+
+
 def _tet_geometry(mesh: TetMesh):
-    Dm_inv, V0 = rest_shape(jnp.asarray(mesh.points)[mesh.tets])
+    Dm_inv, V0 = _jit_rest_shape(np.asarray(mesh.points, dtype=float)[mesh.tets])
     Dm_inv, V0 = np.asarray(Dm_inv), np.asarray(V0)
     bad = np.flatnonzero(~(V0 > 0))
     if bad.size:
@@ -533,7 +538,7 @@ class SpringVolumeModel(ElasticModel):
         self.spring_in_plane = (d[:, 0] ** 2 + d[:, 1] ** 2) / self.rest_lengths**2
         self.cells = lat.cubes
         self.cell_regions = lat.cube_region_ids
-        self.cell_volumes = np.asarray(jax.vmap(hexahedron_volume)(jnp.asarray(p[lat.cubes])))
+        self.cell_volumes = np.asarray(_jit_hexahedron_volumes(np.asarray(p[lat.cubes], dtype=float)))
         self.pre_stretch_range = ranges
 
     def checked(self, material: Material) -> "CheckedMaterial":

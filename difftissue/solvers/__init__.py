@@ -1,8 +1,18 @@
 """Solvers: static equilibrium (Newton-Krylov, implicit gradients), XPBD, damped dynamics."""
 
-from .dynamics import ADJOINTS, SOLVERS, DynamicsSolution, ramp, simulate_dynamics
 from .static import StaticResult, StaticSolution, solve_static
 from .xpbd import XPBDQuasiStaticSolution, XPBDSettings, XPBDState, xpbd_constraints, xpbd_quasi_static, xpbd_simulate
+
+#: Imported on first use (diffrax's import costs about a second that static fits do not need).
+_DYNAMICS = ("ADJOINTS", "SOLVERS", "DynamicsSolution", "ramp", "simulate_dynamics")
+
+
+def __getattr__(name):
+    if name in _DYNAMICS:
+        from . import dynamics
+
+        return getattr(dynamics, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "StaticResult",
