@@ -632,8 +632,8 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     (``FIXED_X``, ``PRESCRIBED_X``, ...) and ``REACTION``, and one ``*STEP`` / ``*STATIC`` whose
     ``*BOUNDARY`` gives every prescribed component its own magnitude (data lines ``node, c, c,
     value``), ramped over the step (the default amplitude of a ``*STATIC`` step), with initial and
-    largest increment ``1 /`` :func:`load_steps` of the step. A pre-stretched specimen (an incision) is refused: Abaqus has no prestrain
-    gradient here, and without it the cut does not open."""
+    largest increment ``1 /`` :func:`load_steps` of the step. An incision is refused: a pre-stretched one because Abaqus has no
+    prestrain gradient here, and without it the cut does not open; one without pre-stretch because it carries no load."""
     from .export import (_abaqus_comment, _abaqus_element, _element_comment, _law, _wrap_ids, abaqus_material, abaqus_name,
                          abaqus_number, abaqus_reaction_print)
 
@@ -641,6 +641,10 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     element = _abaqus_element(element)
     cards = spec.region_cards(card)
     _refuse_pre_stretch(cards, "Abaqus")
+    if spec.experiment == "incision":
+        raise ExportError(f"Abaqus fitted specimen {spec.scenario!r}: an incision is loaded only by its pre-stretch (its boundary holds "
+                          "faces at zero displacement), and this one has none, so the deck would carry no load and the cut would not "
+                          "open: it cannot reproduce the fitted widths; export the incision to febio, xpbd or vtu")
     lines = ["*HEADING", f"difftissue fitted specimen {spec.scenario} for material {abaqus_name(card.name)} (SI units: m, N, Pa, kg)"]
     lines += [_abaqus_comment(t) for t in spec.describe() + _element_comment(element)]
     tets = spec.tets
