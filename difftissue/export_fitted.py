@@ -906,7 +906,7 @@ def xpbd_fitted_field_check(doc: dict, card, spec: FittedSpecimen, *, approximat
                            "loading only")
         doc["notes"].append(doc["validity"])
         return doc
-    why = (f"does not come to rest at this budget (diverges or creeps)" if not rested else
+    why = ("does not come to rest at this budget (diverges or creeps)" if not rested else
            f"gives the {what} {100 * err:.3g} % off (of the largest) against the card's {spec.model} model")
     msg = (f"XPBD fitted {spec.experiment} specimen {spec.scenario!r} at {budget}: standard XPBD {why}; it has no summed reaction, so "
            f"no stiffness factor can be recalibrated, and the written budget does not reproduce the fitted experiment within "
