@@ -205,19 +205,72 @@ _HOW_TO_RUN = {
 }
 
 
+def _readme_budget(text: str) -> list[str]:
+    """README lines about a real-time file's budget (pypbd scene, XPBD JSON): the budget written,
+    whether the exporter chose it, the stiffness factor and the signed error per load state
+    before and after the recalibration, or the check of a reaction-free specimen."""
+    import json
+
+    try:
+        doc = json.loads(text)
+    except ValueError:
+        return []
+    if not isinstance(doc, dict):
+        return []
+    st = doc.get("setting") or {}
+    budget = (f"dt = {float(st['dt']):.6g} s, substeps = {st.get('substeps', 1)}, iterations = {st['iterations']}"
+              if "dt" in st and "iterations" in st else None)
+    fmt = lambda a: ", ".join(f"{100 * float(v):+.3g} %" for v in a)  # noqa: E731
+    rec, chk = doc.get("budget_calibration"), doc.get("budget_check")
+    if isinstance(rec, dict):
+        how = rec.get("budget") or "as given (--dt, --iterations)"
+        lines = [f"- budget: {budget} ({how})"]
+        if rec.get("budgets_tried") and len(rec["budgets_tried"]) > 1:
+            lines.append("- budgets tried before it (did not reach "
+                         f"{100 * rec.get('tolerance', 0.02):g} % at every load state): "
+                         + "; ".join(f"dt = {float(b[0]):.6g} s, {b[1]} substep(s), {b[2]} iterations" for b in rec["budgets_tried"][:-1]))
+        lines.append(f"- RECALIBRATED for this budget: stiffness x {float(rec['factor']):.6g} (nu kept) against the card's "
+                     f"{rec.get('reference_model', 'model')} on the written specimen at load fractions "
+                     f"{[round(float(f), 4) for f in rec.get('load_fractions', [])]}: signed reaction error "
+                     f"{fmt(rec.get('signed_error_before', []))} with the card's values, {fmt(rec.get('signed_error_after', []))} "
+                     + ("after (within tolerance)" if rec.get("within_tolerance") else "after: NOT within tolerance (--approximate)"))
+        return lines
+    if isinstance(chk, dict):
+        err = chk.get("relative_error")
+        return [f"- budget: {budget} (as given)",
+                f"- checked at this budget (no reaction to recalibrate on): {chk.get('observable')} "
+                + (f"{100 * float(err):.3g} % of the largest" if err is not None else "did not come to rest")
+                + (" (within tolerance)" if chk.get("within_tolerance") else ": NOT within tolerance (--approximate)")]
+    if budget is not None:
+        return [f"- budget: {budget} (NOT recalibrated: the card's converged-limit values; see the file's notes)"]
+    return []
+
+
 def _readme_section(path: Path, target: str, card, what: str) -> str:
-    """The README section of one exported file: target, units, how to run it, and the file's
-    own APPROXIMATION / RECALIBRATED lines (what is approximated)."""
+    """The README section of one exported file: target, units, how to run it, the budget a
+    real-time file was written and recalibrated for (pypbd, XPBD), what was recalibrated
+    (the file's RECALIBRATED / VERIFIED lines) and what is approximated (APPROXIMATION lines)."""
     from .export import UNITS
 
     try:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):  # a binary VTU
         text = ""
-    notes = sorted({ln.strip().strip("<!->*\"', ").strip() for ln in text.splitlines() if "APPROXIMATION" in ln or "RECALIBRATED" in ln})
+    keys = ("APPROXIMATION", "RECALIBRATED", "VERIFIED for this budget", "NOT calibrated")
+
+    def clean(ln: str) -> str:  # the sentence from its keyword on (JSON: without the key), comment marks stripped
+        i = min((ln.find(k) for k in keys if k in ln), default=0)
+        return ln[i:].strip().strip("<!->*\"', ").strip()
+
+    approx = sorted({clean(ln) for ln in text.splitlines() if "APPROXIMATION" in ln or "NOT calibrated" in ln})
+    recal = sorted({clean(ln) for ln in text.splitlines() if ("RECALIBRATED" in ln or "VERIFIED for this budget" in ln)
+                    and "APPROXIMATION" not in ln})
     lines = [f"## {path.name}", "", f"- target: {target} ({what}), from a `{card.model}` card `{card.name}`",
              f"- units: {UNITS}", "- run: " + _HOW_TO_RUN[target].format(f=path.name, stem=path.stem)]
-    lines += ["- approximated: " + (" / ".join(notes) if notes else "nothing (the file represents the card exactly)"), ""]
+    if target in ("pbd", "xpbd"):
+        lines += _readme_budget(text)
+    lines += ["- recalibrated: " + (" / ".join(recal) if recal else "nothing (the card's values as written)")]
+    lines += ["- approximated: " + (" / ".join(approx) if approx else "nothing (the file represents the card exactly)"), ""]
     return "\n".join(lines)
 
 

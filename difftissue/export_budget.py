@@ -57,8 +57,12 @@ def load_fractions(n: int, states: int = BUDGET_STATES) -> list[float]:
 
 
 def card_reference_reactions(card, mesh, fixed: np.ndarray, prescribed: np.ndarray, observe: np.ndarray,
-                             fractions: Sequence[float], material=None) -> np.ndarray:
+                             fractions: Sequence[float], material=None, model: str | None = None) -> np.ndarray:
     """Reactions [N] of the card's own model at the card's values (what the fit matched).
+
+    ``model`` overrides ``card.model`` (a fitted specimen's record names the model the fit
+    solved); ``material`` overrides ``card.material()`` (per-region materials of a specimen with
+    fixed regions).
 
     ``mesh`` solved by :func:`~difftissue.solvers.static.solve_static` with the ``fixed``
     ``(N, 3)`` components held at ``fraction * prescribed`` [m]; the observable is the summed
@@ -70,9 +74,9 @@ def card_reference_reactions(card, mesh, fixed: np.ndarray, prescribed: np.ndarr
     from .models import MODELS, make_model
     from .solvers.static import solve_static
 
-    kind = card.model.strip()
+    kind = (card.model if model is None else model).strip()
     if kind not in MODELS:
-        raise ExportError(f"the card's model {card.model!r} is no difftissue mesh model {list(MODELS)}: its fitted response "
+        raise ExportError(f"the card's model {kind!r} is no difftissue mesh model {list(MODELS)}: its fitted response "
                           "cannot be solved on the exported specimen, so the budget cannot be recalibrated")
     if kind == "springs_volume" and getattr(mesh, "lattice", None) is None:
         from .scenarios import recover_lattice

@@ -632,8 +632,8 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     (``FIXED_X``, ``PRESCRIBED_X``, ...) and ``REACTION``, and one ``*STEP`` / ``*STATIC`` whose
     ``*BOUNDARY`` gives every prescribed component its own magnitude (data lines ``node, c, c,
     value``), ramped over the step (the default amplitude of a ``*STATIC`` step), with initial and
-    largest increment ``1 /`` :func:`load_steps` of the step. A pre-stretched specimen (an incision) is refused: Abaqus has no prestrain
-    gradient here, and without it the cut does not open."""
+    largest increment ``1 /`` :func:`load_steps` of the step. An incision is refused: a pre-stretched one because Abaqus has no
+    prestrain gradient here, and without it the cut does not open; one without pre-stretch because it carries no load."""
     from .export import (_abaqus_comment, _abaqus_element, _element_comment, _law, _wrap_ids, abaqus_material, abaqus_name,
                          abaqus_number, abaqus_reaction_print)
 
@@ -641,6 +641,10 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     element = _abaqus_element(element)
     cards = spec.region_cards(card)
     _refuse_pre_stretch(cards, "Abaqus")
+    if spec.experiment == "incision":
+        raise ExportError(f"Abaqus fitted specimen {spec.scenario!r}: an incision is loaded only by its pre-stretch (its boundary holds "
+                          "faces at zero displacement), and this one has none, so the deck would carry no load and the cut would not "
+                          "open: it cannot reproduce the fitted widths; export the incision to febio, xpbd or vtu")
     lines = ["*HEADING", f"difftissue fitted specimen {spec.scenario} for material {abaqus_name(card.name)} (SI units: m, N, Pa, kg)"]
     lines += [_abaqus_comment(t) for t in spec.describe() + _element_comment(element)]
     tets = spec.tets
@@ -696,7 +700,8 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     return "\n".join(lines) + "\n"
 
 
-def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations: int, substeps: int = 1, approximate: bool = False) -> dict:
+def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations: int, substeps: int = 1, approximate: bool = False,
+                           calibrate: bool = True) -> dict:
     """The XPBD JSON (``difftissue-xpbd/1``) of a fitted specimen: the header of
     :func:`~difftissue.export.xpbd_parameters` for the card, per-tet stable neo-Hookean
     compliances of each tet's region material, and a ``specimen`` block: positions [m], tets,
@@ -704,7 +709,16 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
     ``fixed`` node ids per component, ``prescribed_displacement`` ``[[node, component, value
     [m]], ...]``, the reaction set, and for an incision the duplicated pairs (with ``s``, depth,
     the surface order), for a compression the ``protocol`` and ``load_steps`` of the ramp, and per-tet ``pre_stretch``: a pre-stretched tet's stress-free shape is
-    the mesh shrunk by ``1/lambda0`` in x and y (``Dm`` of that shape; rest volume ``V/lambda0^2``)."""
+    the mesh shrunk by ``1/lambda0`` in x and y (``Dm`` of that shape; rest volume ``V/lambda0^2``).
+
+    ``calibrate`` (default): the written budget must reproduce the fitted experiment
+    (:func:`xpbd_fitted_budget`): a specimen with a summed reaction and no pre-stretch (fem_field
+    with reaction, compression) is **recalibrated** (one factor on ``mu`` and ``lambda'`` of the
+    fitted regions, :func:`~difftissue.export_budget.xpbd_budget_calibration`); an incision or a
+    fem_field without reaction is **checked** (opening widths / displacement field at the budget
+    against the card's model, 2 % of the largest); a budget that does not reach 2 % is refused
+    with the reason and a smaller ``dt`` that does (``approximate``: written, the measured error
+    noted). ``calibrate=False`` writes the card's converged-limit compliances (conversion checks)."""
     from .export import _approximations, xpbd_parameters
 
     base = card
@@ -759,6 +773,159 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
                      "surface_pairs": spec.surface_pairs.tolist(),
                      "note": "pairs (original, duplicate) are separate, untied nodes: the opened cut; width = |x_a - x_b|"}
     doc["specimen"] = sp
+    if calibrate:
+        xpbd_fitted_budget(doc, card, spec, approximate=approximate)
+    else:
+        doc["notes"].append("NOT calibrated for the budget (calibrate=False): the compliances are the card's converged-limit values "
+                            "(see validity)")
+    return doc
+
+
+def _budget_fractions(spec: FittedSpecimen) -> list[float]:
+    """Load states of a budget recalibration: a compression's protocol strains (up to
+    :data:`RECALIBRATION_STATES`), else 1 (the fem_field's one prescribed state)."""
+    return _recalibration_fractions(spec)
+
+
+def xpbd_fitted_budget(doc: dict, card, spec: FittedSpecimen, *, approximate: bool) -> dict:
+    """Make the fitted XPBD document reproduce its fitted experiment at the written budget
+    (issue 16), in place.
+
+    * A summed reaction and no pre-stretch (fem_field with reaction, compression): the reference
+      is the fit's model (``spec.model``) at the card's values on the specimen (per-region
+      materials), solved by difftissue's static solver at the protocol's strains (a
+      compression, up to 4) or the prescribed state (a fem_field): what the fit matched. The
+      XPBD compliances of the fitted regions are recalibrated by one factor on ``mu`` and
+      ``lambda'`` (nu kept) so that standard XPBD at the written budget is within 2 % per state
+      (:func:`~difftissue.export_budget.xpbd_budget_calibration`); refused with a suggested
+      ``dt`` when it cannot be.
+    * No reaction or a pre-stretch (an incision, a fem_field without reaction): no force to
+      scale (a common stiffness factor leaves a displacement-loaded or pre-stretch-loaded
+      equilibrium unchanged), so the written budget is **checked** (:func:`xpbd_fitted_field_check`):
+      the opening widths of the cut pairs (incision) or the displacement field (fem_field) of
+      standard XPBD at the budget against the fit's model, within 2 % of the largest; refused
+      with a smaller ``dt`` that reaches it, or with ``approximate`` written with the error noted.
+    """
+    from .export_budget import card_reference_reactions, xpbd_budget_calibration
+
+    fitted_tets = np.array([spec.region_names[r] in spec.fitted_regions for r in spec.region_ids])
+    pre = spec.pre_stretches(card)
+    if spec.reaction is None or np.any(pre != 1.0):
+        return xpbd_fitted_field_check(doc, card, spec, approximate=approximate)
+    fr = _budget_fractions(spec)
+    observe = spec.reaction & spec.fixed
+    try:
+        ref = card_reference_reactions(card, spec.mesh(), spec.fixed, spec.prescribed, observe, fr,
+                                       material=spec.material(card), model=spec.model)
+    except ExportError as e:
+        if not approximate:
+            raise ExportError(f"XPBD fitted specimen {spec.scenario!r}: {e}; pass approximate=True (--approximate) to write the "
+                              "card's converged-limit compliances") from None
+        doc["notes"].append(f"APPROXIMATION: not calibrated for the budget: {e}")
+        return doc
+    xpbd_budget_calibration(doc, ref, spec.fixed, spec.prescribed, observe, fr, approximate=approximate, fitted_tets=fitted_tets)
+    rec = doc["budget_calibration"]
+    rec["reference_model"] = spec.model
+    rec["scenario"] = spec.scenario
+    if spec.protocol is not None:
+        rec["nominal_strains"] = [f * float(spec.protocol["nominal_strains"][-1]) for f in fr]
+    doc["notes"].append(doc["validity"])
+    return doc
+
+
+def _xpbd_fitted_observable(spec: FittedSpecimen, u: np.ndarray) -> np.ndarray:
+    """The checked observable of a reaction-free specimen: the cut pairs' opening widths [m]
+    (incision) or the displacement field [m] (fem_field)."""
+    if spec.pairs is not None:
+        x = spec.points + u
+        return np.linalg.norm(x[spec.pairs[:, 0]] - x[spec.pairs[:, 1]], axis=1)
+    return np.asarray(u)
+
+
+#: Halvings of dt tried when a reaction-free XPBD specimen misses 2 % at its budget (to suggest one).
+FIELD_CHECK_HALVINGS = 3
+
+
+def xpbd_fitted_field_check(doc: dict, card, spec: FittedSpecimen, *, approximate: bool, max_steps: int = 5_000) -> dict:
+    """Check (in place) that standard XPBD at the document's budget reproduces a reaction-free
+    fitted specimen: ``max |o_xpbd - o_ref| / max |o_ref|`` <= 2 % with ``o`` the opening widths
+    (incision) or the displacement field (fem_field); ``o_ref`` of the fit's model at the card's
+    values by difftissue's static solver, ``o_xpbd`` of the document's per-tet compliances and
+    stress-free shapes run like a real-time engine (multipliers reset every substep, fully damped
+    frames to rest). Refused with the reason and a smaller ``dt`` (halved up to
+    :data:`FIELD_CHECK_HALVINGS` times) that
+    reaches 2 %; ``approximate`` writes the file with the measured error noted. The result is
+    recorded in ``doc["budget_check"]``."""
+    import jax.numpy as jnp
+
+    from .boundary import BoundaryConditions
+    from .export_budget import MAX_BUDGET_ERROR, _snh_constraints
+    from .models import make_model
+    from .solvers.static import solve_static
+    from .solvers.xpbd import XPBDSettings, xpbd_quasi_static_constraints
+
+    what = "opening widths of the cut pairs" if spec.pairs is not None else "displacement field"
+    mesh = spec.mesh()
+    if spec.model == "springs_volume":
+        from .scenarios import recover_lattice
+
+        mesh = recover_lattice(mesh)
+    bc = BoundaryConditions(spec.fixed, spec.prescribed, np.zeros_like(spec.prescribed))
+    ref = _xpbd_fitted_observable(spec, np.asarray(solve_static(make_model(mesh, spec.model), spec.material(card), bc).displacement))
+    scale = float(np.max(np.abs(ref)))
+    if not scale > 0:
+        raise ExportError(f"XPBD fitted specimen {spec.scenario!r}: the fit's model gives zero {what}: nothing to reproduce")
+    cons, pts, masses = _snh_constraints(doc, 1.0, None)
+    st = doc["setting"]
+    bcj = BoundaryConditions(spec.fixed, jnp.asarray(spec.prescribed), jnp.zeros(spec.prescribed.shape))
+
+    def error(dt):
+        settings = XPBDSettings(dt=float(dt), substeps=int(st["substeps"]), iterations=int(st["iterations"]), damping=float("inf"),
+                                warm_start=False)
+        sol = xpbd_quasi_static_constraints((cons,), jnp.asarray(pts), jnp.asarray(masses), bcj, settings=settings, tol=1e-8,
+                                            max_steps=max_steps, throw=False)
+        u = np.asarray(sol.displacement)
+        if not (bool(sol.converged) and np.all(np.isfinite(u))):
+            return float("inf"), False
+        return float(np.max(np.abs(_xpbd_fitted_observable(spec, u) - ref)) / scale), True
+
+    err, rested = error(float(st["dt"]))
+    ok = rested and err <= MAX_BUDGET_ERROR
+    budget = f"dt = {float(st['dt']):.6g} s, substeps = {st['substeps']}, iterations = {st['iterations']}"
+    doc["budget_check"] = {"target": "xpbd", "setting": dict(st), "observable": what, "reference_model": spec.model,
+                           "relative_error": err if rested else None, "came_to_rest": rested, "within_tolerance": ok,
+                           "tolerance": MAX_BUDGET_ERROR,
+                           "note": f"max |XPBD - {spec.model}| / max |{spec.model}| of the {what}; standard XPBD (multipliers reset "
+                                   "every substep, Gauss-Seidel), fully damped frames to rest; no stiffness factor (no reaction to "
+                                   "scale, and a common factor leaves this equilibrium unchanged)"}
+    doc["setting"]["multipliers"] = "reset every substep (standard XPBD); Gauss-Seidel iterations"
+    if ok:
+        doc["validity"] = (f"VERIFIED for this budget ({budget}, standard XPBD): difftissue's XPBD solver running these compliances "
+                           f"reproduces the {what} of the card's {spec.model} model on the fitted experiment to {100 * err:.3g} % of "
+                           "the largest; the card's values unchanged (no reaction to recalibrate on); valid for this budget, mesh and "
+                           "loading only")
+        doc["notes"].append(doc["validity"])
+        return doc
+    why = ("does not come to rest at this budget (diverges or creeps)" if not rested else
+           f"gives the {what} {100 * err:.3g} % off (of the largest) against the card's {spec.model} model")
+    msg = (f"XPBD fitted {spec.experiment} specimen {spec.scenario!r} at {budget}: standard XPBD {why}; it has no summed reaction, so "
+           f"no stiffness factor can be recalibrated, and the written budget does not reproduce the fitted experiment within "
+           f"{100 * MAX_BUDGET_ERROR:g} %")
+    for k in range(1, FIELD_CHECK_HALVINGS + 1):
+        dt = float(st["dt"]) / 2**k
+        e2, r2 = error(dt)
+        if r2 and e2 <= MAX_BUDGET_ERROR:
+            msg += (f"; a budget that reaches it: dt = {dt:.6g} s with {st['iterations']} iterations and {st['substeps']} substep(s) "
+                    f"(or keep dt and use {int(st['substeps']) * 2**k} substeps): {100 * e2:.3g} %")
+            doc["budget_check"]["suggested_dt"] = dt
+            break
+    else:
+        msg += (f"; no dt down to {float(st['dt']) / 2**FIELD_CHECK_HALVINGS:.3g} s reaches it with {st['iterations']} iterations: "
+                "use more iterations or a smaller dt")
+    if not approximate:
+        raise ExportError(msg + "; pass approximate=True (--approximate) to write it with the measured error noted")
+    doc["validity"] = "APPROXIMATION: " + msg
+    doc["notes"].append(doc["validity"])
     return doc
 
 

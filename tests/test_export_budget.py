@@ -36,6 +36,7 @@ from difftissue.pbd import read_pbd_scene, run_pbd_budget
 scene = read_pbd_scene(sys.argv[2])
 r = run_pbd_budget(scene, scene["budget_calibration"]["load_fractions"])
 open(sys.argv[1], "w").write(json.dumps({"reactions": r.reactions.tolist(), "converged": r.converged.tolist(),
+                                         "positions": r.positions[-1].tolist(),
                                          "steps": r.steps.tolist(), "setting": [r.dt, r.substeps, r.iterations]}))
 """
 
@@ -54,15 +55,22 @@ def _run_pbd_file(tmp_path, path) -> dict:
     return json.loads(out.read_text())
 
 
-def _static(card, mesh, fixed_nodes, moved, dvec, fractions):
-    """The card's own model on the specimen (independent of the exporter's code path)."""
+def _static(card, mesh, fixed_nodes, moved, dvec, fractions, field=False):
+    """The card's own model on the specimen (independent of the exporter's code path): the
+    reaction per fraction, and with ``field`` also the displacement field [m] at the last."""
     model = make_model(mesh, card.model)
     out = []
     for f in fractions:
         bc = BoundaryConditions.free(mesh).fix(mesh, fixed_nodes, "xyz").fix(mesh, moved, "xyz", tuple(f * np.asarray(dvec)))
         sol = solve_static(model, card.material(), bc, load_steps=2)
         out.append(float(np.sum(np.asarray(sol.reaction)[moved] @ (np.asarray(dvec) / np.linalg.norm(dvec)))))
-    return np.asarray(out)
+    return (np.asarray(out), np.asarray(sol.displacement)) if field else np.asarray(out)
+
+
+def _field_error(run, mesh, u_ref):
+    """max |u_pypbd - u_card| / max |u_card| at the last load state (pypbd gives positions)."""
+    u = np.asarray(run["positions"]) - np.asarray(mesh.points)
+    return float(np.abs(u - u_ref).max() / np.abs(u_ref).max())
 
 
 def _block_sets(mesh):
@@ -83,11 +91,14 @@ def test_pypbd_block_reproduces_the_card_at_the_default_budget(tmp_path):
     assert scene["setting"] == {"dt": pytest.approx(1 / 60), "substeps": 1, "iterations": 10}
     assert rec["budget"] == "the default budget" and any("RECALIBRATED" in n for n in scene["notes"])
     base, top = _block_sets(mesh)
-    ref = _static(card, mesh, base, top, (0.0, 0.0, -1e-3), rec["load_fractions"])
+    ref, u_ref = _static(card, mesh, base, top, (0.0, 0.0, -1e-3), rec["load_fractions"], field=True)
     np.testing.assert_allclose(rec["reference_reactions"], ref, rtol=1e-8)
     run = _run_pbd_file(tmp_path, path)
     assert all(run["converged"]) and run["setting"] == [pytest.approx(1 / 60), 1, 10]
     err = np.asarray(run["reactions"]) / ref - 1.0
+    du = _field_error(run, mesh, u_ref)
+    # measured for docs/export.md (not asserted: 0.29 at the default budget, the recalibration matches the force, not the field)
+    print(f"\npypbd block at its budget: reaction errors {err}, max|du|/max|u| {du:.3g}")
     assert np.max(np.abs(err)) <= MAX_BUDGET_ERROR, err  # measured: see docs/export.md
     assert np.max(np.abs(np.asarray(rec["signed_error_before"]))) > 0.1  # the card's own values are far off here
 
@@ -104,11 +115,14 @@ def test_pypbd_flat_punch_reproduces_the_card_at_the_default_budget(tmp_path):
     rec = scene["budget_calibration"]
     mesh = spec.mesh()
     s = indentation_sets(spec, mesh, card)
-    ref = _static(card, mesh, s["base"], s["punch"], (0.0, 0.0, -1e-4), rec["load_fractions"])
+    ref, u_ref = _static(card, mesh, s["base"], s["punch"], (0.0, 0.0, -1e-4), rec["load_fractions"], field=True)
     np.testing.assert_allclose(rec["reference_reactions"], ref, rtol=1e-8)
     run = _run_pbd_file(tmp_path, path)
     assert all(run["converged"])
     err = np.asarray(run["reactions"]) / ref - 1.0
+    du = _field_error(run, mesh, u_ref)
+    # measured for docs/export.md (not asserted: 0.66 at the default budget, the recalibration matches the force, not the field)
+    print(f"\npypbd flat punch at its budget: reaction errors {err}, max|du|/max|u| {du:.3g}")
     assert np.max(np.abs(err)) <= MAX_BUDGET_ERROR, err
 
 

@@ -45,7 +45,7 @@ from difftissue.materials import Material
 from difftissue.mesh import block
 from difftissue.energies.neo_hookean import deformation_gradient, det3
 from difftissue.models import ElementTerm, FEMModel, make_model
-from difftissue.scenarios import Compression, Indentation
+from difftissue.scenarios import Compression, Indentation, cylinder
 from difftissue.solvers.static import solve_static
 
 E, NU = 12345.678901234567, 0.4234567890123457  # Pa, 1: repr 18 characters, D1 = 2/K needs 21
@@ -150,8 +150,8 @@ def test_card_block_specimen(model, tmp_path):
 
 
 # ---------------------------------------------------------- (b) fitted compression block
-def _compression(model, bonded, strains=(0.05, 0.1)):
-    mesh = block((10 * MM, 10 * MM, 5 * MM), (2, 2, 2))
+def _compression(model, bonded, strains=(0.05, 0.1), shape="block"):
+    mesh = block((10 * MM, 10 * MM, 5 * MM), (2, 2, 2)) if shape == "block" else cylinder(10 * MM, 5 * MM, 1, 2)
     return Compression(mesh, list(strains), model=model, bonded=bonded, measure="engineering", name=f"c_{model}_{bonded}")
 
 
@@ -170,16 +170,18 @@ def _run_compression(sc, model, tmp_path):
         float(np.asarray(stress)[-1]) * sc.area
 
 
+@pytest.mark.parametrize("shape", ["block", "cylinder"])
 @pytest.mark.parametrize("bonded", [True, False], ids=["bonded", "frictionless"])
-def test_fitted_compression_linear(bonded, tmp_path):
-    """(b): the fitted compression deck (REACTION = the top face) = difftissue's solution,
-    which is Compression.solve's (the fit's prediction)."""
-    sc = _compression("fem_linear", bonded)
+def test_fitted_compression_linear(bonded, shape, tmp_path):
+    """(b): the fitted compression deck (REACTION = the top face) of the block and of the
+    cylinder (10 mm diameter, 5 mm high: ``cylinder(10 mm, 5 mm, 1, 2)``) = difftissue's
+    solution, which is Compression.solve's (the fit's prediction)."""
+    sc = _compression("fem_linear", bonded, shape=shape)
     run, u, force, u_sc, force_sc = _run_compression(sc, "fem_linear", tmp_path)
     assert _rel_u(u, u_sc) <= 1e-10 and force == pytest.approx(force_sc, rel=1e-10)
     f_ccx = -run.totals["REACTION"][2]
     du, df = _rel_u(run.displacement, u), abs(f_ccx - force) / force
-    _report(f"fitted compression linear {'bonded' if bonded else 'frictionless'}", du, df)
+    _report(f"fitted compression linear {shape} {'bonded' if bonded else 'frictionless'}", du, df)
     if not bonded:  # homogeneous uniaxial stress: E e exactly
         assert f_ccx / sc.area == pytest.approx(E * 0.1, rel=LINEAR_TOL)
     else:  # the platens restrain the lateral expansion
@@ -274,15 +276,26 @@ def test_flat_punch_linear(base, bonded, tmp_path):
 
 
 # ------------------------------------------- (e) sphere / cone: meshed rigid indenter
-@pytest.mark.parametrize("indenter, geometry, depth", [("sphere", {"radius": 5 * MM}, 0.15 * MM),
-                                                       ("cone", {"half_angle": math.radians(70.0)}, 0.25 * MM)])
-def test_sphere_and_cone_linear(indenter, geometry, depth, tmp_path):
+_CONE_NH_GAP = pytest.mark.xfail(strict=True, reason=(
+    "known gap (issue 16): the neo-Hookean cone deck (NLGEOM=YES) in CalculiX 2.20 gives +14.4 % force and 39 % of max |u| "
+    "against fem_neo_hookean (the linear cone deck: +0.015 %); not resolved"))
+
+
+@pytest.mark.parametrize("indenter, geometry, depth, model", [
+    ("sphere", {"radius": 5 * MM}, 0.15 * MM, "fem_linear"),
+    ("sphere", {"radius": 5 * MM}, 0.15 * MM, "fem_neo_hookean"),
+    ("cone", {"half_angle": math.radians(70.0)}, 0.25 * MM, "fem_linear"),
+    pytest.param("cone", {"half_angle": math.radians(70.0)}, 0.25 * MM, "fem_neo_hookean", marks=_CONE_NH_GAP)])
+def test_sphere_and_cone(indenter, geometry, depth, model, tmp_path):
     """(e): the sphere / cone deck (meshed rigid indenter, node-to-surface penalty contact with
     difftissue's penalty K = p E / h) = difftissue's Indentation (fem_linear, penalty contact with
     the analytic indenter) on the same 4 x 4 x 2 mm block of 8 x 8 x 4 cells: the contact
     discretisations differ (faceted vs analytic indenter), so 2 % (issue 16); measured sphere
-    -0.50 % force, 0.78 % of max |u|; cone +0.015 % force, 0.22 % of max |u|."""
-    card = _card("fem_linear")
+    -0.50 % force, 0.78 % of max |u|; cone +0.015 % force, 0.22 % of max |u|. Neo-Hookean: the
+    deck's ``NEO HOOKE`` (``NLGEOM=YES``) against difftissue's ``fem_neo_hookean`` penalty contact
+    (the two energies differ at finite strain; here the strains are a few %): same 2 % bar;
+    measured sphere -0.092 % force, 0.78 % of max |u|. The neo-Hookean cone is a known gap (xfail)."""
+    card = _card(model)
     spec = indentation_specimen(card, indenter=indenter, depth=depth, size=(4 * MM, 4 * MM, 2 * MM), cells=(8, 8, 4), steps=4,
                                 **geometry)
     deck = export(card, "abaqus", tmp_path / f"{indenter}.inp", indentation=spec)
@@ -290,14 +303,15 @@ def test_sphere_and_cone_linear(indenter, geometry, depth, tmp_path):
     assert "TYPE=REVOLUTION" not in text and "*CONTACT PAIR, INTERACTION=INDENTER_CONTACT, TYPE=NODE TO SURFACE" in text
     run = run_deck(deck, tmp_path / "ccx")
     mesh = spec.mesh()
-    sc = Indentation(mesh, [depth * (k + 1) / 4 for k in range(4)], model="fem_linear", indenter=indenter, base="bonded",
+    assert ("*STEP, NLGEOM=YES" in text) == (model == "fem_neo_hookean")
+    sc = Indentation(mesh, [depth * (k + 1) / 4 for k in range(4)], model=model, indenter=indenter, base="bonded",
                      radius=geometry.get("radius"), half_angle=geometry.get("half_angle"))
     forces, us = sc.solve(card.material())
     f_ours, u = float(np.asarray(forces)[-1]), np.asarray(us)[-1]
     n = mesh.n_nodes
     f_ccx = -run.totals["INDENTER"][2]
     du, df = _rel_u(run.displacement[:n], u), (f_ccx - f_ours) / f_ours
-    _report(f"{indenter} bonded base (meshed rigid indenter)", du, df)
+    _report(f"{indenter} bonded base (meshed rigid indenter), {model}", du, df)
     assert np.allclose(run.displacement[n:], [0.0, 0.0, -depth], rtol=0, atol=1e-6 * depth)  # the indenter translates rigidly
     lateral = abs(run.totals["INDENTER"][:2]).max() / f_ccx
     print(f"CALCULIX {indenter}: largest lateral indenter force / indentation force = {lateral:.2e}")
@@ -305,3 +319,28 @@ def test_sphere_and_cone_linear(indenter, geometry, depth, tmp_path):
         assert lateral <= 0.01
     # cone: measured 35 %: the node under the tip springs against ONE facet, whose lateral push its x, y hold (AXIS_TOP) takes
     assert f_ours > 1e-3 and abs(df) <= 0.02 and du <= 0.02
+
+
+# ----------------------------------------------------- incision: not representable, refused
+@pytest.mark.parametrize("pre_stretch", [1.05, 1.0])
+def test_abaqus_incision_is_refused_with_the_reason(pre_stretch, tmp_path):
+    """The exporter writes no Abaqus incision deck (docs/export.md): with a pre-stretch Abaqus
+    has no prestrain gradient here (and the stress-free cut does not open, so --approximate does
+    not apply); without one the specimen carries no load. Both refused in one line, no file."""
+    from difftissue.cutting import ScalpelPath, cut_specimen
+    from difftissue.errors import ExportError
+    from difftissue.incision import Incision, IncisionOptions
+    from difftissue.mesh import layered_skin
+
+    skin, fat = Material(200e3, 0.45, pre_stretch=pre_stretch), Material(5e3, 0.45)
+    mesh = layered_skin([("dermis", 1 * MM, skin, 1), ("fat", 1 * MM, fat, 1)], size=(4 * MM, 4 * MM), resolution=(4, 4))
+    cut = cut_specimen(mesh, ScalpelPath([(1 * MM, 2 * MM), (3 * MM, 2 * MM)], depth=1 * MM))
+    sc = Incision(cut, model="fem_neo_hookean", fitted_regions=("dermis",), quantity="surface_width",
+                  options=IncisionOptions(scalpel_steps=1), name="cut")
+    card = MaterialCard(model="fem_neo_hookean", name="dermis", parameters={
+        "youngs_modulus": {"value": 200e3}, "poisson_ratio": {"value": 0.45}, "pre_stretch": {"value": pre_stretch}})
+    why = "cannot be represented by Abaqus" if pre_stretch != 1.0 else "carry no load and the cut would not open"
+    for approximate in (False, True):
+        with pytest.raises(ExportError, match=why) as e:
+            export(card, "abaqus", tmp_path / "cut.inp", fitted=fitted_specimen(sc), approximate=approximate)
+        assert "\n" not in str(e.value) and not (tmp_path / "cut.inp").exists()

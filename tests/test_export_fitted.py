@@ -28,6 +28,7 @@ from difftissue.export_fitted import (
     specimen_file_name,
     specimen_record,
     write_specimen,
+    xpbd_fitted_parameters,
 )
 from difftissue.export_indentation import scenario_record
 from difftissue.materials import Material, MaterialParameterization
@@ -301,7 +302,7 @@ def test_fem_field_xpbd_and_vtu(fem_fit, tmp_path):
     paths, sc = fem_fit["paths"], fem_fit["scenario"]
     card = read_card(paths["material.json"])
     spec = fitted_specimen_from_card(card, paths["material.json"])
-    doc = json.loads(export(card, "xpbd", tmp_path / "x.json", fitted=spec, dt=1e-3, iterations=20).read_text())
+    doc = xpbd_fitted_parameters(card, spec, dt=1e-3, iterations=20, calibrate=False)  # the conversion (budget: test_export_xpbd_fitted.py)
     sp = doc["specimen"]
     assert sp["experiment"] == "fem_field" and doc["format"] == "difftissue-xpbd/1"
     presc = np.zeros((len(spec.points), 3))
@@ -445,7 +446,7 @@ def test_incision_round_trip_febio_reproduces_the_opening(incision_case, tmp_pat
 def test_incision_xpbd_vtu_and_refusals(incision_case, tmp_path):
     card, cut = incision_case["card"], incision_case["cut"]
     spec = fitted_specimen_from_card(card, incision_case["card_path"])
-    doc = json.loads(export(card, "xpbd", tmp_path / "x.json", fitted=spec, dt=1e-3, iterations=10).read_text())
+    doc = xpbd_fitted_parameters(card, spec, dt=1e-3, iterations=10, calibrate=False)  # the conversion (budget: test_export_xpbd_fitted.py)
     sp = doc["specimen"]
     assert sp["experiment"] == "incision" and sp["cut"]["pairs"] == np.asarray(cut.pairs).tolist()
     assert [r["name"] for r in sp["regions"]] == ["dermis", "fat"] and sp["regions"][0]["pre_stretch"] == LAM0

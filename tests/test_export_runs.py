@@ -9,7 +9,9 @@ elements C3D4 / C3D4H / C3D10 / C3D10H, C3D10 run in CalculiX, C3D4H refused by 
 
 from __future__ import annotations
 
+import importlib.util
 import json
+import re
 import xml.etree.ElementTree as ET
 
 import numpy as np
@@ -144,6 +146,17 @@ def test_cli_export_writes_a_readme(tmp_path, capsys):
     assert str(tmp_path) not in text
     assert main([*base, "--to", "abaqus", "--approximate", "--force", "--out", str(out / "m.inp")]) == 0
     assert (out / "README.md").read_text().count("## m.inp") == 1  # the section is replaced, not repeated
+    # real-time files: the README states the budget, whether the exporter chose it, and the recalibration
+    assert main([*base, "--to", "xpbd", "--dt", "0.00025", "--iterations", "10", "--out", str(out / "x.json")]) == 0
+    sec = (out / "README.md").read_text().split("## x.json")[1].split("\n## ")[0]
+    assert "- budget: dt = 0.00025 s, substeps = 1, iterations = 10 (as given" in sec
+    assert "- RECALIBRATED for this budget: stiffness x " in sec and "after (within tolerance)" in sec
+    assert "- recalibrated: RECALIBRATED for this budget" in sec
+    if importlib.util.find_spec("pypbd") is not None:
+        assert main([*base, "--to", "pbd", "--out", str(out / "p.json")]) == 0
+        sec = (out / "README.md").read_text().split("## p.json")[1].split("\n## ")[0]
+        assert re.search(r"- budget: dt = 0.0166667 s, substeps = \d+, iterations = \d+ \((the default budget|CHOSEN by the exporter)", sec)
+        assert "- RECALIBRATED for this budget: stiffness x " in sec and "gravity not included" in sec
 
 
 # ------------------------------------------------------------------ Abaqus elements
