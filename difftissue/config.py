@@ -61,8 +61,29 @@ _TOP_KEYS = ("title", "description", "material", "fit", "experiment")
 _FIT_KEYS = (
     "parameters", "bounds", "method", "loss", "f_scale", "starts", "seed", "start_spread", "max_steps",
     "rtol", "atol", "learning_rate", "jac", "absolute_sigma", "checkpoint_every", "separate_compilation",
-    "plausible", "start", "discretisation_check",
+    "plausible", "start", "discretisation_check", "tissue",
 )
+
+#: ``fit.tissue``: the range of Young's modulus [Pa] a fitted E of that material class is
+#: expected in. Deliberately wide envelopes (whole decades around the spread of published
+#: moduli, which differ by method: indentation, tension, elastography, AFM), meant to catch a
+#: unit slip, a wrong contact point or a diverged fit, not to judge a measurement; a fitted E
+#: outside is the quality warning ``outside_tissue_range``. Narrow or widen with
+#: ``fit.plausible`` (an error outside that range).
+TISSUE_RANGES: dict[str, tuple[float, float]] = {
+    "cell": (1e1, 1e5),
+    "hydrogel": (1e1, 1e6),
+    "brain": (1e2, 1e5),
+    "fat": (1e2, 1e5),
+    "liver": (1e2, 1e6),
+    "kidney": (1e2, 1e6),
+    "breast": (1e2, 1e6),
+    "muscle": (1e3, 1e7),
+    "skin": (1e3, 1e8),
+    "silicone": (1e3, 1e7),
+    "cartilage": (1e4, 1e8),
+    "tendon": (1e7, 1e10),
+}
 _COMMON_EXPERIMENT_KEYS = ("name", "scenario", "data", "sigma", "points", "length_unit")
 _EXPERIMENT_KEYS = {
     "analytic_indentation": _COMMON_EXPERIMENT_KEYS + ("indenter", "solution", "thickness", "base", "max_depth"),
@@ -488,11 +509,13 @@ class FitConfig:
 
         opts = {**self.options, **overrides}
         check = opts.pop("discretisation_check", True)
+        tissue = opts.pop("tissue", None)
         scenarios = self.fit_scenarios(opts.pop("separate_compilation", None))
         object.__setattr__(self, "last_scenarios", scenarios)  # for the failures of SeparatelyCompiled
         self.check_reaction_signs(scenarios)
         self.start_cubic_coefficient(scenarios)
         result = fit(scenarios, self.parameterization, self.material, **opts)
+        result = tissue_range_check(result, tissue)
         return self.check_discretisation(result) if check else result
 
     def coarse_predictions(self, material) -> tuple[dict, dict]:
@@ -602,6 +625,30 @@ class FitConfig:
                 check(pred)
             except DifftissueError as err:
                 _reraise(f"experiment[{i}]", err)
+
+
+def tissue_range_check(result, tissue: str | None):
+    """``result`` with the quality warning ``outside_tissue_range`` added (and emitted as
+    :class:`~difftissue.errors.FitQualityWarning`) when its fitted Young's modulus lies outside
+    :data:`TISSUE_RANGES` of the stated ``tissue`` (config ``fit.tissue``); unchanged when no
+    tissue is stated or E was not fitted."""
+    from .errors import FitQualityWarning
+    from .fit import FitQuality, QualityFlag
+
+    if tissue is None or "youngs_modulus" not in result.values or result.quality is None:
+        return result
+    lo, hi = TISSUE_RANGES[tissue]
+    E = float(result.values["youngs_modulus"])
+    if not math.isfinite(E) or lo <= E <= hi:
+        return result
+    flag = QualityFlag(
+        "outside_tissue_range", "warning", "youngs_modulus",
+        f"youngs_modulus = {E:.4g} Pa lies outside [{lo:g}, {hi:g}] Pa, the range expected for fit.tissue = {tissue!r}: check the data's units, "
+        "the contact point and the model (or state another tissue)",
+        {"value": E, "range": [lo, hi], "tissue": tissue},
+    )
+    warnings.warn(f"warning: {flag.message}", FitQualityWarning, stacklevel=3)
+    return dataclasses.replace(result, quality=FitQuality(result.quality.flags + (flag,), result.quality.scenarios))
 
 
 def _compiled_once(fn, *structs):
@@ -996,6 +1043,8 @@ def _parse_fit(value, material):
         opts["separate_compilation"] = _bool(t["separate_compilation"], "fit.separate_compilation")
     if "plausible" in t:
         opts["plausible"] = _plausible_ranges(t["plausible"], params)
+    if "tissue" in t:
+        opts["tissue"] = _choice(t["tissue"], "fit.tissue", tuple(TISSUE_RANGES))
     opts["start"] = _choice(t.get("start", "data"), "fit.start", ("data", "material"))
     if "discretisation_check" in t:
         opts["discretisation_check"] = _bool(t["discretisation_check"], "fit.discretisation_check")

@@ -428,6 +428,27 @@ def test_an_unusable_fit_writes_its_outputs_and_exits_3(tmp_path, capsys):
         assert "UNUSABLE" in (tmp_path / flag / "report.md").read_text()
 
 
+def test_a_fitted_modulus_outside_the_stated_tissue_range_is_a_warning(tmp_path, capsys):
+    """fit.tissue states the material class: the AFM demo's E (~158 Pa effective) is outside
+    'skin' (1 kPa-100 MPa), a warning named in the CLI, fit.json and the report (exit 0), and
+    inside 'cell'; an unknown class is a config error naming the choices."""
+    base = _AFM.read_text().replace('path = "data/', f'path = "{_AFM.parent}/data/')
+    for tissue, flagged in (("skin", True), ("cell", False)):
+        cfg = tmp_path / f"{tissue}.toml"
+        cfg.write_text(base.replace('method = "levenberg_marquardt"', f'method = "levenberg_marquardt"\ntissue = "{tissue}"'))
+        rc = main(["fit", str(cfg), "--out", str(tmp_path / tissue)])
+        cap = capsys.readouterr()
+        assert rc == 0, cap.err
+        names = [f["name"] for f in json.loads((tmp_path / tissue / "fit.json").read_text())["quality"]["flags"]]
+        assert ("outside_tissue_range" in names) == flagged
+        assert ("outside_tissue_range" in cap.out + cap.err) == flagged
+        assert ("fit.tissue = 'skin'" in (tmp_path / tissue / "report.md").read_text()) == flagged
+    bad = tmp_path / "bad.toml"
+    bad.write_text(base.replace('method = "levenberg_marquardt"', 'method = "levenberg_marquardt"\ntissue = "bone"'))
+    assert main(["fit", str(bad), "--out", str(tmp_path / "bad")]) != 0
+    assert "fit.tissue" in capsys.readouterr().err
+
+
 # Data-driven starts (issue 17): the shipped configs converge whatever the stiffness.
 _SHIPPED = Path(__file__).resolve().parents[1] / "difftissue" / "configs"
 
