@@ -1276,10 +1276,32 @@ def _cubic_estimate(observed, sigma, at_b0, at_b1, b0: float, b1: float) -> tupl
     if not np.max(np.abs(d)) > 1e-9 * np.max(np.abs(s0)):
         return "the model's prediction does not depend on the cubic coefficient"
     w = 1.0 / np.broadcast_to(np.asarray(sigma, dtype=float), y.shape)
-    (alpha, gamma), *_ = np.linalg.lstsq(np.c_[s0 * w, d * w], y * w, rcond=None)
+    A = np.c_[s0 * w, d * w]
+    (alpha, gamma), *_ = np.linalg.lstsq(A, y * w, rcond=None)
     if not (math.isfinite(alpha) and alpha > 0 and math.isfinite(gamma)):
         return f"the data do not match the model's curve at any positive scale (scale {alpha:.3g})"
-    return float(b0 + gamma / alpha), float(alpha)
+    b = float(b0 + gamma / alpha)
+    # Its standard error (residual variance, delta method): where b's effect on the curve is
+    # nearly a change of scale (an indentation curve at small strain), E and b trade off and
+    # the estimate is noise; then the config's b stays the start.
+    n = y.size
+    if n > 2:
+        r = A @ np.array([alpha, gamma]) - y * w
+        try:
+            cov = np.linalg.inv(A.T @ A) * float(r @ r) / (n - 2)
+        except np.linalg.LinAlgError:
+            return "the curve's shape does not determine b (its effect is a change of scale)"
+        grad = np.array([-gamma / alpha**2, 1.0 / alpha])
+        se = float(np.sqrt(max(grad @ cov @ grad, 0.0)))
+        if not se <= CUBIC_START_MAX_SE:
+            return (f"the curve's shape does not determine b well enough for a start (estimate {b:.3g} +/- {se:.2g}: its effect is "
+                    "nearly a change of scale, traded off against E)")
+    return b, float(alpha)
+
+
+#: Largest standard error [-] of a data-driven start of the cubic coefficient b; above it the
+#: config's b is the start (the curve's shape does not determine b).
+CUBIC_START_MAX_SE = 0.5
 
 
 def _inside(value: float, lower: float | None, upper: float | None, margin: float = 0.05) -> float:

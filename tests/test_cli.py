@@ -608,3 +608,47 @@ def test_data_start_stays_inside_the_bounds_of_E(tmp_path):
     (tmp_path / "b.toml").write_text(text)
     cfg = load_config(tmp_path / "b.toml")  # the Hertz slope, 158.5 Pa, lies above the bounds
     assert cfg.material.youngs_modulus == pytest.approx(20.0) and cfg.start["youngs_modulus"]["config_value"] == 20.0
+
+
+def test_cubic_coefficient_start_of_a_simulated_indentation_states_when_the_curve_cannot_give_it(tmp_path):
+    """The b start also serves simulated indentation, where b's effect on a force-depth curve
+    is nearly a change of scale (traded off against E): on a springs_volume sphere indentation
+    made with b = 1.5 (quarter block of 4 x 4 x 4 cubes of 0.5 mm, 1 % noise) the estimate's
+    standard error exceeds CUBIC_START_MAX_SE, so the config's b stays the start and the
+    record says why (a start from noise was 4.6, at the bound, before this check)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from difftissue import Material
+    from difftissue.config import load_config
+    from difftissue.scenarios import Indentation, indentation_block
+
+    size, cells, R = (4e-3, 4e-3, 2e-3), (4, 4, 4), 2e-3
+    depths = np.linspace(0.05, 0.5, 10) * 1e-3
+    mesh = indentation_block(size, cells, symmetry="quarter")
+    sc = Indentation(mesh, depths, model="springs_volume", indenter="sphere", radius=R, symmetry="quarter")
+    force = np.asarray(sc.predict(Material(8e3, 0.45, cubic_coefficient=1.5)))
+    force = force * (1.0 + 0.01 * np.random.default_rng(3).normal(size=force.size))
+    (tmp_path / "curve.csv").write_text("depth,force\n" + "".join(f"{a:.9g},{f:.9g}\n" for a, f in zip(depths, force)))
+    (tmp_path / "fit.toml").write_text(f'''[material]
+youngs_modulus = 1.0e3
+poisson_ratio = 0.45
+cubic_coefficient = 0.0
+
+[fit]
+parameters = ["youngs_modulus", "cubic_coefficient"]
+bounds = {{ cubic_coefficient = [-3.0, 5.0] }}
+
+[[experiment]]
+name = "sphere"
+scenario = "indentation"
+model = "springs_volume"
+data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
+points = "all"
+indenter = {{ shape = "sphere", radius = {R} }}
+specimen = {{ size = [{size[0]}, {size[1]}, {size[2]}], cells = [{cells[0]}, {cells[1]}, {cells[2]}], symmetry = "quarter" }}
+''')
+    cfg = load_config(tmp_path / "fit.toml")
+    assert cfg.start_cubic_coefficient() is None and cfg.material.cubic_coefficient == 0.0
+    rec = cfg.start["cubic_coefficient"]
+    assert rec["value"] == 0.0 and "sphere: the curve's shape does not determine b" in rec["no_estimate"], rec
