@@ -87,7 +87,8 @@ def child(mode: str, args) -> dict:
     import jax
 
     from difftissue import fit as fitmod
-    from difftissue.batch import fit_batch
+    from difftissue.fit import engine as fit_engine
+    from difftissue.fit import fit_batch
 
     B = args.specimens
     specs, starts, truths = specimens(B, seed=args.seed)
@@ -100,7 +101,7 @@ def child(mode: str, args) -> dict:
         times, cpus, steps, vals = [], [], [], []
         for sc, m0 in zip(specs[:n], starts[:n]):
             if mode == "serial-recompile":
-                fitmod._ENGINE_CACHE.clear()
+                fit_engine._ENGINE_CACHE.clear()
             t, c = time.perf_counter(), time.process_time()
             r = fitmod.fit(sc, param, m0, **opts)
             times.append(time.perf_counter() - t)

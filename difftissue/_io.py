@@ -1,16 +1,22 @@
-"""Small file helpers: atomic writes that never overwrite what a user gave us by accident."""
+"""Small file helpers: atomic writes that never overwrite what a user gave us by accident, and
+strict-JSON conversion of records (:func:`jsonable`)."""
 
 from __future__ import annotations
 
 import contextlib
 import hashlib
+import math
 import os
+import sys
 import tempfile
+from collections.abc import Mapping
 from pathlib import Path
+
+import numpy as np
 
 from .errors import OutputError, OutputExistsError
 
-__all__ = ["atomic_output", "sha256_file"]
+__all__ = ["atomic_output", "sha256_file", "json_number", "jsonable"]
 
 
 @contextlib.contextmanager
@@ -48,3 +54,30 @@ def sha256_file(path) -> str:
         for chunk in iter(lambda: fh.read(1 << 20), b""):
             h.update(chunk)
     return h.hexdigest()
+
+
+def json_number(x):
+    """JSON number or null (strict JSON has no inf/NaN)."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def jsonable(obj):
+    """``obj`` as strict-JSON data: mappings and sequences recursively, NumPy and JAX arrays as
+    lists, non-finite floats as None, paths as strings, anything else as its ``str``."""
+    if isinstance(obj, Mapping):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, (str, bool)) or obj is None:
+        return obj
+    if isinstance(obj, (int, np.integer)):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return json_number(obj)
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    jax = sys.modules.get("jax")  # a JAX array exists only once JAX is imported; no import here
+    if isinstance(obj, np.ndarray) or (jax is not None and isinstance(obj, jax.Array)):
+        return jsonable(np.asarray(obj).tolist())
+    return str(obj)

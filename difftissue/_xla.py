@@ -13,7 +13,7 @@ The flag only changes how XLA orders independent operations of one program; it i
 to ``XLA_FLAGS`` at import unless the variable already names it (set it yourself to choose),
 or ``DIFFTISSUE_KEEP_XLA_FLAGS=1``. XLA reads ``XLA_FLAGS`` when the CPU backend starts (the
 first computation), so importing difftissue after a JAX computation cannot apply it:
-:func:`difftissue.batch.fit_batch` then warns.
+:func:`difftissue.fit.fit_batch` then warns.
 """
 
 from __future__ import annotations

@@ -513,7 +513,7 @@ class _OutputLock:
 def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
     """Check DIR before fitting: refuse to overwrite outputs (or a checkpoint) without --force/--resume."""
     from .errors import OutputError, OutputExistsError
-    from .fit import OUTPUT_FILES
+    from .report import OUTPUT_FILES
 
     if out.exists() and not out.is_dir():
         raise OutputError(f"{out} exists and is not a directory")
@@ -536,7 +536,7 @@ def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
 def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, starts, checkpoint: bool, console, extra_notes=(), phases=None):
     """Fit a loaded config and write DIR/{fit.json, fit.png, loss.png, report.md, config.toml}."""
     from ._io import atomic_output
-    from .fit import write_fit_outputs
+    from .report import write_fit_outputs
 
     phases = phases or _Phases(enabled=False)
     ckpt = _prepare_out(out, force=force, resume=resume) if checkpoint else None

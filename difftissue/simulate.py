@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ._io import atomic_output
+from ._io import atomic_output, jsonable
 from .errors import DifftissueError, OutputError, OutputExistsError, SimulationError
 
 __all__ = ["SimulatedExperiment", "SimulationError", "simulate_config", "write_simulation_outputs", "SIMULATION_FILES"]
@@ -181,7 +181,7 @@ def write_simulation_outputs(material, sims: Sequence[SimulatedExperiment], out_
     Existing files are refused (:class:`~difftissue.errors.OutputExistsError`, naming the
     first one, before anything is written) unless ``force``. Returns ``{file name: path}``.
     """
-    from .fit import _config_record, _jsonable, package_versions
+    from .report import config_record, package_versions  # JAX and matplotlib: imported when writing, as the module's other heavy imports
 
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
@@ -204,7 +204,7 @@ def write_simulation_outputs(material, sims: Sequence[SimulatedExperiment], out_
              "csv": paths[f"{_safe_stem(s.name)}.csv"].name}
             for s in sims
         ],
-        "config": _config_record(config),
+        "config": config_record(config),
         "versions": package_versions(),
     }
     for s in sims:
@@ -215,5 +215,5 @@ def write_simulation_outputs(material, sims: Sequence[SimulatedExperiment], out_
     with atomic_output(paths["simulation.png"], overwrite=force) as tmp:
         _plot(sims, tmp)
     with atomic_output(paths["simulation.json"], overwrite=force) as tmp:
-        tmp.write_text(json.dumps(_jsonable(record), indent=1, allow_nan=False) + "\n", encoding="utf-8")
+        tmp.write_text(json.dumps(jsonable(record), indent=1, allow_nan=False) + "\n", encoding="utf-8")
     return paths

@@ -1,4 +1,4 @@
-"""Batched and sharded fits (difftissue.batch.fit_batch) against the serial loop of fit calls.
+"""Batched and sharded fits (difftissue.fit.fit_batch) against the serial loop of fit calls.
 
 The sharded runs need several devices, i.e. XLA_FLAGS=--xla_force_host_platform_device_count=4
 set before jax is imported: they run in a child process (a script written to tmp_path).
@@ -21,7 +21,7 @@ import pytest
 
 from difftissue import Material
 from difftissue.analytic import hertz_force
-from difftissue.batch import fit_batch, specimen_mesh
+from difftissue.fit import fit_batch, specimen_mesh
 from difftissue.errors import FitError, IdentifiabilityWarning
 from difftissue.fit import fit
 from difftissue.materials import MaterialParameterization
@@ -215,7 +215,7 @@ CHILD = textwrap.dedent(
     import numpy as np
     sys.path.insert(0, {here!r})
     import test_batch as tb
-    from difftissue.batch import fit_batch
+    from difftissue.fit import fit_batch
     from difftissue.fit import fit
     out = {{"devices": len(jax.devices())}}
     specs, starts = tb.hertz_specimens(6, seed=5)           # 6 specimens on 4 devices: 2 padded

@@ -162,7 +162,7 @@ def _raise_interrupt(*a, **k):
 @pytest.mark.parametrize("command, target", [
     ("fit", "difftissue.config.load_config"),          # while reading the config and data
     ("fit", "difftissue.config.FitConfig.run"),        # while fitting
-    ("fit", "difftissue.fit.write_fit_outputs"),       # while writing the outputs
+    ("fit", "difftissue.report.write_fit_outputs"),    # while writing the outputs
     ("simulate", "difftissue.config.load_config"),
     ("simulate", "difftissue.simulate.simulate_config"),
     ("demo", "difftissue.config.load_config"),

@@ -11,7 +11,8 @@ import pytest
 from difftissue import analytic
 from difftissue.config import parse_config
 from difftissue.errors import DiscretisationWarning
-from difftissue.fit import discretisation_estimate, with_discretisation, write_fit_outputs
+from difftissue.fit import discretisation_estimate, with_discretisation
+from difftissue.report import write_fit_outputs
 
 E_TRUE, NU, R = 2.0e3, 0.45, 1.0e-3
 

@@ -30,7 +30,8 @@ def test_mkdocs_strict_build(tmp_path):
                          cwd=root, env=env, capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-8000:]
     assert (tmp_path / "site" / "api" / "fit" / "index.html").is_file()
-    assert "difftissue.fit.write_fit_outputs" in (tmp_path / "site" / "api" / "fit" / "index.html").read_text()
+    assert "difftissue.fit.fit_batch" in (tmp_path / "site" / "api" / "fit" / "index.html").read_text()
+    assert "difftissue.report.write_fit_outputs" in (tmp_path / "site" / "api" / "report" / "index.html").read_text()
 
 
 def _find_spec(name):

@@ -179,7 +179,8 @@ def parse_sofa(path):
 @pytest.fixture(scope="module")
 def fem_fit(tmp_path_factory):
     """A fem_field fit (E from 8 kPa) and its outputs, with the specimen file."""
-    from difftissue.fit import fit, write_fit_outputs
+    from difftissue.fit import fit
+    from difftissue.report import write_fit_outputs
     from difftissue.scenarios import FEMField
 
     tmp = tmp_path_factory.mktemp("femfield")
@@ -214,7 +215,7 @@ def fem_fit(tmp_path_factory):
 
 
 def test_fit_outputs_write_and_record_the_specimen_file(fem_fit):
-    from difftissue.fit import write_fit_outputs
+    from difftissue.report import write_fit_outputs
 
     paths, sc = fem_fit["paths"], fem_fit["scenario"]
     name = specimen_file_name("fem_field")

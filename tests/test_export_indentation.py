@@ -269,7 +269,8 @@ def test_card_scenario_records_from_fit_outputs(tmp_path):
     indentation_specimen rebuilds it from there (every value's origin recorded)."""
     import jax.numpy as jnp
 
-    from difftissue.fit import fit, write_fit_outputs
+    from difftissue.fit import fit
+    from difftissue.report import write_fit_outputs
     from difftissue.materials import Material, MaterialParameterization
 
     depths = np.linspace(1e-6, 8e-6, 6)
@@ -410,7 +411,8 @@ def _hertz_fit(tmp_path, nu, name="fit"):
     import jax.numpy as jnp
 
     from difftissue import analytic
-    from difftissue.fit import fit, write_fit_outputs
+    from difftissue.fit import fit
+    from difftissue.report import write_fit_outputs
     from difftissue.materials import Material, MaterialParameterization
 
     depths = np.linspace(1e-6, 8e-6, 12)

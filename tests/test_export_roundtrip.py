@@ -72,7 +72,8 @@ def test_fitted_card_round_trip_through_skfem(tmp_path):
     10 mm cube, fem_linear, E fitted from 8 kPa), written as material.json by the fit's
     outputs and read back, reproduces our reaction force in scikit-fem within 1 % (asserted
     1e-6: the same P1 tets)."""
-    from difftissue.fit import fit, write_fit_outputs
+    from difftissue.fit import fit
+    from difftissue.report import write_fit_outputs
     from difftissue.materials import Material, MaterialParameterization
     from difftissue.scenarios import Compression
 

@@ -23,7 +23,8 @@ from difftissue.errors import (
     IdentifiabilityWarning,
     OutputExistsError,
 )
-from difftissue.fit import FitProblem, Scenario, fit, parameter_statistics, write_fit_outputs
+from difftissue.fit import FitProblem, Scenario, fit, parameter_statistics
+from difftissue.report import write_fit_outputs
 from difftissue.materials import MaterialParameterization, ScaledLogit
 
 E_TRUE, NU_TRUE, B_TRUE = 5e3, 0.45, 4.0
@@ -334,18 +335,18 @@ class Interrupt:
 def test_the_final_evaluation_from_the_solver_state_equals_a_fresh_one(method, loss, monkeypatch):
     """Optimistix fits take the final loss, Jacobian and predictions from the solver's state (no
     second compilation of the forward model); they must equal a fresh evaluation at the result."""
-    import difftissue.fit as F
+    import difftissue.fit.engine as F
 
     scs = [hertz_data(), compression_data()]
     calls = []
-    original = F._Engine.evaluate
-    monkeypatch.setattr(F._Engine, "evaluate", lambda self, U, data: calls.append(1) or original(self, U, data))
+    original = F.Engine.evaluate
+    monkeypatch.setattr(F.Engine, "evaluate", lambda self, U, data: calls.append(1) or original(self, U, data))
     F._ENGINE_CACHE.clear()
     res = fit(scs, P_E_NU, START, method=method, loss=loss, starts=2)
     assert res.converged
     assert not calls  # the evaluation program was never traced
     problem = FitProblem(scs, P_E_NU, START, loss=loss)
-    values, lossv, J, preds = jax.jit(lambda U: F._Engine(problem, method, rtol=1e-8, atol=1e-10, learning_rate=1e-3, jac="fwd").evaluate(U, problem.data()))(jnp.asarray(res.unconstrained)[None])
+    values, lossv, J, preds = jax.jit(lambda U: F.Engine(problem, method, rtol=1e-8, atol=1e-10, learning_rate=1e-3, jac="fwd").evaluate(U, problem.data()))(jnp.asarray(res.unconstrained)[None])
     assert float(lossv[0]) == pytest.approx(res.loss, rel=1e-12)
     np.testing.assert_allclose(res.jacobian, np.asarray(J[0]), rtol=1e-10, atol=1e-12 * np.abs(res.jacobian).max())
     for name, p in zip(problem.names, preds):
@@ -361,10 +362,10 @@ def test_a_saturated_transform_falls_back_to_a_fresh_evaluation():
     """At a bound where a transform's derivative is exactly 0 (nu's logistic at u = 60) the
     Jacobian in the physical values cannot be recovered from the solver's: the state path
     reports not ok and :func:`fit` evaluates afresh."""
-    import difftissue.fit as F
+    import difftissue.fit.engine as F
 
     problem = FitProblem([hertz_data(), compression_data()], P_E_NU, START)
-    engine = F._Engine(problem, "levenberg_marquardt", rtol=1e-8, atol=1e-10, learning_rate=1e-3, jac="fwd")
+    engine = F.Engine(problem, "levenberg_marquardt", rtol=1e-8, atol=1e-10, learning_rate=1e-3, jac="fwd")
     data = problem.data()
     U = jnp.stack([jnp.asarray(_start_u(problem, START)), jnp.asarray(_start_u(problem, START))])
     dyn = engine.init(U, data)
@@ -511,7 +512,7 @@ def test_forward_jacobian_wrapper_has_the_derivatives_of_the_function():
     plain function, and check_grads (forward and reverse) against finite differences."""
     from jax.test_util import check_grads
 
-    from difftissue.fit import _with_forward_jacobian
+    from difftissue.fit.engine import _with_forward_jacobian
 
     def f(u):
         return jnp.sin(u[0]) * jnp.exp(u[1]) + u ** 3, (u[0] * u[1] ** 2, jnp.cos(u))
@@ -596,7 +597,7 @@ def test_quality_is_written_to_fit_json_and_report(tmp_path):
 
 # ------------------------------------------------------------------ plots people read (issue 17)
 def test_plot_units_are_chosen_by_magnitude():
-    from difftissue.fit import human_unit
+    from difftissue.report import human_unit
 
     assert human_unit([4.8e-8, 1e-9], "N") == (1e-9, "nN")
     assert human_unit([1.2e-5], "m") == (1e-6, "µm")
@@ -606,7 +607,7 @@ def test_plot_units_are_chosen_by_magnitude():
 
 
 def test_fit_plot_title_has_values_uncertainty_and_quality(tmp_path):
-    from difftissue.fit import _fit_title
+    from difftissue.report import _fit_title
 
     r = fit(stress_strain_data(), P_E_B, Material(2e3, 0.3))
     title = _fit_title(r)

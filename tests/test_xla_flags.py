@@ -28,7 +28,7 @@ def test_a_flag_the_user_set_or_an_opt_out_is_respected():
 def test_no_flag_once_jax_has_started_and_fit_batch_warns():
     code = ("import jax, jax.numpy as jnp, os, warnings; jnp.ones(1).block_until_ready(); import difftissue; "
             "print('FLAGS=' + os.environ.get('XLA_FLAGS', '')); "
-            "from difftissue.batch import fit_batch\n"
+            "from difftissue.fit import fit_batch\n"
             "with warnings.catch_warnings(record=True) as w:\n"
             "    warnings.simplefilter('always')\n"
             "    try:\n        fit_batch([], None, None)\n    except Exception:\n        pass\n"

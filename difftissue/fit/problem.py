@@ -1,0 +1,334 @@
+"""The fit problem: the :class:`Scenario` protocol and :class:`FitProblem` (residuals and loss
+as pure functions of the unconstrained vector ``u``).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+from collections.abc import Sequence
+from typing import Protocol, runtime_checkable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import FitError
+from ..materials import Material, MaterialParameterization
+
+
+#: SI unit of every material field ("1" for dimensionless).
+UNITS: dict[str, str] = {
+    "youngs_modulus": "Pa",
+    "poisson_ratio": "1",
+    "cubic_coefficient": "1",
+    "density": "kg/m^3",
+    "pre_stretch": "1",
+    "surface_tension": "N/m",
+}
+
+
+def unit_text(unit: str) -> str:
+    """Unit for prose: empty for dimensionless ("1")."""
+    return "" if unit == "1" else unit
+
+
+#: Loss functions understood by :func:`fit` (scipy.optimize.least_squares names).
+LOSSES = ("linear", "soft_l1", "huber")
+
+
+# ============================================================================ protocol
+@runtime_checkable
+class Scenario(Protocol):
+    """One experiment to fit: what it measured and how the model predicts it.
+
+    Attributes:
+        name: unique name of the scenario (used in outputs and plots).
+        observed: measured values, shape ``(n,)``, SI units (N, m, Pa, ...).
+        sigma: measurement scale, shape ``(n,)``, same unit as ``observed``; residuals are
+            divided by it (weight ``1 / sigma``). Use the noise standard deviation when known.
+        abscissa: x values for plots, shape ``(n,)``, SI units (e.g. depth in m).
+        x_label: axis label of ``abscissa`` including its unit, e.g. ``"depth [m]"``.
+        y_label: axis label of ``observed`` including its unit, e.g. ``"force [N]"``.
+
+    Methods:
+        predict(material): model prediction, shape ``(n,)``, same unit as ``observed``. Must be
+            pure, jittable and differentiable in the material's fields.
+    """
+
+    name: str
+    observed: np.ndarray
+    sigma: np.ndarray
+    abscissa: np.ndarray
+    x_label: str
+    y_label: str
+
+    def predict(self, material: Material) -> jax.Array: ...
+
+
+# ============================================================================ problem
+def _robust_weight(z, loss: str):
+    """``sqrt(rho(z) / z)`` for the robust loss ``rho``: smooth, positive, 1 at ``z = 0``."""
+    if loss == "linear":
+        return jnp.ones_like(z)
+    if loss == "soft_l1":
+        return jnp.sqrt(2.0 / (1.0 + jnp.sqrt(1.0 + z)))
+    if loss == "huber":
+        z_big = jnp.where(z <= 1.0, 1.0, z)
+        return jnp.where(z <= 1.0, 1.0, jnp.sqrt((2.0 * jnp.sqrt(z_big) - 1.0) / z_big))
+    raise FitError(f"unknown loss {loss!r}; choose one of {LOSSES}")
+
+
+class FitProblem:
+    """The residuals and loss of a fit, as pure functions of the unconstrained vector ``u``.
+
+    Args:
+        scenarios: one or more objects following :class:`Scenario` (names must be unique).
+        parameterization: which material fields are fitted and through which transforms.
+        base: the material whose non-fitted fields (e.g. density) are kept.
+        loss: ``"linear"``, ``"soft_l1"`` or ``"huber"``.
+        f_scale: residual scale of the robust loss [-] (residuals are already divided by sigma,
+            so ``f_scale = 3`` down-weights points more than 3 sigma off).
+    """
+
+    def __init__(self, scenarios, parameterization: MaterialParameterization, base: Material, *, loss: str = "linear", f_scale: float = 1.0):
+        if not isinstance(parameterization, MaterialParameterization):
+            raise FitError(f"parameterization must be a MaterialParameterization, got {type(parameterization).__name__}")
+        if not isinstance(base, Material):
+            raise FitError(f"the initial material must be a Material, got {type(base).__name__}")
+        if loss not in LOSSES:
+            raise FitError(f"unknown loss {loss!r}; choose one of {LOSSES}")
+        if not (isinstance(f_scale, (int, float)) and math.isfinite(f_scale) and f_scale > 0):
+            raise FitError(f"f_scale must be a finite number > 0, got {f_scale!r}")
+        if isinstance(scenarios, (str, bytes)) or not isinstance(scenarios, Sequence):
+            scenarios = (scenarios,)
+        scenarios = tuple(scenarios)
+        if not scenarios:
+            raise FitError("no scenario to fit")
+        names = []
+        observed, sigma = [], []
+        for i, sc in enumerate(scenarios):
+            name = getattr(sc, "name", None)
+            if not isinstance(name, str) or not name:
+                raise FitError(f"scenario {i} has no name (a non-empty str attribute 'name')")
+            if name in names:
+                raise FitError(f"two scenarios are named {name!r}; scenario names must be unique")
+            if not callable(getattr(sc, "predict", None)):
+                raise FitError(f"scenario {name!r} has no predict(material) method")
+            obs = np.asarray(getattr(sc, "observed", None), dtype=float)
+            sig = np.asarray(getattr(sc, "sigma", None), dtype=float)
+            if obs.ndim != 1 or obs.size == 0:
+                raise FitError(f"scenario {name!r}: observed must be a non-empty 1-D array, got shape {obs.shape}")
+            if sig.shape != obs.shape:
+                raise FitError(f"scenario {name!r}: sigma has shape {sig.shape}, observed has {obs.shape}; they must match")
+            if not np.all(np.isfinite(obs)):
+                raise FitError(f"scenario {name!r}: observed holds {int(np.sum(~np.isfinite(obs)))} non-finite value(s)")
+            if not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
+                raise FitError(f"scenario {name!r}: every sigma must be finite and > 0 (same unit as observed)")
+            names.append(name)
+            observed.append(obs)
+            sigma.append(sig)
+        self.scenarios = scenarios
+        self.names = tuple(names)
+        self.parameterization = parameterization
+        self.fields = tuple(parameterization.fields)
+        self.base = base
+        self.loss_name = loss
+        self.f_scale = float(f_scale)
+        self._observed = tuple(observed)
+        self._sigma = tuple(sigma)
+        self.sizes = tuple(o.size for o in observed)
+        self.n_residuals = int(sum(self.sizes))
+        self.n_parameters = len(self.fields)
+        # Each scenario as a pytree: its measured-data leaves (``observed``, ``sigma`` of an
+        # equinox-Module scenario) are passed to the compiled functions as ARGUMENTS, with the
+        # problem's observed and sigma, so that one compilation serves every specimen of the
+        # same structure (see :meth:`data`, :meth:`with_data`, :meth:`structure_key`).
+        self._treedefs, self._leaves, dynamic = [], [], []
+        for sc in scenarios:
+            leaves, treedef = jax.tree_util.tree_flatten(sc)
+            self._treedefs.append(treedef)
+            self._leaves.append(leaves)
+            data_attrs = [getattr(sc, a, None) for a in ("observed", "sigma")]
+            dynamic.append(tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf) and any(leaf is d for d in data_attrs)))
+        self._dynamic = tuple(dynamic)
+
+    # -------------------------------------------------------------- data as arguments
+    def data(self) -> dict:
+        """The problem's measured data as a pytree of arrays: ``observed`` and ``sigma`` per
+        scenario (SI) and each scenario's dynamic leaves. The compiled step and evaluation take
+        it as an argument (:meth:`with_data` rebuilds the problem from it inside the trace)."""
+        return {
+            "observed": tuple(np.asarray(o) for o in self._observed),
+            "sigma": tuple(np.asarray(s) for s in self._sigma),
+            "leaves": tuple(tuple(np.asarray(leaves[i]) for i in dyn) for leaves, dyn in zip(self._leaves, self._dynamic)),
+        }
+
+    def with_data(self, data) -> "FitProblem":
+        """A shallow copy whose observed data, sigma and scenario data leaves are ``data``
+        (arrays or tracers with the structure of :meth:`data`)."""
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new._observed = tuple(data["observed"])
+        new._sigma = tuple(data["sigma"])
+        scenarios = []
+        for sc, treedef, leaves, dyn, values in zip(self.scenarios, self._treedefs, self._leaves, self._dynamic, data["leaves"]):
+            if not dyn:
+                scenarios.append(sc)
+                continue
+            leaves = list(leaves)
+            for i, v in zip(dyn, values):
+                leaves[i] = v
+            scenarios.append(jax.tree_util.tree_unflatten(treedef, leaves))
+        new.scenarios = tuple(scenarios)
+        return new
+
+    def _with_dynamic(self, dynamic) -> "FitProblem":
+        """A shallow copy passing the scenario leaves ``dynamic`` (per scenario, leaf indices
+        of ``jax.tree_util.tree_flatten(scenario)``) as data instead of compiling them in."""
+        new = object.__new__(type(self))
+        new.__dict__.update(self.__dict__)
+        new._dynamic = tuple(tuple(sorted(d)) for d in dynamic)
+        return new
+
+    def structure_key(self) -> tuple:
+        """What the compiled step depends on besides :meth:`data`: fields, transforms, fixed
+        material fields, loss, scenario names, types and pytree structures, data shapes, and a
+        hash of every scenario leaf that is compiled in (arrays by content; other objects, e.g.
+        a scenario that is not a pytree, by identity). Two problems with equal keys can share
+        one compiled step with their own data."""
+        digest, comps = self.fingerprint("", 0)
+        parts = [comps[k] for k in ("fields", "transforms", "fixed material fields", "scenarios", "loss")]
+        parts.append(self.sizes)
+        h = hashlib.sha256()
+        objects = []
+        for treedef, leaves, dyn in zip(self._treedefs, self._leaves, self._dynamic):
+            try:
+                hash(treedef)
+                parts.append(treedef)
+            except TypeError:  # a static field that cannot be hashed: key by the scenario itself
+                objects.append(id(leaves))
+            parts.append(dyn)
+            for i, leaf in enumerate(leaves):
+                if i in dyn:
+                    a = np.asarray(leaf)
+                    h.update(f"dyn{a.shape}{a.dtype}".encode())
+                elif eqx.is_array(leaf) or isinstance(leaf, np.generic):
+                    a = np.ascontiguousarray(leaf)
+                    h.update(f"{a.shape}{a.dtype}".encode())
+                    h.update(a.tobytes())
+                elif leaf is None or isinstance(leaf, (bool, int, float, complex, str)):
+                    h.update(repr((type(leaf).__name__, leaf)).encode())
+                else:
+                    objects.append(id(leaf))
+                h.update(b"|")
+        parts.append(h.hexdigest())
+        parts.append(tuple(objects))
+        return tuple(parts)
+
+    # -------------------------------------------------------------- pure functions
+    def material(self, u) -> Material:
+        """The material at unconstrained ``u`` (shape ``(p,)``)."""
+        return self.parameterization.unpack(u, self.base)
+
+    def material_from_values(self, values) -> Material:
+        """The material with the fitted fields set to physical ``values`` (shape ``(p,)``, SI)."""
+        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in self.fields), self.base, tuple(values[i] for i in range(self.n_parameters)))
+
+    def predictions_of(self, material: Material) -> list[jax.Array]:
+        """Each scenario's predictions (its unit), checked against the observed shapes."""
+        preds = []
+        for sc, obs in zip(self.scenarios, self._observed):
+            pred = jnp.asarray(sc.predict(material))
+            if pred.shape != obs.shape:
+                raise FitError(f"scenario {sc.name!r}: predict returned shape {pred.shape}, observed has {obs.shape}")
+            preds.append(pred)
+        return preds
+
+    def _scaled(self, preds) -> jax.Array:
+        return jnp.concatenate([(p - obs) / sig for p, obs, sig in zip(preds, self._observed, self._sigma)])
+
+    def scaled_residuals_of(self, material: Material) -> jax.Array:
+        """``(predict - observed) / sigma`` of all scenarios, concatenated, shape ``(n,)`` [-]."""
+        return self._scaled(self.predictions_of(material))
+
+    def evaluate_values(self, values, jac: str = "fwd"):
+        """Loss, Jacobian of the robustified scaled residuals with respect to the PHYSICAL
+        values ``(n, p)``, and each scenario's predictions, at ``values`` (one pass: what a
+        fit needs at its start and end, compiled once)."""
+
+        def res(v):
+            preds = self.predictions_of(self.material_from_values(v))
+            r = self.robust(self._scaled(preds))
+            return r, (r, preds)
+
+        jac_fn = jax.jacfwd if jac == "fwd" else jax.jacrev
+        J, (r, preds) = jac_fn(res, has_aux=True)(values)
+        return 0.5 * jnp.sum(r * r), J, preds
+
+    def robust(self, r) -> jax.Array:
+        """Robustified residuals ``r sqrt(rho(z)/z)``, ``z = (r/f_scale)^2``: their half sum of
+        squares is the loss, so Gauss--Newton methods minimise the robust loss."""
+        if self.loss_name == "linear":
+            return r
+        z = (r / self.f_scale) ** 2
+        return r * _robust_weight(z, self.loss_name)
+
+    def residuals_and_predictions(self, u) -> tuple[jax.Array, tuple[jax.Array, ...]]:
+        """``(residuals(u), predictions)``: the robustified scaled residuals and each
+        scenario's predictions (in the residuals' dtype) from one forward evaluation."""
+        preds = self.predictions_of(self.material(u))
+        r = self.robust(self._scaled(preds))
+        return r, tuple(jnp.asarray(p, dtype=r.dtype) for p in preds)
+
+    def residuals(self, u) -> jax.Array:
+        """Robustified scaled residuals at ``u``, shape ``(n,)`` [-] (plain ones for ``linear``)."""
+        return self.robust(self.scaled_residuals_of(self.material(u)))
+
+    def residuals_of_values(self, values) -> jax.Array:
+        """Robustified scaled residuals as a function of the PHYSICAL fitted values (SI)."""
+        return self.robust(self.scaled_residuals_of(self.material_from_values(values)))
+
+    def loss(self, u) -> jax.Array:
+        """Loss ``0.5 f_scale^2 sum rho((r/f_scale)^2)`` [-] at ``u``."""
+        r = self.residuals(u)
+        return 0.5 * jnp.sum(r * r)
+
+    def values(self, u) -> dict[str, jax.Array]:
+        """Physical values of the fitted fields at ``u`` (SI)."""
+        return self.parameterization.values(u)
+
+    # -------------------------------------------------------------- fingerprint
+    def fingerprint(self, method: str, n_starts: int) -> tuple[str, dict[str, str]]:
+        """sha256 of the problem: fields, transforms, fixed fields of the base material,
+        scenario names and types, observed data and sigma, loss, method and number of starts.
+
+        Returns ``(hexdigest, components)``; ``components`` maps each part to its own short hash
+        so a mismatch can be named. The predict functions themselves cannot be hashed: a change
+        of the model code with the same data and names is not detected.
+        """
+
+        def h(b: bytes) -> str:
+            return hashlib.sha256(b).hexdigest()[:16]
+
+        fixed = {f: np.asarray(getattr(self.base, f), dtype=float).tolist() for f in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch") if f not in self.fields}
+        data = hashlib.sha256()
+        for obs, sig in zip(self._observed, self._sigma):
+            data.update(np.ascontiguousarray(obs, dtype="<f8").tobytes())
+            data.update(b"|")
+            data.update(np.ascontiguousarray(sig, dtype="<f8").tobytes())
+            data.update(b"||")
+        comps = {
+            "fields": h(repr(self.fields).encode()),
+            "transforms": h(repr(tuple(repr(t) for t in self.parameterization.transforms)).encode()),
+            "fixed material fields": h(json.dumps(fixed, sort_keys=True).encode()),
+            "scenarios": h(repr(tuple((n, type(s).__qualname__) for n, s in zip(self.names, self.scenarios))).encode()),
+            "observed data and sigma": data.hexdigest()[:16],
+            "loss": h(f"{self.loss_name}:{self.f_scale!r}".encode()),
+            "method": h(method.encode()),
+            "number of starts": h(str(int(n_starts)).encode()),
+        }
+        total = hashlib.sha256(json.dumps(comps, sort_keys=True).encode()).hexdigest()
+        return total, comps

@@ -1,0 +1,129 @@
+"""The package's import layers (issue 18): the import-linter contracts of ``pyproject.toml``
+hold, no module outside ``difftissue.fit`` reaches into its private names, and the moved
+modules keep their old import paths for one release (with a DeprecationWarning)."""
+
+import ast
+import os
+import subprocess
+import sys
+import tomllib
+import warnings
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "difftissue"
+
+
+def test_import_contracts_are_kept():
+    """``lint-imports`` on the contracts of pyproject.toml: physics layers, energies importing
+    only errors, fit independent of scenarios/export/config/report, data free of physics, no
+    cycle inside the fit and data packages. Function-level imports count."""
+    pytest.importorskip("importlinter", reason="import-linter not installed (pip install '.[test]')")
+    code = ("import sys\nfrom importlinter.cli import lint_imports\n"
+            "sys.exit(lint_imports(config_filename='pyproject.toml', no_cache=True, no_logo=True))")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH", "")]))}
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stdout[-6000:] + out.stderr[-3000:]
+    assert "0 broken" in out.stdout, out.stdout[-3000:]
+
+
+def _contracts() -> dict[str, dict]:
+    with open(ROOT / "pyproject.toml", "rb") as fh:
+        return {c["id"]: c for c in tomllib.load(fh)["tool"]["importlinter"]["contracts"]}
+
+
+def _top_level_modules() -> set[str]:
+    names = {p.stem for p in PACKAGE.glob("*.py") if p.stem not in ("__init__", "__main__", "_version")}
+    names |= {p.parent.name for p in PACKAGE.glob("*/__init__.py")}
+    return {f"difftissue.{n}" for n in names}
+
+
+def test_the_energies_contract_names_every_other_module():
+    """``energies`` may import only ``errors``: its forbidden list must name every other
+    top-level module, so that a new module is forbidden too."""
+    forbidden = set(_contracts()["energies-pure"]["forbidden_modules"])
+    missing = _top_level_modules() - forbidden - {"difftissue.errors", "difftissue.energies"}
+    assert not missing, f"add {sorted(missing)} to the energies-pure contract in pyproject.toml"
+
+
+def _private_fit_imports(path: Path) -> list[str]:
+    """``from <difftissue.fit...> import _name`` statements of one module (relative or absolute)."""
+    rel = path.relative_to(ROOT).with_suffix("")
+    package = list(rel.parts[:-1])  # a module's package (an __init__'s is its own folder)
+    found = []
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if not isinstance(node, ast.ImportFrom):
+            continue
+        if node.level:
+            base = package[: len(package) - node.level + 1]
+            module = ".".join(base + ([node.module] if node.module else []))
+        else:
+            module = node.module or ""
+        if module == "difftissue.fit" or module.startswith("difftissue.fit."):
+            found += [f"{rel}:{node.lineno} from {module} import {a.name}" for a in node.names if a.name.startswith("_")]
+    return found
+
+
+def test_no_module_outside_fit_imports_its_private_names():
+    """batch (now ``difftissue.fit.batch``), simulate, report, config and the CLI use fit's
+    public names only: what they share with fit lives under a public name."""
+    bad = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if (PACKAGE / "fit") in path.parents:
+            continue
+        bad += _private_fit_imports(path)
+    assert not bad, "\n".join(bad)
+
+
+# ------------------------------------------------------------------ moved modules and names
+def test_difftissue_batch_is_a_deprecated_shim(monkeypatch):
+    from difftissue.fit import BatchFitResult, fit_batch, specimen_mesh
+
+    monkeypatch.delitem(sys.modules, "difftissue.batch", raising=False)
+    with pytest.warns(DeprecationWarning, match=r"difftissue\.batch moved to difftissue\.fit\.batch"):
+        import difftissue.batch as old
+    assert (old.fit_batch, old.BatchFitResult, old.specimen_mesh) == (fit_batch, BatchFitResult, specimen_mesh)
+
+
+@pytest.mark.parametrize("name", ["write_fit_outputs", "package_versions", "OUTPUT_FILES", "human_unit"])
+def test_output_writers_moved_to_report_still_import_from_fit(name):
+    import difftissue.fit
+    import difftissue.report
+
+    with pytest.warns(DeprecationWarning, match=f"difftissue.fit.{name} moved to difftissue.report.{name}"):
+        value = getattr(difftissue.fit, name)
+    assert value is getattr(difftissue.report, name)
+
+
+#: Every public name of difftissue/fit.py before the split (issue 18).
+FIT_NAMES = [
+    "UNITS", "METHODS", "LOSSES", "CONDITION_LIMIT", "RELATIVE_SE_LIMIT", "CORRELATION_LIMIT", "Scenario", "FitProblem",
+    "ScenarioFit", "FitResult", "FitProgress", "parameter_statistics", "identifiability_diagnostics", "PLAUSIBLE", "RMS_LIMIT",
+    "AUTOCORRELATION_LIMIT", "RUNS_P_LIMIT", "BOUND_FRACTION", "STRUCTURE_MIN_RMS", "STRUCTURE_MIN_POINTS", "QUALITY_ERRORS",
+    "QualityFlag", "FitQuality", "lag1_autocorrelation", "runs_test", "assess_quality", "DISCRETISATION_METHOD",
+    "DISCRETISATION_ORDER", "discretisation_estimate", "with_discretisation", "discretisation_line", "effective_modulus",
+    "effective_modulus_line", "fit",
+]
+
+#: ``__all__`` of difftissue/data.py before the split.
+DATA_NAMES = [
+    "ForceDepthCurve", "CompressionCurve", "FEMResult", "Table", "ContactPoint", "UNITS", "QUANTITY_DIMENSIONS",
+    "PLAUSIBLE_RANGES", "normalize_unit", "unit_factor", "parse_quantity", "read_text", "TextFile", "load_table",
+    "load_force_depth", "load_compression", "load_instron_compression", "load_chiaro", "load_fem_result", "load_dataset",
+    "find_contact", "shift_to_contact", "check_monotonic", "CONTACT_METHODS",
+]
+
+
+def test_every_public_name_keeps_its_import_path():
+    import difftissue.data
+    import difftissue.fit
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # these did not move: no warning
+        missing = [f"difftissue.fit.{n}" for n in FIT_NAMES if not hasattr(difftissue.fit, n)]
+        missing += [f"difftissue.data.{n}" for n in DATA_NAMES if not hasattr(difftissue.data, n)]
+    assert not missing, missing
+    assert set(DATA_NAMES) <= set(difftissue.data.__all__)
+    assert all(hasattr(difftissue.fit, n) for n in difftissue.fit.__all__)
