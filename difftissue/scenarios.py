@@ -338,8 +338,12 @@ def _solve(model, material, bc, u0, opts: SolverOptions):
         throw=opts.failure == "raise", preconditioner_material=opts.preconditioner_material,
     )
     if opts.failure == "nan":
-        bad = ~sol.converged
-        sol = eqx.tree_at(lambda s: (s.displacement, s.reaction), sol, (jnp.where(bad, jnp.nan, sol.displacement), jnp.where(bad, jnp.nan, sol.reaction)))
+        # A multiplication by NaN, not a ``where``: the primal, its tangents (forward mode) and
+        # its cotangents (reverse mode) all become NaN, where a ``where`` would give a zero
+        # derivative (a finite gradient at a failed point). The solver's own tangents of a
+        # failed solve are NaN as well (solve_static).
+        nan = jnp.where(sol.converged, 1.0, jnp.nan).astype(sol.displacement.dtype)
+        sol = eqx.tree_at(lambda s: (s.displacement, s.reaction), sol, (sol.displacement * nan, sol.reaction * nan))
     return sol
 
 
@@ -407,9 +411,10 @@ class _Condensation(eqx.Module):
                 force = eqx.error_if(force, ~converged, "condensed indentation: the contact solve on the candidate nodes did not converge")
                 force = eqx.error_if(force, bad, "condensed indentation: a top-surface node outside the candidate set touches the indenter; use solver='full'")
             else:
-                force = jnp.where(bad | ~converged, jnp.nan, force)
-                uc = jnp.where(converged, uc, jnp.nan)
-                full = jnp.where(converged, full, jnp.nan)
+                # Multiplications by NaN: NaN values, tangents and cotangents (see _solve).
+                force = force * jnp.where(bad | ~converged, jnp.nan, 1.0)
+                uc = uc * jnp.where(converged, 1.0, jnp.nan)
+                full = full * jnp.where(converged, 1.0, jnp.nan)
             return (uc, depth), (force, full)
 
         u0 = jnp.zeros((k, 3), dtype=G.dtype)
