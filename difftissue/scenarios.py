@@ -316,7 +316,7 @@ def _jitted_solve(scenario):
 
     # Only weak references to the scenario: the cache must not keep it (and its mesh) alive.
     ref = weakref.ref(scenario, lambda _, k=key, cache=_JITTED: cache.pop(k, None))
-    fn = jax.jit(lambda material: ref()._solve_protocol(material))
+    fn = jax.jit(lambda material, *extra: ref()._solve_protocol(material, *extra))
     _JITTED[key] = (ref, fn)
     return fn
 
@@ -575,14 +575,24 @@ class Indentation(eqx.Module):
             force = -jnp.sum(jnp.where(zmask, sol.reaction[:, 2], 0.0))
         return self.force_multiplier * force, sol.displacement
 
-    def solve(self, material: Material):
+    def solve(self, material: Material, contact_offset=0.0):
         """``(forces (n,) [N], displacements (n, N, 3) [m])`` along the protocol (compiled once
-        per scenario)."""
-        return _jitted_solve(self)(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material))
+        per scenario).
 
-    def _solve_protocol(self, material: Material):
+        ``contact_offset`` [m] is added to every depth of the protocol (the indenter at
+        ``depth + contact_offset``: a contact point found too late by ``contact_offset``).
+        The forces are differentiable with respect to it (implicit function theorem: the
+        indenter depth is a differentiated leaf of the contact model, or the punch's
+        prescribed displacement), e.g. ``jax.grad(lambda c: sc.solve(m, c)[0].sum())``.
+        It is not a fitted parameter of :func:`~difftissue.fit.fit` (which fits material
+        fields only); see docs/scenarios.md."""
+        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        return _jitted_solve(self)(material, jnp.asarray(contact_offset, dtype=float))
+
+    def _solve_protocol(self, material: Material, contact_offset=0.0):
+        depths = jnp.asarray(self.abscissa) + contact_offset
         if self.condensation is not None:
-            forces, us = self.condensation.solve_protocol(material, jnp.asarray(self.abscissa), self.options)
+            forces, us = self.condensation.solve_protocol(material, depths, self.options)
             return self.force_multiplier * forces, us
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
 
@@ -591,12 +601,13 @@ class Indentation(eqx.Module):
             f, u_new = self._force_at(material, depth, _extrapolate(u, previous, depth))
             return (u_new, depth), (f, u_new)
 
-        _, (forces, us) = jax.lax.scan(step, (u0, jnp.asarray(0.0)), jnp.asarray(self.abscissa))
+        _, (forces, us) = jax.lax.scan(step, (u0, jnp.asarray(0.0)), depths)
         return forces, us
 
-    def predict(self, material: Material):
-        """Indentation force [N] at each depth (positive compressive)."""
-        return self.solve(material)[0]
+    def predict(self, material: Material, contact_offset=0.0):
+        """Indentation force [N] at each depth (positive compressive); ``contact_offset`` [m]
+        shifts every depth (see :meth:`solve`)."""
+        return self.solve(material, contact_offset)[0]
 
 
 class Compression(eqx.Module):
