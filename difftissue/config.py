@@ -511,6 +511,15 @@ class FitConfig:
         check = opts.pop("discretisation_check", True)
         tissue = opts.pop("tissue", None)
         scenarios = self.fit_scenarios(opts.pop("separate_compilation", None))
+        if any(isinstance(sc, SeparatelyCompiled) and sc.mode == "reverse" for sc in scenarios):
+            # Reverse-mode scenarios (Adam, L-BFGS) have vector-Jacobian products only: the
+            # fit's final Jacobian must be reverse mode too.
+            if opts.get("jac", "bwd") != "bwd":
+                raise ConfigError(
+                    f"fit.method = {opts.get('method')!r} differentiates the separately compiled scenarios in reverse mode: "
+                    "fit.jac must be 'bwd' (or leave it out), or set fit.separate_compilation = false"
+                )
+            opts["jac"] = "bwd"
         object.__setattr__(self, "last_scenarios", scenarios)  # for the failures of SeparatelyCompiled
         self.check_reaction_signs(scenarios)
         self.start_cubic_coefficient(scenarios)

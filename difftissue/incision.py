@@ -375,7 +375,8 @@ class Incision(eqx.Module):
         )
         u = sol.displacement
         if o.failure == "nan":
-            u = jnp.where(sol.converged, u, jnp.nan)
+            # A multiplication: NaN value, tangents and cotangents (a where would give zeros).
+            u = u * jnp.where(sol.converged, 1.0, jnp.nan).astype(u.dtype)
         return u
 
     def _schedule(self):

@@ -316,7 +316,7 @@ def _jitted_solve(scenario):
 
     # Only weak references to the scenario: the cache must not keep it (and its mesh) alive.
     ref = weakref.ref(scenario, lambda _, k=key, cache=_JITTED: cache.pop(k, None))
-    fn = jax.jit(lambda material: ref()._solve_protocol(material))
+    fn = jax.jit(lambda material, *extra: ref()._solve_protocol(material, *extra))
     _JITTED[key] = (ref, fn)
     return fn
 
@@ -356,8 +356,12 @@ def _solve(model, material, bc, u0, opts: SolverOptions):
         throw=opts.failure == "raise", preconditioner_material=opts.preconditioner_material,
     )
     if opts.failure == "nan":
-        bad = ~sol.converged
-        sol = eqx.tree_at(lambda s: (s.displacement, s.reaction), sol, (jnp.where(bad, jnp.nan, sol.displacement), jnp.where(bad, jnp.nan, sol.reaction)))
+        # A multiplication by NaN, not a ``where``: the primal, its tangents (forward mode) and
+        # its cotangents (reverse mode) all become NaN, where a ``where`` would give a zero
+        # derivative (a finite gradient at a failed point). The solver's own tangents of a
+        # failed solve are NaN as well (solve_static).
+        nan = jnp.where(sol.converged, 1.0, jnp.nan).astype(sol.displacement.dtype)
+        sol = eqx.tree_at(lambda s: (s.displacement, s.reaction), sol, (sol.displacement * nan, sol.reaction * nan))
     return sol
 
 
@@ -424,9 +428,10 @@ class _Condensation(eqx.Module):
                 force = eqx.error_if(force, ~converged, "condensed indentation: the contact solve on the candidate nodes did not converge")
                 force = eqx.error_if(force, bad, "condensed indentation: a top-surface node outside the candidate set touches the indenter; use solver='full'")
             else:
-                force = jnp.where(bad | ~converged, jnp.nan, force)
-                uc = jnp.where(converged, uc, jnp.nan)
-                full = jnp.where(converged, full, jnp.nan)
+                # Multiplications by NaN: NaN values, tangents and cotangents (see _solve).
+                force = force * jnp.where(bad | ~converged, jnp.nan, 1.0)
+                uc = uc * jnp.where(converged, 1.0, jnp.nan)
+                full = full * jnp.where(converged, 1.0, jnp.nan)
             return _advance(history, uc, depth), (force, full)
 
         u0 = jnp.zeros((k, 3), dtype=G.dtype)
@@ -587,14 +592,24 @@ class Indentation(eqx.Module):
             force = -jnp.sum(jnp.where(zmask, sol.reaction[:, 2], 0.0))
         return self.force_multiplier * force, sol.displacement
 
-    def solve(self, material: Material):
+    def solve(self, material: Material, contact_offset=0.0):
         """``(forces (n,) [N], displacements (n, N, 3) [m])`` along the protocol (compiled once
-        per scenario)."""
-        return _jitted_solve(self)(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material))
+        per scenario).
 
-    def _solve_protocol(self, material: Material):
+        ``contact_offset`` [m] is added to every depth of the protocol (the indenter at
+        ``depth + contact_offset``: a contact point found too late by ``contact_offset``).
+        The forces are differentiable with respect to it (implicit function theorem: the
+        indenter depth is a differentiated leaf of the contact model, or the punch's
+        prescribed displacement), e.g. ``jax.grad(lambda c: sc.solve(m, c)[0].sum())``.
+        It is not a fitted parameter of :func:`~difftissue.fit.fit` (which fits material
+        fields only); see docs/scenarios.md."""
+        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        return _jitted_solve(self)(material, jnp.asarray(contact_offset, dtype=float))
+
+    def _solve_protocol(self, material: Material, contact_offset=0.0):
+        depths = jnp.asarray(self.abscissa) + contact_offset
         if self.condensation is not None:
-            forces, us = self.condensation.solve_protocol(material, jnp.asarray(self.abscissa), self.options)
+            forces, us = self.condensation.solve_protocol(material, depths, self.options)
             return self.force_multiplier * forces, us
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
 
@@ -602,12 +617,13 @@ class Indentation(eqx.Module):
             f, u_new = self._force_at(material, depth, _extrapolate(history, depth))
             return _advance(history, u_new, depth), (f, u_new)
 
-        _, (forces, us) = jax.lax.scan(step, _history(u0), jnp.asarray(self.abscissa, dtype=u0.dtype))
+        _, (forces, us) = jax.lax.scan(step, _history(u0), jnp.asarray(depths, dtype=u0.dtype))
         return forces, us
 
-    def predict(self, material: Material):
-        """Indentation force [N] at each depth (positive compressive)."""
-        return self.solve(material)[0]
+    def predict(self, material: Material, contact_offset=0.0):
+        """Indentation force [N] at each depth (positive compressive); ``contact_offset`` [m]
+        shifts every depth (see :meth:`solve`)."""
+        return self.solve(material, contact_offset)[0]
 
 
 class Compression(eqx.Module):

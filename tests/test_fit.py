@@ -632,3 +632,63 @@ def test_force_removes_the_specimen_files_of_an_earlier_fit(hertz_only_fit, tmp_
     write_fit_outputs(hertz_only_fit[0], out, model="hertz", force=True)
     assert not stale.exists()
     assert (out / "fit.json").exists()
+
+
+# ------------------------------------------------------- failed trial points, reverse mode
+def _pull_scenario():
+    """Mean top displacement [m] of a neo-Hookean unit cube pulled by 25 N, solved with
+    max_steps = 3 and failure = "nan": the solve converges for E >= 70 Pa and fails (NaN) below
+    about 50 Pa. Trial points are recorded (E, prediction)."""
+    from difftissue.boundary import BoundaryConditions
+    from difftissue.mesh import block
+    from difftissue.models import make_model
+    from difftissue.scenarios import SolverOptions, _solve
+
+    mesh = block(1.0, 1)
+    model = make_model(mesh, "fem_neo_hookean")
+    top = np.asarray(mesh.points)[:, 2] == 1.0
+    bc = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"}).add_force(mesh, {"face": "z-max"}, (0.0, 0.0, 25.0))
+    opts = SolverOptions(max_steps=3, failure="nan", linear_solver="dense")
+    seen = []
+
+    @dataclass(frozen=True, eq=False)
+    class Pull:
+        name: str
+        abscissa: np.ndarray
+        observed: np.ndarray
+        sigma: np.ndarray
+        x_label: str = "force [N]"
+        y_label: str = "displacement [m]"
+
+        def predict(self, material):
+            u = jnp.mean(_solve(model, material, bc, None, opts).displacement[top, 2])
+            jax.debug.callback(lambda E, v: seen.append((float(E), float(v))), material.youngs_modulus, u)
+            return u[None]
+
+    probe = Pull("probe", np.array([25.0]), np.zeros(1), np.ones(1))
+    observed = np.asarray(probe.predict(Material(150.0, 0.3)))
+    return Pull("pull", np.array([25.0]), observed, 1e-3 * np.ones(1)), seen
+
+
+@pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning", "ignore::difftissue.errors.FitQualityWarning")
+@pytest.mark.parametrize("method,separate", [("adam", False), ("adam", True), ("lbfgs", False), ("lbfgs", True)])
+def test_reverse_mode_fit_rejects_a_failed_trial_point(method, separate):
+    """A trial point whose static solve fails gives a NaN loss and gradient (failure="nan");
+    Adam halves the step, L-BFGS's line search shortens it: the fit continues to the optimum
+    instead of stopping with a non-finite loss (Adam did) or raising."""
+    from difftissue.config import SeparatelyCompiled
+
+    sc, seen = _pull_scenario()
+    assert np.isnan(float(sc.predict(Material(40.0, 0.3))[0]))  # the premise: a failing region
+    assert np.isnan(float(jax.grad(lambda E: sc.predict(Material(E, 0.3))[0])(40.0)))
+    seen.clear()
+    kw = {"learning_rate": 1.5, "max_steps": 300} if method == "adam" else {"max_steps": 100}
+    target = SeparatelyCompiled(sc, mode="reverse") if separate else sc
+    # Adam's first step is learning_rate in log E: 200 exp(-1.5) = 45 Pa, a failing trial point.
+    res = fit(target, MaterialParameterization(("youngs_modulus",)), Material(200.0, 0.3), method=method, jac="bwd", **kw)
+    failed = [E for E, v in seen if not np.isfinite(v)]
+    assert failed, seen  # the fit did meet a failing trial point (L-BFGS: its line search, at E = 27 Pa)
+    if method == "adam":
+        assert failed and min(failed) == pytest.approx(200.0 * np.exp(-1.5), rel=1e-6), seen[:5]
+    assert res.values["youngs_modulus"] == pytest.approx(150.0, rel=1e-5)
+    assert np.isfinite(res.loss)

@@ -192,3 +192,19 @@ def test_chunked_assembly_gives_the_same_solve(springs, monkeypatch):
     monkeypatch.setattr(multigrid, "_CACHE", {})
     monkeypatch.setattr(multigrid, "_LAYOUTS", {})
     np.testing.assert_allclose(_force(model, bc, top, material), ref, rtol=1e-10)
+
+
+def test_gradient_of_a_solve_stopped_at_max_steps_is_nan_in_both_modes(springs):
+    """throw=False, Newton stopped at max_steps (the CG solves themselves converge): NaN
+    tangents and cotangents, never the implicit tangent of the unconverged state."""
+    model, bc, top = springs
+    deep = BoundaryConditions(bc.fixed, 20 * bc.displacement, bc.force)  # 4 mm on an 8 mm block: nonlinear
+
+    def force(E, max_steps):
+        sol = solve_static(model, Material(E, 0.45, 2.0), deep, linear_solver="multigrid", max_steps=max_steps, throw=False, preconditioner_material=Material(1e4, 0.45))
+        return jnp.sum(sol.reaction[top, 2]), sol.result
+
+    value, code = force(1e4, 1)
+    assert int(code) != 0 and np.isfinite(float(value))  # the premise: a failed solve with a finite state
+    assert np.isnan(float(jax.grad(lambda E: force(E, 1)[0])(1e4)))
+    assert np.isnan(float(jax.jvp(lambda E: force(E, 1)[0], (1e4,), (1.0,))[1]))

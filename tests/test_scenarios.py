@@ -222,3 +222,60 @@ def test_recover_lattice_refuses_unstructured_meshes():
     m = cylinder(0.01, 0.01, 2, 2)
     with pytest.raises(errors.ModelError, match="lattice"):
         recover_lattice(m)
+
+
+# ------------------------------------------------- indenter depth and failed solves
+@pytest.fixture(scope="module")
+def depth_sphere():
+    """245 nodes: enough for a two-level multigrid hierarchy."""
+    mesh = indentation_block((4e-3, 4e-3, 1e-3), (6, 6, 4), symmetry="quarter", refine=0.05e-3)
+    return mesh, Indentation(mesh, [2e-5, 4e-5], model="fem_linear", indenter="sphere", radius=1e-3, symmetry="quarter", solver="full")
+
+
+@pytest.mark.parametrize("solver", ["dense", "multigrid"])
+def test_indenter_depth_derivative_matches_central_differences(depth_sphere, solver):
+    """d(force)/d(depth) through solve_static: the depth is a differentiated leaf of the
+    ContactModel (implicit function theorem), forward and reverse mode."""
+    sc, mat = depth_sphere[1], Material(10e3, 0.4)
+
+    def force(depth):
+        model = sc.model.with_depth(depth)
+        sol = solve_static(model, mat, sc.bc, linear_solver=solver, rtol=1e-12, cg_rtol=1e-12, preconditioner_material=mat)
+        return model.reaction_force(jnp.asarray(model.rest_points) + sol.displacement, mat)
+
+    d = 4e-5
+    g = float(jax.grad(force)(d))
+    t = float(jax.jvp(force, (d,), (1.0,))[1])
+    fd = float(_fd(force, d, 1e-3 * d))  # measured agreement 3e-10 (dense), 7e-10 (multigrid)
+    assert g == pytest.approx(fd, rel=1e-5)
+    assert t == pytest.approx(g, rel=1e-9)
+    assert g > 1.2 * float(force(d)) / d  # Hertz: dF/dd = 1.5 F/d, not the secant
+
+
+@pytest.mark.parametrize("solver", ["full", "condensed"])
+def test_contact_offset_derivative_of_indentation(depth_sphere, solver):
+    mesh, sc = depth_sphere
+    if solver == "condensed":
+        sc = Indentation(mesh, [2e-5, 4e-5], model="fem_linear", indenter="sphere", radius=1e-3, symmetry="quarter", solver="condensed")
+    mat = Material(10e3, 0.4)
+    J = np.asarray(jax.jacrev(lambda c: sc.predict(mat, c))(0.0))
+    Jf = np.asarray(jax.jacfwd(lambda c: sc.predict(mat, c))(0.0))
+    h = 4e-8
+    fd = np.asarray((sc.predict(mat, h) - sc.predict(mat, -h)) / (2 * h))
+    np.testing.assert_allclose(J, fd, rtol=1e-5)
+    np.testing.assert_allclose(Jf, J, rtol=1e-9)
+    np.testing.assert_allclose(sc.predict(mat, 0.0), sc.predict(mat), rtol=0)
+
+
+def test_failed_solve_gives_nan_values_and_derivatives_in_both_modes(cube):
+    """SolverOptions(failure="nan"): value, forward tangent and reverse gradient all NaN (a
+    ``where`` mask gave a zero, finite gradient at a failed point)."""
+    from difftissue.scenarios import SolverOptions
+
+    failing = Compression(cube, [0.3], model="fem_neo_hookean", options=SolverOptions(max_steps=1, failure="nan", linear_solver="dense"))
+    out = lambda E: failing.predict(Material(E, 0.45))[0]  # noqa: E731
+    assert np.isnan(float(out(1e3)))
+    assert np.isnan(float(jax.grad(out)(1e3)))
+    assert np.isnan(float(jax.jacfwd(out)(1e3)))
+    ok = Compression(cube, [0.3], model="fem_neo_hookean", options=SolverOptions(failure="nan", linear_solver="dense"))
+    assert np.isfinite(float(jax.grad(lambda E: ok.predict(Material(E, 0.45))[0])(1e3)))

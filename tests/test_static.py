@@ -231,3 +231,23 @@ def test_non_convergence_and_inversion_are_reported(column):
     crush = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0, 0, -2.5))
     with pytest.raises(errors.ConvergenceError, match="invert"):
         solve_static(linear, Material(E0, 0.3), crush)
+
+
+def test_gradient_of_an_unconverged_solve_is_nan_in_both_modes(column):
+    """throw=False and a solve stopped at max_steps: NaN derivatives (forward and reverse), never
+    the implicit-function tangent of the unconverged state (which was finite and wrong)."""
+    model = make_model(column, "fem_neo_hookean")
+    bc = _symmetric_bc(column).fix(column, {"face": "z-max"}, "z", (0, 0, 0.5))
+    top = np.asarray(column.points)[:, 2] == 2.0
+
+    def force(E, max_steps):
+        sol = solve_static(model, Material(E, 0.45), bc, max_steps=max_steps, throw=False, linear_solver="dense")
+        return jnp.sum(sol.reaction[:, 2] * top), sol.result
+
+    value, code = force(E0, 1)
+    assert int(code) == StaticResult.max_steps_reached and np.isfinite(float(value))
+    assert np.isnan(float(jax.grad(lambda E: force(E, 1)[0])(E0)))
+    assert np.isnan(float(jax.jacfwd(lambda E: force(E, 1)[0])(E0)))
+    # the same solve converged: finite and consistent (the force is proportional to E)
+    g = float(jax.grad(lambda E: force(E, 50)[0])(E0))
+    assert g == pytest.approx(float(force(E0, 50)[0]) / E0, rel=1e-8)

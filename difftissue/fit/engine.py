@@ -264,9 +264,27 @@ class Engine:
                     updates, state_new = solver.update(grad, state, u)
                 u_new = optax.apply_updates(u, updates)
                 if lbfgs:
+                    # L-BFGS: optax's zoom line search treats a non-finite trial value (a
+                    # failed static solve) as a failed decrease and shortens the step.
                     loss_new = optax.tree_utils.tree_get(state_new, "value")
                 else:
                     loss_new = loss_fn(u_new)
+
+                    # Adam: a trial point whose loss is not finite (a static solve that failed
+                    # gives NaN predictions, SolverOptions(failure="nan")) is rejected and the
+                    # step halved until the loss is finite (at most ADAM_MAX_HALVINGS times), as
+                    # Levenberg--Marquardt shrinks its trust region; the moments keep the
+                    # gradient at the accepted point u.
+                    def shorter(c):
+                        alpha, _, k = c
+                        alpha = 0.5 * alpha
+                        return alpha, loss_fn(u + alpha * updates), k + 1
+
+                    def rejected(c):
+                        return ~jnp.isfinite(c[1]) & (c[2] < ADAM_MAX_HALVINGS) & jnp.isfinite(value)
+
+                    alpha, loss_new, _ = jax.lax.while_loop(rejected, shorter, (jnp.asarray(1.0, u.dtype), loss_new, jnp.asarray(0, jnp.int32)))
+                    u_new = u + alpha * updates
                 du = jnp.max(jnp.abs(u_new - u))
                 small_u = du <= atol + rtol * jnp.max(jnp.abs(u_new))
                 small_f = jnp.abs(loss_new - value) <= atol + rtol * jnp.abs(value)
@@ -287,6 +305,11 @@ class Engine:
             msg = _result_message(self._optx.RESULTS, code).strip().split("\n")[0]
             return f"optimistix: {msg}"
         return f"status {code}"
+
+
+#: Adam: the most halvings of a step whose trial point has a non-finite loss (a failed static
+#: solve) before the start stops with a non-finite loss (a 2^-12 shorter step still failing).
+ADAM_MAX_HALVINGS = 12
 
 
 def _result_code(result) -> jax.Array:

@@ -270,7 +270,10 @@ def _condensed_equilibrium_jvp(primals, tangents, *, u_init, free, rest, indente
     H = jax.hessian(lambda uu: _condensed_energy(uu, stiffness, kappa, depth, rest=rest, indenter=indenter))(u)
     H = H * P[:, None] * P[None, :] + jnp.diag(1.0 - P)
     # implicit function theorem: H du = -P dg (a failed primal gives NaN: the optimiser rejects it)
-    t_u = P * jnp.linalg.solve(H, -P * dg)
+    # An unconverged primal is not an equilibrium: NaN tangents (a multiplication, so reverse
+    # mode gets NaN cotangents too), never the implicit tangent of a wrong state.
+    failed = jnp.where(ok > 0.5, jnp.asarray(1.0, u.dtype), jnp.asarray(jnp.nan, u.dtype))
+    t_u = P * jnp.linalg.solve(H, -P * dg) * failed
     return (u, ok), (t_u, jnp.zeros_like(ok))
 
 

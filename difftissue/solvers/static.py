@@ -384,17 +384,40 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
 
 
 @eqx.filter_custom_jvp
-def _equilibrium(material, displacement, force, *, model, free, u_init, options):
+def _equilibrium(material, displacement, force, model, *, free, u_init, options):
+    # ``model`` is a differentiated argument: its floating-point array leaves (a contact
+    # model's indenter depth) may carry tangents, which the JVP rule takes into the
+    # right-hand side of the implicit-function-theorem solve.
     u, rn, steps, code, cg_steps, cg_res = _newton(model, material, displacement, force, free, u_init, options)
     # Diagnostics as floats so they can carry (zero) tangents.
     return u, jnp.stack([rn, steps.astype(u.dtype), code.astype(u.dtype), cg_steps.astype(u.dtype), cg_res])
 
 
+def _split_model_tangent(model, t_model):
+    """``(dynamic, tangent, rebuild)``: the model's leaves that carry a tangent (a list), their
+    tangents, and ``rebuild(dynamic) -> model`` with those leaves replaced. Leaves without a
+    tangent (connectivity, rest geometry not differentiated) stay closed over, so the JVP
+    costs nothing for them."""
+    if t_model is None:
+        return [], [], lambda _: model
+    leaves, treedef = jax.tree_util.tree_flatten(model)
+    t_leaves = treedef.flatten_up_to(t_model)
+    idx = [i for i, t in enumerate(t_leaves) if t is not None]
+
+    def rebuild(dynamic):
+        new = list(leaves)
+        for i, v in zip(idx, dynamic):
+            new[i] = v
+        return jax.tree_util.tree_unflatten(treedef, new)
+
+    return [leaves[i] for i in idx], [t_leaves[i] for i in idx], rebuild
+
+
 @_equilibrium.def_jvp
-def _equilibrium_jvp(primals, tangents, *, model, free, u_init, options):
-    material, displacement, force = primals
-    t_material, t_displacement, t_force = tangents
-    u, info = _equilibrium(material, displacement, force, model=model, free=free, u_init=u_init, options=options)
+def _equilibrium_jvp(primals, tangents, *, free, u_init, options):
+    material, displacement, force, model = primals
+    t_material, t_displacement, t_force, t_model = tangents
+    u, info = _equilibrium(material, displacement, force, model, free=free, u_init=u_init, options=options)
 
     def fill(t, p):
         return jax.tree_util.tree_map(lambda tt, pp: jnp.zeros_like(jnp.asarray(pp, dtype=u.dtype)) if tt is None else tt, t, p, is_leaf=lambda z: z is None)
@@ -404,8 +427,13 @@ def _equilibrium_jvp(primals, tangents, *, model, free, u_init, options):
     t_disp = jnp.zeros_like(u) if t_displacement is None else t_displacement
     t_f = jnp.zeros_like(u) if t_force is None else t_force
     material_f = jax.tree_util.tree_map(lambda p: jnp.asarray(p, dtype=u.dtype), material)
+    model_dyn, t_model_dyn, rebuild = _split_model_tangent(model, t_model)
     t_u_fixed = (1.0 - P) * t_disp
-    _, dgrad = jax.jvp(lambda uu, mm, ff: _full_gradient(model, uu, mm, ff), (u, material_f, force), (t_u_fixed, t_material, t_f))
+    _, dgrad = jax.jvp(
+        lambda uu, mm, ff, md: _full_gradient(rebuild(md), uu, mm, ff),
+        (u, material_f, force, model_dyn),
+        (t_u_fixed, t_material, t_f, t_model_dyn),
+    )
     op, solver, opts = _projected_operator(model, u, material_f, free, options, tangent=True)
     # throw=False: a failed primal solve (NaN) gives NaN tangents instead of a crash, so an
     # optimiser can reject the step; the primal result code still reports the failure.
@@ -418,7 +446,14 @@ def _equilibrium_jvp(primals, tangents, *, model, free, u_init, options):
         return lx.linear_solve(op, b, solver, options=opts, throw=False).value
 
     w = jax.lax.custom_linear_solve(op.mv, (-P * dgrad).reshape(-1), solve, symmetric=True).reshape(u.shape)
-    t_u = P * w + t_u_fixed
+    # A primal solve that did not succeed (max_steps reached, line search failed, inverted
+    # element, non-finite, linear solver failed: result code != 0) is not an equilibrium: the
+    # implicit-function-theorem tangent there would be a silently wrong derivative. Scaling by
+    # NaN (a multiplication, so that it is linear in the tangents and transposes to a NaN
+    # cotangent in reverse mode too; a ``where`` with a NaN constant would drop out of the
+    # transpose) makes every tangent and every gradient of a failed solve NaN.
+    failed = jnp.where(info[2] == StaticResult.successful, jnp.asarray(1.0, u.dtype), jnp.asarray(jnp.nan, u.dtype))
+    t_u = (P * w + t_u_fixed) * failed
     return (u, info), (t_u, jnp.zeros_like(info))
 
 
@@ -428,7 +463,7 @@ def _solve(model, material, bc, u_init, options: _Options):
     # One range check of the material here instead of one in every energy evaluation.
     material = model.checked(material)
     free = jnp.asarray(bc.free_mask)
-    u, info = _equilibrium(material, bc.displacement, bc.force, model=model, free=free, u_init=u_init, options=options)
+    u, info = _equilibrium(material, bc.displacement, bc.force, model, free=free, u_init=u_init, options=options)
     code = info[2].astype(jnp.int32)
     x = jnp.asarray(model.rest_points) + u
     grad = _full_gradient(model, u, material, bc.force)
