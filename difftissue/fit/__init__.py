@@ -71,7 +71,7 @@ from .statistics import (  # noqa: F401  (names importable from difftissue.fit, 
     runs_test,
     with_discretisation,
 )
-from .engine import METHODS, TOLERANCES
+from .engine import ADAM_MAX_HALVINGS, METHODS, TOLERANCES
 from .driver import fit
 from .batch import BatchFitResult, fit_batch, specimen_mesh
 
