@@ -591,7 +591,10 @@ def test_progress_lines_off_a_terminal_for_fit_and_simulate(tmp_path, capsys, mo
     monkeypatch.setattr(cli, "PROGRESS_EVERY", 0.02)
     assert main(["fit", str(_AFM), "--out", str(tmp_path / "fit")]) == 0
     err = capsys.readouterr().err
-    assert "difftissue: [" in err and ("fitting: step" in err or "compiling the model" in err), err
+    # Which phases a tick lands in depends on timing (in a full run the fit's programs are
+    # already compiled and the fit takes milliseconds): every line names its phase.
+    lines = [ln for ln in err.splitlines() if ln.startswith("difftissue: [")]
+    assert lines and all(any(p in ln for p in ("starting", "loading", "compiling the model", "fitting: step", "writing", "done")) for ln in lines), err
     assert main(["simulate", str(_AFM), "--out", str(tmp_path / "sim")]) == 0
     err = capsys.readouterr().err
     assert "simulating experiment 1/1 (afm" in err or "writing simulation.json" in err or "loading" in err, err
