@@ -660,20 +660,24 @@ def tissue_range_check(result, tissue: str | None):
     return dataclasses.replace(result, quality=FitQuality(result.quality.flags + (flag,), result.quality.scenarios))
 
 
-def _compiled_once(fn, *structs):
-    """``fn`` compiled ahead of time for arguments of the shapes ``structs``, on first use.
+def _compiled_per_shape(fn):
+    """``fn`` compiled ahead of time for the shapes of the arguments it is called with (float64
+    arrays), once per shape.
 
     A ``jax.jit`` function called both inside a callback (a fit's compiled step calls the
     scenario through :func:`jax.pure_callback`) and outside it is compiled twice: JAX keys its
     cache on that context. The ahead-of-time executable is one compilation for both."""
     import jax
+    import jax.numpy as jnp
 
-    compiled = []
+    jitted = jax.jit(fn)
+    compiled: dict[tuple, Any] = {}
 
     def call(*args):
-        if not compiled:
-            compiled.append(jax.jit(fn).lower(*structs).compile())
-        return compiled[0](*args)
+        shapes = tuple(np.shape(a) for a in args)
+        if shapes not in compiled:
+            compiled[shapes] = jitted.lower(*(jax.ShapeDtypeStruct(sh, jnp.float64) for sh in shapes)).compile()
+        return compiled[shapes](*args)
 
     return call
 
@@ -761,18 +765,12 @@ class SeparatelyCompiled:
             # tangents: the model is solved once, the tangents (one implicit linear solve each
             # per load step) are batched. A primal-only call runs it with zero tangents (their
             # linear solves stop at once), so nothing is compiled twice.
-            both = jax.jit(jax.vmap(lambda v, t: jax.jvp(f, (v,), (t,)), in_axes=(None, 0), out_axes=(None, 0)))
+            # Compiled ahead of time per tangent count (_compiled_per_shape).
+            both = _compiled_per_shape(jax.vmap(lambda v, t: jax.jvp(f, (v,), (t,)), in_axes=(None, 0), out_axes=(None, 0)))
             n_zero = max(int(n_tangents), 1)
-            # Compiled ahead of time per tangent count: a jitted function called inside a
-            # callback (the fit's step) and outside it (evaluate) would be compiled twice
-            # (JAX 0.10 keys its cache on that context).
-            compiled: dict[int, Any] = {}
 
             def run(v, T):
-                B = T.shape[0]
-                if B not in compiled:
-                    compiled[B] = both.lower(vec, jax.ShapeDtypeStruct((B, n_leaves), jnp.float64)).compile()
-                y, JT = compiled[B](v, T)
+                y, JT = both(v, T)
                 return np.asarray(y, dtype=np.float64), np.asarray(JT, dtype=np.float64)
 
             def host_f(v):
@@ -831,8 +829,8 @@ class SeparatelyCompiled:
                 return value_and_tangent(v, t)
 
         else:
-            fwd = _compiled_once(f, vec)
-            vjp = _compiled_once(lambda v, ct: jax.vjp(f, v)[1](ct)[0], vec, out)
+            fwd = _compiled_per_shape(f)
+            vjp = _compiled_per_shape(lambda v, ct: jax.vjp(f, v)[1](ct)[0])
 
             def host_f(v):
                 return np.asarray(guarded(fwd, v), dtype=np.float64)

@@ -539,13 +539,7 @@ def run_pbd_scene(scene: dict, *, dt: float | None = None, iterations: int = 20,
     dyn = np.flatnonzero(masses > 0)
     if dt is None:
         dt = 0.5 * math.sqrt(float(np.min(masses[dyn] / _particle_stiffness(scene)[dyn])))
-    sim, model = pbd_simulation_from_scene(scene, dt=dt, iterations=iterations, substeps=1)
-    ts = sim.getTimeStep()
-    pd = model.getParticles()
-    g = np.asarray(scene.get("gravity", PYPBD_GRAVITY), dtype=float)
-    bnd = scene.get("boundary", {})
-    moved = np.asarray(bnd.get("moved", []), dtype=np.int64)
-    dvec = np.asarray(bnd.get("displacement", [0.0, 0.0, 0.0]), dtype=float)
+    sim, model, ts, pd, g, moved, dvec = _scene_run(scene, dt, iterations)
     v_pre = np.zeros(3) if gravity else -g * dt
     steps = 0
     residual = math.inf
@@ -641,13 +635,7 @@ def run_pbd_budget(scene: dict, fractions=(1.0,), *, tol: float = 1e-7, max_step
     st = scene.get("setting", {})
     dt, substeps, iterations = float(st["dt"]), int(st["substeps"]), int(st["iterations"])
     h = dt / substeps
-    sim, model = pbd_simulation_from_scene(scene, dt=h, iterations=iterations, substeps=1)
-    ts = sim.getTimeStep()
-    pd = model.getParticles()
-    g = np.asarray(scene.get("gravity", PYPBD_GRAVITY), dtype=float)
-    bnd = scene.get("boundary", {})
-    moved = np.asarray(bnd.get("moved", []), dtype=np.int64)
-    dvec = np.asarray(bnd.get("displacement", [0.0, 0.0, 0.0]), dtype=float)
+    sim, model, ts, pd, g, moved, dvec = _scene_run(scene, h, iterations)
     if moved.size == 0 or not np.any(dvec):
         raise ExportError("run_pbd_budget: the scene moves no particles (boundary.moved / displacement): no reaction to measure")
     direction = dvec / np.linalg.norm(dvec)
@@ -684,6 +672,16 @@ def run_pbd_budget(scene: dict, fractions=(1.0,), *, tol: float = 1e-7, max_step
 
 
 # ============================================================================ reference
+def _scene_run(scene: dict, dt: float, iterations: int):
+    """A pypbd simulation of ``scene`` stepping ``dt`` [s] with ``iterations`` per step (one
+    substep) and what a run reads off it: ``(simulation, model, time_step, particles, gravity
+    (3,) [m/s^2], moved particle ids, their displacement (3,) [m])``."""
+    sim, model = pbd_simulation_from_scene(scene, dt=dt, iterations=iterations, substeps=1)
+    bnd = scene.get("boundary", {})
+    return (sim, model, sim.getTimeStep(), model.getParticles(), np.asarray(scene.get("gravity", PYPBD_GRAVITY), dtype=float),
+            np.asarray(bnd.get("moved", []), dtype=np.int64), np.asarray(bnd.get("displacement", [0.0, 0.0, 0.0]), dtype=float))
+
+
 def _particle_stiffness(scene: dict) -> np.ndarray:
     """Diagonal of the scene energy's Hessian at rest, per particle [N/m] (for the default dt)."""
     pts = np.asarray(scene["particles"]["positions"], dtype=float)

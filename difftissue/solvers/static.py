@@ -138,9 +138,8 @@ def _assemble_ell(layout, model: ElasticModel, x, material, free_dofs, *, chunk:
     (default :data:`ASSEMBLY_CHUNK`; a term with fewer elements in one go)."""
     chunk = ASSEMBLY_CHUNK if chunk is None else int(chunk)
     terms = model.terms(material)
-    small = [(_element_hessian(t, x[t.nodes], *t.params), (3 * jnp.asarray(t.nodes)[:, :, None] + jnp.arange(3)).reshape(-1, 3 * t.nodes.shape[1])) for t in terms if t.nodes.shape[0] <= chunk]
-    if len(small) == len(terms):
-        return layout.assemble(small, free_dofs)
+    if all(t.nodes.shape[0] <= chunk for t in terms):
+        return layout.assemble(_element_data(model, x, material), free_dofs)
     P = free_dofs
     n, w = layout.cols.shape
     flat = jnp.zeros((n * w, 3, 3), dtype=P.dtype)
