@@ -16,11 +16,7 @@ command line's ``--help`` / ``--version`` do not start JAX.
 import importlib
 
 from ._version import __version__
-from . import _xla
-
-_xla.configure()  # before JAX's CPU backend starts (see difftissue/_xla.py)
-
-from . import errors  # noqa: E402  (no JAX)
+from . import errors  # (no JAX)
 
 #: Names imported on first access: name -> (submodule, attribute or None for the module).
 _LAZY = {

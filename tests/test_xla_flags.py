@@ -1,38 +1,40 @@
-"""difftissue/_xla.py: the XLA CPU flag set at import (against a deadlock of batched fits)."""
+"""The XLA CPU option of batched fits: set per program (``jax.jit(compiler_options=...)``),
+never by editing ``XLA_FLAGS`` at import."""
 
 import os
 import subprocess
 import sys
 
-FLAG = "--xla_cpu_enable_concurrency_optimized_scheduler"
-CODE = "import os, difftissue; print('FLAGS=' + os.environ.get('XLA_FLAGS', ''))"
+import numpy as np
+import pytest
+
+from difftissue import Material
+from difftissue.analytic import hertz_force
+from difftissue.fit import batch as batch_module
+from difftissue.fit import fit_batch
+from difftissue.materials import MaterialParameterization
+from difftissue.scenarios import AnalyticIndentation
 
 
-def _flags(env_update):
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "DIFFTISSUE_KEEP_XLA_FLAGS")}
-    env.update(env_update)
-    out = subprocess.run([sys.executable, "-c", CODE], capture_output=True, text=True, env=env, timeout=300, check=True).stdout
-    return [ln for ln in out.splitlines() if ln.startswith("FLAGS=")][-1][len("FLAGS="):]
-
-
-def test_import_appends_the_flag_and_keeps_the_users_flags():
-    assert _flags({}) == f"{FLAG}=false"
-    assert _flags({"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}) == f"--xla_force_host_platform_device_count=4 {FLAG}=false"
-
-
-def test_a_flag_the_user_set_or_an_opt_out_is_respected():
-    assert _flags({"XLA_FLAGS": f"{FLAG}=true"}) == f"{FLAG}=true"
-    assert _flags({"DIFFTISSUE_KEEP_XLA_FLAGS": "1"}) == ""
-
-
-def test_no_flag_once_jax_has_started_and_fit_batch_warns():
-    code = ("import jax, jax.numpy as jnp, os, warnings; jnp.ones(1).block_until_ready(); import difftissue; "
-            "print('FLAGS=' + os.environ.get('XLA_FLAGS', '')); "
-            "from difftissue.fit import fit_batch\n"
-            "with warnings.catch_warnings(record=True) as w:\n"
-            "    warnings.simplefilter('always')\n"
-            "    try:\n        fit_batch([], None, None)\n    except Exception:\n        pass\n"
-            "print('WARNED=' + str(any('deadlock' in str(x.message) for x in w)))")
-    env = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "DIFFTISSUE_KEEP_XLA_FLAGS")}
+def test_importing_difftissue_leaves_the_environment_alone():
+    code = "import os, difftissue, difftissue.fit, difftissue.cli; print('FLAGS=' + repr(os.environ.get('XLA_FLAGS')))"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300, check=True).stdout
-    assert "FLAGS=\n" in out + "\n" and "WARNED=True" in out, out
+    assert "FLAGS=None" in out, out
+
+
+def _specimens(n_depths, moduli):
+    depths = np.linspace(20e-6, 200e-6, n_depths)
+    return [AnalyticIndentation(depths, np.asarray(hertz_force(depths, E, 0.45, 1e-3)), radius=1e-3, name="hertz") for E in moduli]
+
+
+def test_batched_programs_are_compiled_with_the_cpu_options(monkeypatch):
+    """The batched step is compiled with CPU_COMPILER_OPTIONS: an option XLA does not know
+    makes the compilation fail, so the options do reach the compiler."""
+    param = MaterialParameterization(("youngs_modulus",))
+    good = fit_batch(_specimens(5, (3e3, 5e3)), param, [Material(2e3, 0.45)] * 2, max_steps=20)
+    np.testing.assert_allclose(np.asarray(good.values)[:, 0], [3e3, 5e3], rtol=1e-6)
+    monkeypatch.setattr(batch_module, "CPU_COMPILER_OPTIONS", {"xla_cpu_no_such_option_for_this_test": True})
+    # another structure (7 depths): a new engine, compiled anew with the patched options
+    with pytest.raises(Exception, match="xla_cpu_no_such_option_for_this_test"):
+        fit_batch(_specimens(7, (3e3, 5e3, 7e3)), param, [Material(2e3, 0.45)] * 3, max_steps=20)

@@ -29,7 +29,6 @@ Units: as in :mod:`difftissue.fit` (SI values and standard errors, dimensionless
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Sequence
 from typing import Any
 
@@ -38,7 +37,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .. import _xla
 from ..errors import FitError
 from ..materials import Material, MaterialParameterization
 from .driver import build_result, initial_starts
@@ -50,6 +48,13 @@ __all__ = ["BatchFitResult", "fit_batch", "specimen_mesh"]
 
 #: Name of the mesh axis the specimens are split along.
 AXIS = "specimen"
+
+#: XLA options the batched programs are compiled with on a CPU (``jax.jit``'s public
+#: ``compiler_options``, for these programs only: nothing global, no ``XLA_FLAGS`` edit). XLA's
+#: concurrency-optimised CPU scheduler (the default of jaxlib 0.10) deadlocked batched
+#: Levenberg--Marquardt steps of simulated compressions in earlier versions
+#: (docs/dev/scale-investigation.md); with it off they ran.
+CPU_COMPILER_OPTIONS = {"xla_cpu_enable_concurrency_optimized_scheduler": False}
 
 
 # ============================================================================ result
@@ -277,10 +282,6 @@ def fit_batch(
         linear solver runs on the host and factorises the batch's matrices one after the
         other; the dense Cholesky and CG solvers are batched by XLA.
     """
-    if jax.default_backend() == "cpu" and not _xla.active():
-        warnings.warn(f"XLA_FLAGS lacks {_xla.FLAG}=false (JAX started before difftissue was imported?): batched fits of "
-                      "simulated scenarios can deadlock on CPU without it (difftissue/_xla.py); set it in XLA_FLAGS before "
-                      "the first JAX computation", RuntimeWarning, stacklevel=2)
     if method not in METHODS:
         raise FitError(f"unknown method {method!r}; choose one of {METHODS}")
     if jac not in ("fwd", "bwd"):
@@ -483,9 +484,10 @@ def _batched_functions(engine, mesh) -> dict[str, Any]:
     def final(U, dyn, data):
         return jax.vmap(single_final)(U, dyn, data)
 
-    fns = {"step": jax.jit(step), "evaluate": jax.jit(evaluate), "traces": traces}
+    options = dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
+    fns = {"step": jax.jit(step, compiler_options=options), "evaluate": jax.jit(evaluate, compiler_options=options), "traces": traces}
     if single_final is not None:
-        fns["final"] = jax.jit(final)
+        fns["final"] = jax.jit(final, compiler_options=options)
     if mesh is not None:
         # One program per device on its own specimens, no cross-device communication. (A
         # GSPMD-partitioned program, inputs placed with NamedSharding, turned the batched

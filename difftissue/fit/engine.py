@@ -13,6 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._enumerations import result_code as _result_code
+from .._enumerations import result_message as _result_message
 from .problem import FitProblem
 
 
@@ -310,21 +312,6 @@ class Engine:
 #: Adam: the most halvings of a step whose trial point has a non-finite loss (a failed static
 #: solve) before the start stops with a non-finite loss (a 2^-12 shorter step still failing).
 ADAM_MAX_HALVINGS = 12
-
-
-def _result_code(result) -> jax.Array:
-    """The integer code of an equinox ``Enumeration`` item (e.g. an optimistix ``RESULTS``):
-    its one pytree leaf (public pytree flattening, not the private ``_value``)."""
-    return jnp.asarray(jax.tree_util.tree_leaves(result)[0])
-
-
-def _result_message(enumeration, code: int) -> str:
-    """The message of code ``code`` of the equinox ``Enumeration`` class ``enumeration``: the
-    item rebuilt from the pytree structure of one of its members, then looked up by the
-    public ``enumeration[item]`` (not the private ``_index_to_message``)."""
-    member = enumeration.successful
-    (leaf,), treedef = jax.tree_util.tree_flatten(member)
-    return enumeration[jax.tree_util.tree_unflatten(treedef, [np.asarray(code, dtype=np.asarray(leaf).dtype)])]
 
 
 #: Recently used engines (compiled step and evaluation), so that fitting the same problem

@@ -46,6 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 
+from .._enumerations import result_code, result_message, result_messages
 from ..boundary import BoundaryConditions, _validate_values
 from ..errors import ConvergenceError, ModelError
 from ..materials import Material
@@ -267,7 +268,7 @@ def _simulate_impl(
         external_force=f_ext,
         kinetic_energy=ke,
         elastic_energy=ee,
-        result=sol.result._value,
+        result=result_code(sol.result).astype(jnp.int32),
         num_steps=sol.stats["num_accepted_steps"],
         num_rejected_steps=sol.stats["num_rejected_steps"],
     )
@@ -278,8 +279,8 @@ _simulate = eqx.filter_jit(_simulate_impl)
 
 def _result_message(code: int) -> str:
     try:
-        msg = diffrax.RESULTS._index_to_message[code]
-    except (AttributeError, IndexError):  # pragma: no cover - private diffrax detail
+        msg = result_message(diffrax.RESULTS, code)
+    except (IndexError, KeyError, ValueError):
         msg = ""
     return msg or f"diffrax result code {code}"
 
@@ -454,7 +455,7 @@ def simulate_dynamics(
     if throw:
         code = sol.result
         if isinstance(code, jax.core.Tracer):
-            msgs = [_result_message(i) for i in range(len(diffrax.RESULTS._index_to_message))]
+            msgs = [_result_message(i) for i in range(len(result_messages(diffrax.RESULTS)))]
             msgs = ["dynamics: " + m if m else "" for m in msgs]
             sol = eqx.tree_at(lambda s: s.displacement, sol, eqx.branched_error_if(sol.displacement, code != 0, code, msgs))
         elif int(code) != 0:
