@@ -1127,6 +1127,8 @@ def _load_data(e: Mapping, path: str, kind: str, base_dir: Path):
             _fail(_join(p, "kind"), f"a {kind} experiment needs a {want!r} table, got {_show(tk)}")
         d["kind"] = want
     d["path"] = str(file)
+    if "displacement_table" in d:
+        d["displacement_table"] = str(_resolve(base_dir, d["displacement_table"], _join(p, "displacement_table")))
     if "sort" in d:
         if kind not in ("analytic_indentation", "indentation", "compression"):
             _fail(_join(p, "sort"), "only force-depth (indentation) and compression data can be sorted (by depth, by strain)")

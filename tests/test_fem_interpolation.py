@@ -198,14 +198,35 @@ def test_tetra10_and_hex_references_are_read(tmp_path, fmt):
     assert res.mesh is not None and list(res.cells) == ["tetra"] and res.points is not None
 
 
-def test_abaqus_inp_and_bad_reference_files(tmp_path):
-    """An Abaqus input file (C3D10 / C3D8) is read for its mesh: it has no displacement field,
-    which the error says; wedges and degenerate hexahedra are refused."""
+def test_abaqus_inp_with_a_displacement_table(tmp_path):
+    """An Abaqus input file holds the mesh only (the error says so); the displacement comes from
+    a CSV keyed by the *NODE labels (here not 1..N and not in order)."""
     P, hexes = _hex_grid((L, L, H), (1, 1, 1))
-    meshio.write(tmp_path / "ref.inp", meshio.Mesh(P, [("hexahedron", hexes)]))
-    assert "C3D8" in (tmp_path / "ref.inp").read_text().upper()
+    labels = np.array([108, 101, 107, 102, 106, 103, 105, 104])
+    lines = ["*HEADING", "hand-written C3D8", "*NODE"] + [f"{k}, {float(x)!r}, {float(y)!r}, {float(z)!r}" for k, (x, y, z) in zip(labels, P * 1e3)]
+    lines += ["** a comment", "*ELEMENT, TYPE=C3D8, ELSET=tissue", "1, " + ", ".join(str(labels[i]) for i in hexes[0]), "*END STEP"]
+    (tmp_path / "ref.inp").write_text("\n".join(lines) + "\n")
     with pytest.raises(errors.MissingFieldError, match="no point field 'displacement'; its point fields are: none"):
-        load_fem_result(tmp_path / "ref.inp")
+        load_fem_result(tmp_path / "ref.inp", length_unit="mm")
+    u, _ = _uniaxial(P)
+    rows = np.random.default_rng(0).permutation(len(P))
+    table = "node,ux,uy,uz\n" + "".join(f"{labels[i]},{float(u[i, 0]) * 1e3!r},{float(u[i, 1]) * 1e3!r},{float(u[i, 2]) * 1e3!r}\n" for i in rows)
+    (tmp_path / "u.csv").write_text(table)
+    res = load_fem_result(tmp_path / "ref.inp", length_unit="mm", displacement_table=tmp_path / "u.csv")
+    assert res.mesh is None and list(res.cells) == ["hexahedron"] and res.metadata["field"] == "table:u.csv"
+    np.testing.assert_allclose(res.points, P, rtol=1e-12)
+    np.testing.assert_allclose(res.displacement, u, rtol=1e-12, atol=1e-18)
+    (tmp_path / "short.csv").write_text("\n".join(table.splitlines()[:-1]) + "\n")
+    with pytest.raises(errors.MissingFieldError, match=rf"no row for the nodes \[{labels[rows[-1]]}\]"):
+        load_fem_result(tmp_path / "ref.inp", displacement_table=tmp_path / "short.csv")
+    (tmp_path / "bad.csv").write_text(table.replace(f"\n{labels[rows[1]]},", "\n999,"))
+    with pytest.raises(errors.MissingFieldError, match=r"node labels \[999\] are not nodes of ref.inp"):
+        load_fem_result(tmp_path / "ref.inp", displacement_table=tmp_path / "bad.csv")
+
+
+def test_bad_reference_files(tmp_path):
+    """Wedges and degenerate hexahedra are refused."""
+    P, hexes = _hex_grid((L, L, H), (1, 1, 1))
     wedge = meshio.Mesh(P[:6], [("wedge", np.arange(6)[None])], point_data={"displacement": np.zeros((6, 3))})
     meshio.write(tmp_path / "wedge.vtu", wedge)
     with pytest.raises(errors.UnsupportedMeshError, match="wedge"):

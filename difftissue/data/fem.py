@@ -82,6 +82,7 @@ def load_fem_result(
     length_unit: str = "m",
     displacement_unit: str | None = None,
     reorient: bool = False,
+    displacement_table=None,
 ) -> FEMResult:
     """A reference FEM result: a mesh (any meshio format) with a nodal displacement field.
 
@@ -97,6 +98,10 @@ def load_fem_result(
         length_unit: unit of the coordinates in the file (converted to m).
         displacement_unit: unit of the displacement (default: ``length_unit``).
         reorient: passed to :func:`~difftissue.mesh.read_mesh`.
+        displacement_table: an Abaqus input file (``.inp``) holds the mesh only: the nodal
+            displacement then comes from this CSV file with the header ``node,ux,uy,uz``
+            (``node``: the node labels of the ``*NODE`` block, one row per node, in
+            ``displacement_unit``), e.g. written from the ``.odb`` by a report of ``U``.
 
     Raises:
         MissingFieldError: no such point field (the message lists those present) or it is
@@ -123,6 +128,9 @@ def load_fem_result(
         mesh = None
         points, cells, point_data = _higher_order_cells(raw, path, length_unit, LENGTH_UNITS)
     n_nodes = len(points)
+    if displacement_table is not None:
+        field = f"table:{Path(displacement_table).name}"
+        point_data = {**point_data, field: _abaqus_displacement_table(path, displacement_table, n_nodes)}
     if field not in point_data:
         raise MissingFieldError(f"{path} has no point field {field!r}; its point fields are: {sorted(point_data) or 'none'}")
     u = np.asarray(point_data[field], dtype=float)
@@ -142,6 +150,8 @@ def load_fem_result(
     meta = {
         "source": str(path),
         "sha256": hashlib.sha256(Path(path).read_bytes()).hexdigest(),
+        **({"displacement_table": str(displacement_table), "displacement_table_sha256": hashlib.sha256(Path(displacement_table).read_bytes()).hexdigest()}
+           if displacement_table is not None else {}),
         "format": "meshio",
         "field": field,
         "length_unit": length_unit,
@@ -150,6 +160,65 @@ def load_fem_result(
         "cell_types": sorted(cells),
     }
     return FEMResult(mesh, u, meta, points=points, cells=cells, point_data=point_data)
+
+
+def _abaqus_node_labels(path) -> np.ndarray:
+    """The node labels of an Abaqus input file's ``*NODE`` block, in the order meshio numbers
+    the nodes (meshio keeps the last ``*NODE`` block)."""
+    labels: list[int] = []
+    reading = False
+    with open(path, encoding="utf-8", errors="replace") as fh:
+        for line in fh:
+            if line.startswith("**"):
+                continue
+            if line.startswith("*"):
+                reading = line.partition(",")[0].strip().replace("*", "").upper() == "NODE"
+                if reading:
+                    labels = []
+                continue
+            if reading and line.strip():
+                labels.append(int(line.split(",")[0]))
+    return np.asarray(labels, dtype=np.int64)
+
+
+def _abaqus_displacement_table(path, table, n_nodes: int) -> np.ndarray:
+    """``(N, 3)`` displacement (in the file's unit) of an Abaqus mesh from a CSV table
+    ``node,ux,uy,uz`` keyed by node label."""
+    path, table = Path(path), Path(table)
+    if path.suffix.lower() != ".inp":
+        raise MissingFieldError(f"displacement_table is for Abaqus input files (.inp), which hold no results; {path.name} carries "
+                                f"its displacement as a point field (field = ...)")
+    if not table.is_file():
+        raise MissingFieldError(f"no such displacement table: {table}")
+    labels = _abaqus_node_labels(path)
+    if len(labels) != n_nodes:
+        raise MissingFieldError(f"{path.name}: found {len(labels)} node labels in its *NODE block but meshio read {n_nodes} nodes")
+    try:
+        arr = np.genfromtxt(table, delimiter=",", names=True, dtype=float, encoding="utf-8")
+    except ValueError as err:
+        raise MissingFieldError(f"cannot read {table.name} as CSV with the header node,ux,uy,uz: {err}") from None
+    names = tuple(n.lower() for n in (arr.dtype.names or ()))
+    need = ("node", "ux", "uy", "uz")
+    if any(n not in names for n in need):
+        raise MissingFieldError(f"{table.name} needs the columns {list(need)}, found {list(arr.dtype.names or ())}")
+    arr = np.atleast_1d(arr)
+    col = {n.lower(): n for n in arr.dtype.names}
+    node = arr[col["node"]]
+    u = np.stack([arr[col[c]] for c in ("ux", "uy", "uz")], axis=1)
+    if not np.all(np.isfinite(node)) or np.any(node != np.round(node)):
+        raise MissingFieldError(f"{table.name}: the node column must hold integer node labels")
+    node = node.astype(np.int64)
+    uniq, counts = np.unique(node, return_counts=True)
+    if np.any(counts > 1):
+        raise MissingFieldError(f"{table.name}: node labels {_cite(uniq[counts > 1])} appear more than once")
+    unknown = np.setdiff1d(node, labels)
+    if unknown.size:
+        raise MissingFieldError(f"{table.name}: node labels {_cite(unknown)} are not nodes of {path.name}")
+    missing = np.setdiff1d(labels, node)
+    if missing.size:
+        raise MissingFieldError(f"{table.name} has no row for the nodes {_cite(missing)} of {path.name}")
+    order = {int(k): i for i, k in enumerate(node)}
+    return u[[order[int(k)] for k in labels]]
 
 
 def _higher_order_cells(raw, path, length_unit: str, units: dict):
