@@ -399,3 +399,28 @@ reaction = {{ set = {{ face = "z-max" }}, components = "z", force = [{force!r}] 
         (tmp_path / "b.toml").write_text(base + extra)
         with pytest.raises(errors.DifftissueError, match=message):
             load_config(tmp_path / "b.toml")
+    # the example of docs/configuration.md, on a hexahedral reference in mm
+    import re
+    import tomllib
+
+    from docblocks import page_text
+
+    example = next(b for b in re.findall(r"```toml\n(.*?)```", page_text("configuration.md"), flags=re.S) if "febio_result.vtu" in b)
+    P, hexes = _hex_grid((10.0, 10.0, 5.0), (4, 4, 2), perturb=0.2)
+    meshio.write(tmp_path / "febio_result.vtu", meshio.Mesh(P, [("hexahedron", hexes)], point_data={"displacement": _uniaxial(P)[0]}))
+    head = '[material]\nyoungs_modulus = 8e3\npoisson_ratio = 0.3\n[fit]\nparameters = ["youngs_modulus"]\n'
+    (tmp_path / "doc.toml").write_text(head + example)
+    assert tomllib.loads(head + example)["experiment"][0]["model"] == "springs_volume"
+    sc = load_config(tmp_path / "doc.toml").experiments[0].scenario
+    sc = getattr(sc, "scenario", sc)
+    assert sc.reference_mesh == "interpolate" and sc.model.rest_points.shape == (9 * 9 * 5, 3)
+
+
+def test_the_code_blocks_of_scenarios_md_run():
+    """Every python block of docs/scenarios.md (the indentation example and the interpolated
+    reference, whose block asserts its own misfit) runs."""
+    from docblocks import exec_blocks, python_blocks
+
+    blocks = python_blocks("scenarios.md")
+    assert any("FEMField" in b and "specimen=" in b for b in blocks)
+    exec_blocks("scenarios.md", blocks)
