@@ -18,10 +18,12 @@ from difftissue.boundary import BoundaryConditions
 from difftissue.config import load_config
 from difftissue.data import load_fem_result
 from difftissue.fit import fit
+from difftissue.fit.result import plot_layout
 from difftissue.interpolation import interpolation_operator, shape_functions, shape_gradients
 from difftissue.materials import MaterialParameterization, ScaledLogit
 from difftissue.mesh import block, from_meshio, write_mesh
 from difftissue.models import make_model
+from difftissue.report import write_fit_outputs
 from difftissue.scenarios import FEMField
 from difftissue.solvers.static import solve_static
 
@@ -257,7 +259,7 @@ def unstructured_reference():
     return mesh, u, force
 
 
-def test_unstructured_reference_recovers_E_and_nu_on_the_models_own_grid(unstructured_reference):
+def test_unstructured_reference_recovers_E_and_nu_on_the_models_own_grid(unstructured_reference, tmp_path):
     """The check of issue 19: a reference on an unstructured gmsh mesh (not the model's nodes),
     fitted by fem_linear on its own 2 x 2 x 2 structured grid with ``difftissue.fit``. The field
     is affine, which P1 on any mesh represents exactly, so the discretisation adds nothing:
@@ -275,6 +277,12 @@ def test_unstructured_reference_recovers_E_and_nu_on_the_models_own_grid(unstruc
     assert res.converged
     assert res.values["youngs_modulus"] == pytest.approx(TRUTH.youngs_modulus, rel=1e-6)
     assert res.values["poisson_ratio"] == pytest.approx(TRUTH.poisson_ratio, rel=1e-6)
+    # the outputs: the displacement profile is plotted at the reference's nodes, the fitted
+    # specimen is the model's grid with the transferred boundary values
+    paths = write_fit_outputs(res, tmp_path / "out", model="fem_linear", scenarios=[sc])
+    assert {"fit.png", "report.md", "specimen-fem_field.vtu"} <= set(paths)
+    np.testing.assert_array_equal(plot_layout(sc)["points"], sc.observed_points[sc.observe_dofs // 3])
+    assert meshio.read(paths["specimen-fem_field.vtu"]).points.shape == (spec.n_nodes, 3)
 
 
 @pytest.mark.parametrize("kind", ["tetra10", "hexahedron"])
@@ -388,7 +396,10 @@ reaction = {{ set = {{ face = "z-max" }}, components = "z", force = [{force!r}] 
     sc = getattr(sc, "scenario", sc)
     assert sc.reference_mesh == "interpolate" and sc.model.rest_points.shape == (18, 3)
     np.testing.assert_allclose(np.asarray(sc.predict(TRUTH)), sc.observed, rtol=1e-9, atol=1e-9 * np.abs(sc.observed).max())
-    assert cfg.experiments[0].coarsen is not None  # a block specimen can be coarsened (discretisation check)
+    # a block specimen can be coarsened (the fit's discretisation check): the same observations
+    coarse, info = cfg.experiments[0].coarsen()
+    assert info["coarse_cells"] == [1, 1, 1] and coarse.model.rest_points.shape == (8, 3)
+    np.testing.assert_array_equal(coarse.observed, sc.observed)
     (tmp_path / "own.toml").write_text(base)
     own = load_config(tmp_path / "own.toml").experiments[0].scenario
     assert getattr(own, "scenario", own).reference_mesh == "own"
