@@ -300,6 +300,7 @@ def interpolation_operator(points, cells: Mapping[str, np.ndarray], queries, *, 
     best_type = np.zeros(n, dtype=np.int64)
 
     def take(bi, t, conn, rows, cand, out, dist, xi):
+        # rows: distinct query indices, one candidate each.
         # a candidate wins when it contains the point and the best so far does not, or both are
         # outside and it is nearer (inside candidates are equivalent: continuity of the field)
         inside, best_inside = out <= _INSIDE, best_out[rows] <= _INSIDE
@@ -334,9 +335,9 @@ def interpolation_operator(points, cells: Mapping[str, np.ndarray], queries, *, 
             cand = np.flatnonzero(np.all((q[p] >= lo) & (q[p] <= hi), axis=1))
             if cand.size == 0:
                 continue
-            rows = np.full(cand.size, p)
             out, dist, xi = _evaluate(t, X, conn, cand, np.broadcast_to(q[p], (cand.size, 3)))
-            take(bi, t, conn, rows, cand, out, dist, xi)
+            j = int(np.argmin(np.where(out <= _INSIDE, -1.0, dist)))  # one candidate per point: inside first, else the nearest
+            take(bi, t, conn, np.array([p]), cand[j:j + 1], out[j:j + 1], dist[j:j + 1], xi[j:j + 1])
     distance = np.where(best_out <= _INSIDE, 0.0, best_dist)
     far = np.flatnonzero(distance > tol)
     if far.size:

@@ -144,6 +144,22 @@ def test_operator_is_exact_for_affine_fields_on_tets_hexes_and_p2():
     assert np.abs(np.asarray(op1(quad(tet.points))) - quad(q)).max() > 1e-3 * np.abs(quad(q)).max()
 
 
+@pytest.mark.parametrize("candidates", [1, 16])
+def test_every_point_inside_is_found(monkeypatch, candidates):
+    """2,000 random points in a 1,536-tet block: each is found in a tet that holds it, also when
+    the nearest-centroid candidates are cut to one and most points go through the exhaustive
+    search (a regression: several candidates of one point once overwrote each other)."""
+    from difftissue import interpolation
+
+    monkeypatch.setattr(interpolation, "_CANDIDATES", candidates)
+    mesh = block((L, L, H), (8, 8, 4))
+    q = np.random.default_rng(7).uniform(0.0, 1.0, (2000, 3)) * [L, L, H]
+    op = interpolation_operator(mesh.points, {"tetra": mesh.tets}, q)
+    assert op.distances.max() == 0.0 and op.weights.min() >= -1e-10
+    f = _affine(np.random.default_rng(8))
+    np.testing.assert_allclose(np.asarray(op(f(mesh.points))), f(q), rtol=0, atol=1e-13 * np.abs(f(q)).max())
+
+
 def test_operator_in_jax_jit_vmap_and_gradient():
     mesh = block((L, L, H), (2, 2, 2))
     q = np.random.default_rng(1).uniform(0.0, 1.0, (20, 3)) * [L, L, H]
@@ -224,6 +240,21 @@ def test_abaqus_inp_with_a_displacement_table(tmp_path):
     (tmp_path / "bad.csv").write_text(table.replace(f"\n{labels[rows[1]]},", "\n999,"))
     with pytest.raises(errors.MissingFieldError, match=r"node labels \[999\] are not nodes of ref.inp"):
         load_fem_result(tmp_path / "ref.inp", displacement_table=tmp_path / "bad.csv")
+
+
+def test_abaqus_hybrid_tets_are_refused_with_the_fix(tmp_path):
+    """meshio 5.3 cannot read Abaqus C3D4H cells (it maps them to "tetra4" and fails): the error
+    says to write C3D4; with C3D4 the same file reads."""
+    P = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
+    lines = ["*NODE"] + [f"{k + 1}, {x}, {y}, {z}" for k, (x, y, z) in enumerate(P)] + ["*ELEMENT, TYPE=C3D4H", "1, 1, 2, 3, 4"]
+    (tmp_path / "tet.inp").write_text("\n".join(lines) + "\n")
+    (tmp_path / "u.csv").write_text("node,ux,uy,uz\n" + "".join(f"{k + 1},0,0,{-0.01 * z}\n" for k, z in enumerate(P[:, 2])))
+    with pytest.raises(errors.UnsupportedMeshError, match="write them as C3D4"):
+        load_fem_result(tmp_path / "tet.inp", length_unit="mm", displacement_table=tmp_path / "u.csv")
+    (tmp_path / "tet.inp").write_text((tmp_path / "tet.inp").read_text().replace("C3D4H", "C3D4"))
+    res = load_fem_result(tmp_path / "tet.inp", length_unit="mm", displacement_table=tmp_path / "u.csv")
+    assert list(res.cells) == ["tetra"] and res.mesh is not None
+    np.testing.assert_allclose(res.displacement[:, 2], -0.01e-3 * P[:, 2])
 
 
 def test_bad_reference_files(tmp_path):

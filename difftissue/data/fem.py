@@ -119,9 +119,15 @@ def load_fem_result(
     du = displacement_unit or length_unit
     if normalize_unit(du) not in LENGTH_UNITS and du not in LENGTH_UNITS:
         raise UnitError(f"unknown displacement unit {du!r}; choose one of {sorted(LENGTH_UNITS)}")
-    raw = _read_meshio(path)
-    types = {_CELL_ALIASES.get(c.type, c.type) for c in raw.cells}
-    if types & set(REFERENCE_CELL_TYPES) <= {"tetra"}:
+    try:
+        raw = _read_meshio(path)
+    except MeshError as err:
+        if "'tetra4'" in str(err):  # meshio 5.3 maps C3D4H to a cell type it cannot store
+            raise UnsupportedMeshError(f"{path}: meshio cannot read Abaqus C3D4H (hybrid linear tetrahedron) elements; write them as C3D4 "
+                                       f"(same nodes and geometry) in the .inp") from None
+        raise
+    types = {c.type for c in raw.cells}
+    if not types & (set(REFERENCE_CELL_TYPES) | set(_CELL_ALIASES)) - {"tetra"}:  # linear tets only (meshio's own name)
         mesh = read_mesh(path, length_unit=length_unit, reorient=reorient)
         points, cells, point_data = mesh.points, {"tetra": np.asarray(mesh.tets)}, mesh.point_data
     else:
