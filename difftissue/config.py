@@ -89,7 +89,8 @@ _EXPERIMENT_KEYS = {
     "analytic_indentation": _COMMON_EXPERIMENT_KEYS + ("indenter", "solution", "thickness", "base", "max_depth"),
     "indentation": _COMMON_EXPERIMENT_KEYS + ("model", "indenter", "specimen", "base", "max_depth", "penalty", "solver"),
     "compression": _COMMON_EXPERIMENT_KEYS + ("model", "specimen", "platens", "measure", "max_strain", "solver"),
-    "fem_field": ("name", "scenario", "data", "model", "prescribed", "observe", "reaction", "displacement_sigma", "force_sigma", "solver"),
+    "fem_field": ("name", "scenario", "data", "model", "prescribed", "observe", "reaction", "displacement_sigma", "force_sigma", "solver",
+                  "reference_mesh", "specimen", "tolerance"),
     "incision": ("name", "scenario", "data", "sigma", "length_unit", "model", "specimen", "cut", "boundary", "scalpel_steps", "solver"),
 }
 _DATA_FORMATS = {
@@ -1126,6 +1127,8 @@ def _load_data(e: Mapping, path: str, kind: str, base_dir: Path):
             _fail(_join(p, "kind"), f"a {kind} experiment needs a {want!r} table, got {_show(tk)}")
         d["kind"] = want
     d["path"] = str(file)
+    if "displacement_table" in d:
+        d["displacement_table"] = str(_resolve(base_dir, d["displacement_table"], _join(p, "displacement_table")))
     if "sort" in d:
         if kind not in ("analytic_indentation", "indentation", "compression"):
             _fail(_join(p, "sort"), "only force-depth (indentation) and compression data can be sorted (by depth, by strain)")
@@ -1760,13 +1763,72 @@ def _fem_field(e, path, name, base_dir) -> Experiment:
         _fail(_join(path, "force_sigma"), "needs a 'reaction' to compare")
     model = _model(e, path, "fem_linear")
     options = _solver_options(e, path)
+    mode = _choice(e.get("reference_mesh", "interpolate" if "specimen" in e else "own"), _join(path, "reference_mesh"), ("own", "interpolate"))
+    if mode == "interpolate" and "specimen" not in e:
+        _fail(_join(path, "specimen"), "missing (required with reference_mesh = \"interpolate\"): the model's own mesh, e.g. { cells = [8, 8, 4] } "
+              "(a block spanning the reference's bounding box) or { mesh = \"model.vtu\", length_unit = \"mm\" }")
+    if mode == "own":
+        for k in ("specimen", "tolerance"):
+            if k in e:
+                _fail(_join(path, k), "not used with reference_mesh = \"own\" (the model runs on the reference's mesh)")
+    tolerance = _number(e["tolerance"], _join(path, "tolerance"), what="a distance >= 0 in m", check=lambda v: v >= 0) if "tolerance" in e else None
     result, file, notes = _load_data(e, path, "fem_field", base_dir)
+    if mode == "own":
+        if result.mesh is None:
+            _fail(_join(path, "reference_mesh"), f"the reference holds {sorted(result.cells)} cells, not linear tetrahedra the model can run on: "
+                  "give a 'specimen' (the model's own mesh) and the reference is interpolated onto it")
+        try:
+            sc = FEMField(result.mesh, result.displacement, prescribed=prescribed, model=model, observe=observe, reaction=reaction, displacement_sigma=ds, force_sigma=fs, options=options, name=name)
+        except DifftissueError as err:
+            _reraise(path, err)
+        return Experiment(name, "fem_field", model, sc, (file,), notes,
+                          coarsen_skip="the displacements are observed on the nodes of the given mesh: a coarser mesh has no such nodes")
+    specimen, files, coarse_mesh, skip = _fem_field_specimen(e, path, base_dir, result)
+    kw = dict(prescribed=prescribed, model=model, observe=observe, reaction=reaction, displacement_sigma=ds, force_sigma=fs, options=options, name=name, tolerance=tolerance)
     try:
-        sc = FEMField(result.mesh, result.displacement, prescribed=prescribed, model=model, observe=observe, reaction=reaction, displacement_sigma=ds, force_sigma=fs, options=options, name=name)
+        sc = FEMField(result, result.displacement, specimen=specimen, **kw)
     except DifftissueError as err:
         _reraise(path, err)
-    return Experiment(name, "fem_field", model, sc, (file,), notes,
-                      coarsen_skip="the displacements are observed on the nodes of the given mesh: a coarser mesh has no such nodes")
+    coarsen = None
+    if coarse_mesh is not None:
+        def coarsen():
+            m, info = coarse_mesh()
+            return FEMField(result, result.displacement, specimen=m, **kw), info
+    return Experiment(name, "fem_field", model, sc, (file, *files), notes, coarsen=coarsen, coarsen_skip=skip)
+
+
+def _fem_field_specimen(e, path, base_dir, result):
+    """The model's own mesh of an interpolated fem_field: ``(mesh, extra files, coarse builder,
+    skip reason)``. A block defaults to the reference's bounding box."""
+    from .mesh import block
+
+    p = _join(path, "specimen")
+    spec = _table(e["specimen"], p, ("shape", "size", "origin", "cells", "mesh", "length_unit", "reorient"))
+    if "mesh" in spec:
+        mesh, mfile = _mesh_file(spec, p, base_dir)
+        return mesh, (mfile,), None, _MESH_FILE_SKIP
+    _choice(spec.get("shape", "block"), _join(p, "shape"), ("block",))
+    unit = _unit_of(spec, p)
+    if "cells" not in spec:
+        _fail(_join(p, "cells"), "missing (required): the model's cells [nx, ny, nz] (the block spans the reference's bounding box unless size and origin are given)")
+    cells = _counts(spec["cells"], _join(p, "cells"))
+    lo, hi = result.points.min(axis=0), result.points.max(axis=0)
+    size = _lengths(spec["size"], _join(p, "size"), unit) if "size" in spec else tuple(float(v) for v in hi - lo)
+    if "origin" in spec:
+        o = spec["origin"]
+        if not isinstance(o, list) or len(o) != 3:
+            _fail(_join(p, "origin"), f"must be 3 coordinates in {unit[0]} (a list), got {_show(o)}")
+        origin = tuple(_number(v, _join(_join(p, "origin"), i), what=f"a coordinate in {unit[0]}") * unit[1] for i, v in enumerate(o))
+    else:
+        origin = tuple(float(v) for v in lo)
+    if min(size) <= 0:
+        _fail(_join(p, "size"), f"the reference is flat (bounding box {size} m): give size")
+    try:
+        mesh = block(size, cells, origin=origin)
+    except DifftissueError as err:
+        _reraise(p, err)
+    coarse_mesh, skip = _coarse_block(size, cells, origin=origin)
+    return mesh, (), coarse_mesh, skip
 
 
 # ============================================================================ incision

@@ -365,3 +365,16 @@ class DiscretisationWarning(FitQualityWarning):
     mesh at the optimum, Richardson first order: :func:`difftissue.fit.discretisation_estimate`)
     exceeds its statistical standard error: the mesh, not the noise, limits the answer. Refine
     the specimen's cells; the message names the parameter, both numbers and the relative bias."""
+
+
+# ===================================================================== interpolation
+__all__ += ["PointsOutsideMeshError"]
+
+
+class PointsOutsideMeshError(MeshError):
+    """Points to interpolate at lie outside the mesh they are interpolated in, farther than the
+    tolerance (``indices``: the points' indices; ``distances``: their distances to the mesh [m])."""
+
+    def __init__(self, message: str, indices=(), distances=()):
+        super().__init__(message, indices)
+        self.distances = tuple(float(d) for d in distances)

@@ -35,11 +35,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import analytic
-from .boundary import BoundaryConditions
+from .boundary import BoundaryConditions, check_rigid_modes
 from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
-from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError
+from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError, SelectorError
 from .materials import Material
 from .mesh import TetMesh, structured_grid
+from .interpolation import interpolation_operator
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
@@ -746,9 +747,26 @@ class FEMField(eqx.Module):
     """Reproduce a reference FEM solution: displacements of the unconstrained degrees of
     freedom, and optionally a reaction force, under the reference's boundary conditions.
 
-    The model mesh is the reference mesh (its lattice recovered for ``springs_volume`` when
-    it is a structured grid). Node sets are point-data masks of the file (nonzero = member)
-    or selectors (:mod:`difftissue.selectors`).
+    Two ways (``reference_mesh``):
+
+    - ``"own"`` (no ``specimen``): the model mesh is the reference mesh (its lattice recovered
+      for ``springs_volume`` when it is a structured grid); the model's free nodal components
+      are compared with the reference's.
+    - ``"interpolate"`` (a ``specimen``: the model's own mesh): the reference lives on the
+      analyst's mesh (linear or quadratic tetrahedra, hexahedra). The model's displacement is
+      observed at the reference's nodes by P1 interpolation in the model's tetrahedra (a
+      precomputed sparse operator, :mod:`difftissue.interpolation`), so the data stay as
+      given; the prescribed values of the model's boundary nodes are the reference's
+      displacement interpolated there with the reference's own elements (P1, P2, trilinear).
+      Reference nodes outside the model (or prescribed model nodes outside the reference) by
+      more than ``tolerance`` are refused.
+
+    Node sets are point-data masks (nonzero = member) or selectors
+    (:mod:`difftissue.selectors`, SI coordinates). With ``"interpolate"`` a set is resolved on
+    both meshes: a selector applies to each mesh's own nodes (a ``face`` is a face of each
+    mesh's bounding box); a mask name must be a point field of the mesh it is resolved on (the
+    reference's file for the observed and reaction-field nodes, the specimen for the model's
+    prescribed and reaction nodes).
 
     Predictions: ``u`` of every free component of the nodes in ``observe`` (default all) [m],
     then, with ``reaction``, the summed reaction-force components [N]. ``sigma`` is
@@ -767,10 +785,17 @@ class FEMField(eqx.Module):
     x_label: str = eqx.field(static=True, default="observation index")
     y_label: str = eqx.field(static=True, default="displacement [m] / force [N]")
     options: SolverOptions = eqx.field(static=True, default=SolverOptions())
+    #: ``"own"`` or ``"interpolate"`` (see the class docstring).
+    reference_mesh: str = eqx.field(static=True, default="own")
+    #: ``"interpolate"``: the model's displacement at the observed reference nodes.
+    interpolation: Any = None
+    #: ``"interpolate"``: ``(n, 3)`` coordinates [m] of the observed reference nodes
+    #: (``observe_dofs // 3`` indexes them); ``"own"``: ``None`` (the model's nodes).
+    observed_points: np.ndarray | None = None
 
     def __init__(
         self,
-        mesh: TetMesh,
+        mesh,
         displacement,
         *,
         prescribed: Sequence[dict],
@@ -781,10 +806,14 @@ class FEMField(eqx.Module):
         force_sigma: float | None = None,
         options: SolverOptions = SolverOptions(),
         name: str = "fem_field",
+        specimen: TetMesh | None = None,
+        tolerance: float | None = None,
     ):
         """
         Args:
-            mesh: the reference mesh (with the node-set masks in ``point_data``).
+            mesh: the reference mesh (with the node-set masks in ``point_data``): a
+                :class:`~difftissue.mesh.TetMesh`, or a :class:`~difftissue.data.FEMResult`
+                (any of its element types with ``specimen``).
             displacement: ``(N, 3)`` reference displacement [m].
             prescribed: ``[{"set": name-or-selector, "components": "xyz"}, ...]``: the
                 reference displacement is prescribed on these components.
@@ -793,9 +822,29 @@ class FEMField(eqx.Module):
             reaction: ``{"set": ..., "components": "z", "force": [..] (N) or "field": name}``:
                 compare the sum of the model's reactions over the set with the given total
                 force, or with the sum of a nodal reaction point field of the file.
+            specimen: the model's own mesh; the reference is then interpolated (see the class
+                docstring). ``None``: the model runs on the reference mesh.
+            tolerance: ``specimen`` only: how far [m] a point may lie outside the mesh it is
+                interpolated in (default 1e-6 x that mesh's bounding-box diagonal).
         """
         self.name = str(name)
         self.options = options
+        if specimen is not None:
+            fields = _interpolated_fem_field(mesh, displacement, specimen, prescribed, model, observe, reaction, displacement_sigma, force_sigma, tolerance)
+            for k, v in fields.items():
+                setattr(self, k, v)
+            return
+        if tolerance is not None:
+            raise ConfigError("tolerance is used only when the reference is interpolated onto a specimen mesh")
+        if not isinstance(mesh, TetMesh):
+            if getattr(mesh, "mesh", None) is None:
+                kinds = sorted(getattr(mesh, "cells", {}) or {})
+                raise ConfigError(f"the reference has {kinds} cells, not a linear tet mesh the model can run on: give the model's own mesh "
+                                  f"(specimen=...) and the reference is interpolated onto it")
+            mesh = mesh.mesh
+        self.reference_mesh = "own"
+        self.interpolation = None
+        self.observed_points = None
         u_ref = np.asarray(displacement, dtype=float)
         if u_ref.shape != (mesh.n_nodes, 3) or not np.all(np.isfinite(u_ref)):
             raise DataError(f"the reference displacement must be finite with shape ({mesh.n_nodes}, 3), got {u_ref.shape}")
@@ -895,11 +944,139 @@ class FEMField(eqx.Module):
 
     def predict(self, material: Material):
         sol = self.solve(material)
-        out = [sol.displacement.reshape(-1)[self.observe_dofs]]
+        u = sol.displacement if self.interpolation is None else self.interpolation(sol.displacement)
+        out = [u.reshape(-1)[self.observe_dofs]]
         if self.reaction_mask is not None:
             m = self.reaction_mask
             out.append(jnp.stack([jnp.sum(jnp.where(jnp.asarray(m[:, c]), sol.reaction[:, c], 0.0)) for c in range(3) if m[:, c].any()]))
         return jnp.concatenate(out)
+
+
+def _components_of(entry_components, key: str) -> list[int]:
+    comps = str(entry_components)
+    for c in comps:
+        if c not in "xyz":
+            raise ConfigError(f"{key} must be letters from 'xyz', got {entry_components!r}")
+    return ["xyz".index(c) for c in comps]
+
+
+def _reference_node_set(ref, spec: Any, key: str) -> np.ndarray:
+    """A node set of the reference (``points`` and ``point_data``: a TetMesh or FEMResult)."""
+    n = len(np.asarray(ref.points))
+    if isinstance(spec, str):
+        if spec not in ref.point_data:
+            raise ConfigError(f"{key}: {spec!r} is not a point-data node set of the reference (point fields: {sorted(ref.point_data)})")
+        nodes = np.flatnonzero(np.asarray(ref.point_data[spec]).reshape(n, -1)[:, 0] != 0)
+        if nodes.size == 0:
+            raise ConfigError(f"{key}: node set {spec!r} of the reference is empty")
+        return nodes
+    if isinstance(spec, dict):
+        return select_nodes(np.asarray(ref.points), spec)
+    raise ConfigError(f"{key} must be a point-data mask name or a selector table, got {spec!r}")
+
+
+def _model_node_set(specimen: TetMesh, spec: Any, key: str) -> np.ndarray:
+    """A node set of the model's own mesh (a reference's mask names mean nothing there)."""
+    if isinstance(spec, str) and spec not in specimen.point_data:
+        raise ConfigError(f"{key}: {spec!r} is a point-data node set of the reference; the model's own mesh (specimen) has no such point field: "
+                          f"select the model's nodes with a selector in SI coordinates (e.g. {{face = \"z-min\"}}, {{box = {{lower = [...], "
+                          f"upper = [...]}}}}), which applies to both meshes, or give the specimen file a mask of that name")
+    try:
+        return _node_set(specimen, spec, key)
+    except SelectorError as err:
+        raise ConfigError(f"{key} on the model's own mesh (specimen): {err}") from None
+
+
+def _interpolated_fem_field(ref, displacement, specimen: TetMesh, prescribed, model, observe, reaction, displacement_sigma, force_sigma, tolerance) -> dict:
+    """The fields of a :class:`FEMField` whose reference is interpolated onto ``specimen``."""
+    if not isinstance(specimen, TetMesh):
+        raise ConfigError(f"specimen must be the model's TetMesh, got {type(specimen).__name__}")
+    ref_points = np.asarray(ref.points, dtype=float)
+    ref_cells = getattr(ref, "cells", None) or {"tetra": np.asarray(ref.tets)}
+    n_ref = len(ref_points)
+    u_ref = np.asarray(displacement, dtype=float)
+    if u_ref.shape != (n_ref, 3) or not np.all(np.isfinite(u_ref)):
+        raise DataError(f"the reference displacement must be finite with shape ({n_ref}, 3), got {u_ref.shape}")
+    if model == "springs_volume" and specimen.lattice is None:
+        specimen = recover_lattice(specimen)
+    if not prescribed:
+        raise ConfigError("fem_field needs 'prescribed': the node sets whose displacement the reference prescribed")
+    fixed = np.zeros((specimen.n_nodes, 3), dtype=bool)  # model nodes
+    ref_fixed = np.zeros((n_ref, 3), dtype=bool)  # reference nodes (not observed)
+    for i, entry in enumerate(prescribed):
+        if not isinstance(entry, dict) or "set" not in entry:
+            raise ConfigError(f"prescribed[{i}] must be a table with 'set' (and optionally 'components')")
+        comps = _components_of(entry.get("components", "xyz"), f"prescribed[{i}].components")
+        nodes = _model_node_set(specimen, entry["set"], f"prescribed[{i}].set")
+        ref_nodes = _reference_node_set(ref, entry["set"], f"prescribed[{i}].set")
+        for c in comps:
+            fixed[nodes, c] = True
+            ref_fixed[ref_nodes, c] = True
+    check_rigid_modes(np.asarray(specimen.points), fixed)
+    # the prescribed values: the reference's displacement at the model's prescribed nodes,
+    # interpolated with the reference's own elements
+    presc_nodes = np.flatnonzero(fixed.any(axis=1))
+    to_model = interpolation_operator(ref_points, ref_cells, np.asarray(specimen.points)[presc_nodes], tolerance=tolerance,
+                                      what="prescribed nodes of the model (specimen)")
+    values = np.zeros((specimen.n_nodes, 3))
+    values[presc_nodes] = to_model.as_sparse() @ u_ref
+    bc = BoundaryConditions(fixed, jnp.asarray(np.where(fixed, values, 0.0)), jnp.zeros((specimen.n_nodes, 3)))
+    # the observations: the reference's free components at its nodes, the model's field
+    # interpolated there (P1 in the model's tets)
+    obs_nodes = np.arange(n_ref) if observe is None else _reference_node_set(ref, observe, "observe")
+    obs = np.zeros((n_ref, 3), dtype=bool)
+    obs[obs_nodes] = True
+    obs &= ~ref_fixed
+    rows = np.flatnonzero(obs.any(axis=1))
+    if rows.size == 0:
+        raise ConfigError("no free displacement component to compare: every observed reference node is prescribed")
+    to_ref = interpolation_operator(np.asarray(specimen.points), {"tetra": np.asarray(specimen.tets)}, ref_points[rows], tolerance=tolerance,
+                                    what="observed reference nodes")
+    observe_dofs = np.flatnonzero(obs[rows].reshape(-1))
+    observed = [u_ref[rows].reshape(-1)[observe_dofs]]
+    s_u = float(displacement_sigma) if displacement_sigma is not None else 1e-3 * max(float(np.abs(observed[0]).max()), 1e-300)
+    sig = [np.full(observed[0].shape, s_u)]
+    reaction_mask = None
+    if reaction is not None:
+        comps = _components_of(reaction.get("components", "z"), "reaction.components")
+        nodes = _model_node_set(specimen, reaction.get("set"), "reaction.set")
+        rmask = np.zeros((specimen.n_nodes, 3), dtype=bool)
+        for c in comps:
+            rmask[nodes, c] = True
+        if not np.all(fixed[rmask]):
+            raise ConfigError("reaction.set/components must be prescribed components (a reaction exists only where the displacement is prescribed)")
+        if "force" in reaction:
+            f = np.atleast_1d(np.asarray(reaction["force"], dtype=float))
+        elif "field" in reaction:
+            name_f = reaction["field"]
+            if name_f not in ref.point_data:
+                raise ConfigError(f"reaction.field {name_f!r} is not a point field of the reference (fields: {sorted(ref.point_data)})")
+            nodal = np.asarray(ref.point_data[name_f], dtype=float).reshape(n_ref, -1)
+            ref_nodes = _reference_node_set(ref, reaction.get("set"), "reaction.set")
+            f = np.array([nodal[ref_nodes, c].sum() for c in comps])
+        else:
+            raise ConfigError("reaction needs 'force' (the total force in N, one value per component) or 'field' (a nodal reaction point field)")
+        if f.shape != (len(comps),) or not np.all(np.isfinite(f)):
+            raise ConfigError(f"reaction.force needs one finite value per component {reaction.get('components', 'z')!r}, got {f.tolist()}")
+        reaction_mask = rmask
+        observed.append(f)
+        s_f = float(force_sigma) if force_sigma is not None else 1e-3 * max(float(np.abs(f).max()), 1e-300)
+        sig.append(np.full(f.shape, s_f))
+    observed = np.concatenate(observed)
+    return {
+        "reference_mesh": "interpolate",
+        "interpolation": to_ref,
+        "observed_points": ref_points[rows],
+        "observe_dofs": observe_dofs,
+        "observed": observed,
+        "sigma": np.concatenate(sig),
+        "abscissa": np.arange(observed.size, dtype=float),
+        "x_label": "observation index",
+        "y_label": "displacement [m] / force [N]",
+        "reaction_mask": reaction_mask,
+        "bc": bc,
+        "model": make_model(specimen, model),
+    }
 
 
 def _node_set(mesh: TetMesh, spec: Any, key: str) -> np.ndarray:

@@ -26,7 +26,7 @@ def load_dataset(config: Mapping, *, base_dir=None):
       ``contact = true`` or a method name, :func:`shift_to_contact` (keys ``exponent``,
       ``baseline``, ``keep_precontact``, ``monotonic``, ``monotonic_tolerance``);
     - ``"fem"``: :func:`load_fem_result` (keys ``path``, ``field``, ``length_unit``,
-      ``displacement_unit``, ``reorient``).
+      ``displacement_unit``, ``reorient``, ``displacement_table``).
 
     Relative paths are taken from ``base_dir``.
     """
@@ -66,5 +66,8 @@ def load_dataset(config: Mapping, *, base_dir=None):
         method = "power_law" if contact is True else str(contact)
         return shift_to_contact(curve, method=method, **kw)
     if fmt == "fem":
-        return load_fem_result(path, **take({"field", "length_unit", "displacement_unit", "reorient"}))
+        kw = take({"field", "length_unit", "displacement_unit", "reorient", "displacement_table"})
+        if "displacement_table" in kw and base_dir is not None and not Path(kw["displacement_table"]).is_absolute():
+            kw["displacement_table"] = Path(base_dir) / kw["displacement_table"]
+        return load_fem_result(path, **kw)
     raise DataError(f"unknown dataset format {fmt!r}; choose 'table', 'instron', 'chiaro' or 'fem'")

@@ -44,7 +44,10 @@ def plot_layout(scenario) -> dict | None:
     dofs = np.asarray(dofs)
     mask = getattr(sc, "reaction_mask", None)
     forces = "" if mask is None else "".join(c for i, c in enumerate("xyz") if np.asarray(mask)[:, i].any())
-    return {"kind": "fem_field", "points": np.asarray(model.rest_points)[dofs // 3], "components": dofs % 3, "force_components": forces}
+    # a reference interpolated onto the model is observed at its own nodes
+    points = getattr(sc, "observed_points", None)
+    points = np.asarray(model.rest_points if points is None else points)
+    return {"kind": "fem_field", "points": points[dofs // 3], "components": dofs % 3, "force_components": forces}
 
 
 @dataclasses.dataclass(frozen=True)
