@@ -334,6 +334,7 @@ class ElasticModel(eqx.Module):
 # Mesh set-up on concrete arrays: one compiled program each instead of one per operation.
 _jit_rest_shape = jax.jit(rest_shape)
 _jit_hexahedron_volumes = jax.jit(jax.vmap(hexahedron_volume))
+_jit_hexahedron_jacobians = jax.jit(jax.vmap(hexahedron_jacobians))
 
 
 def _tet_geometry(mesh: TetMesh):
@@ -480,7 +481,9 @@ class SpringVolumeModel(ElasticModel):
         spring_factors: ``(S,)`` sum over the cells of the element's region holding the spring
             of ``g`` [m]; spring_factor_slopes ``(S,)`` [m] the same sum of ``dg/ds``.
         spring_in_plane: ``(S,)`` ``(dx^2 + dy^2) / L0^2`` of each spring in the mesh [-].
-        cells: ``(C, 8)`` cell nodes; cell_regions ``(C,)``; cell_volumes ``(C,)`` [m^3].
+        cells: ``(C, 8)`` cell nodes; cell_regions ``(C,)``; cell_volumes ``(C,)`` [m^3];
+            cell_jacobians ``(C, 8)`` the cells' ``det(dx/dxi)`` at their Gauss points in the
+            mesh [m^3] (the reference of :meth:`min_volume_ratio`).
         pre_stretch_range: ``(n_regions, 2)`` range of ``lambda0`` per region for which no
             spring factor of its cells turns negative.
     """
@@ -494,6 +497,7 @@ class SpringVolumeModel(ElasticModel):
     cells: np.ndarray
     cell_regions: np.ndarray
     cell_volumes: np.ndarray
+    cell_jacobians: np.ndarray
     pre_stretch_range: np.ndarray
 
     def __init__(self, mesh: TetMesh):
@@ -538,6 +542,7 @@ class SpringVolumeModel(ElasticModel):
         self.spring_in_plane = (d[:, 0] ** 2 + d[:, 1] ** 2) / self.rest_lengths**2
         self.cells = lat.cubes
         self.cell_regions = lat.cube_region_ids
+        self.cell_jacobians = np.asarray(_jit_hexahedron_jacobians(np.asarray(p[lat.cubes], dtype=float)))
         self.cell_volumes = np.asarray(_jit_hexahedron_volumes(np.asarray(p[lat.cubes], dtype=float)))
         self.pre_stretch_range = ranges
 
@@ -598,9 +603,8 @@ class SpringVolumeModel(ElasticModel):
         )
 
     def min_volume_ratio(self, x):
-        rest = jax.vmap(hexahedron_jacobians)(jnp.asarray(self.rest_points)[self.cells])
         now = jax.vmap(hexahedron_jacobians)(x[self.cells])
-        return jnp.minimum(jnp.min(now / rest), super().min_volume_ratio(x))
+        return jnp.minimum(jnp.min(now / self.cell_jacobians), super().min_volume_ratio(x))
 
 
 def make_model(mesh: TetMesh, kind: str = "springs_volume") -> ElasticModel:
