@@ -38,7 +38,7 @@ import numpy as np
 
 from .energies.fem import linear_elastic_energy_density, neo_hookean_energy_density
 from .energies.neo_hookean import deformation_gradient, det3, rest_shape, stable_neo_hookean_energy_density
-from .energies.springs import cubic_spring_energy
+from .energies.springs import cubic_spring_energy, cubic_spring_hessian
 from .errors import InvertedElementError, MaterialError, ModelError, ModelRangeError
 from .materials import Material, _is_concrete, lame_parameters
 from .mesh import _CUBE_DIAGONALS, _CUBE_EDGES, _CUBE_CORNERS, TetMesh
@@ -159,6 +159,12 @@ _HEX_VOLUME_T = _hex_volume_tensor()
 
 def _spring_energy(x, rest_length, stiffness, cubic):
     return cubic_spring_energy(x[0], x[1], rest_length, stiffness, cubic)
+
+
+def _spring_hessian(x, rest_length, stiffness, cubic):
+    """Hessian ``(6, 6)`` [J/m^2] of :func:`_spring_energy` (closed form,
+    :func:`~difftissue.energies.springs.cubic_spring_hessian`)."""
+    return cubic_spring_hessian(x[0], x[1], rest_length, stiffness, cubic)
 
 
 def _volume_penalty(volume, rest_volume, bulk_stiffness):
@@ -598,7 +604,7 @@ class SpringVolumeModel(ElasticModel):
         rest, k, a = self.spring_parameters(material)
         bulk = (lam - mu)[self.cell_regions]
         return (
-            ElementTerm("springs", self.springs, _spring_energy, (rest, k, a)),
+            ElementTerm("springs", self.springs, _spring_energy, (rest, k, a), hessian=_spring_hessian),
             ElementTerm("cell_volume", self.cells, _cell_volume_energy, (self.cell_rest_volumes(material), bulk), hessian=_cell_volume_hessian),
         )
 

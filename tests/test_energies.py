@@ -564,3 +564,32 @@ def test_cell_volume_hessian_is_the_exact_hessian_of_its_energy():
         H = _cell_volume_hessian(x, *params)
         ref = jax.hessian(_cell_volume_energy)(x, *params).reshape(24, 24)
         np.testing.assert_allclose(H, ref, rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
+
+
+def test_cubic_spring_hessian_is_the_exact_hessian_of_its_energy():
+    """The closed-form spring Hessian (used by the Newton solver for springs_volume) equals
+    ``jax.hessian`` of :func:`cubic_spring_energy` in tension, compression, with and without
+    the cubic term, for a spring in a general direction, and is 0 at zero length."""
+    from difftissue.energies.springs import cubic_spring_energy, cubic_spring_hessian
+
+    def energy(x, L0, k, a):
+        return cubic_spring_energy(x[0], x[1], L0, k, a)
+
+    rng = np.random.default_rng(7)
+    L0, k = 1.3e-3, 4.0
+    for stretch in (0.7, 1.0, 1.25):
+        for a in (0.0, 3.0e6, -1.5e6):
+            d = rng.standard_normal(3)
+            d *= stretch * L0 / np.linalg.norm(d)
+            x0 = rng.standard_normal(3) * 1e-3
+            x = jnp.asarray(np.stack([x0, x0 + d]))
+            H = cubic_spring_hessian(x[0], x[1], L0, k, a)
+            ref = jax.hessian(energy)(x, L0, k, a).reshape(6, 6)
+            np.testing.assert_allclose(H, ref, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
+    # batched (leading dimensions) and the zero-length spring
+    xs = jnp.asarray(rng.standard_normal((5, 2, 3)) * 1e-3)
+    Hb = cubic_spring_hessian(xs[:, 0], xs[:, 1], L0, k, 2.0e6)
+    for i in range(5):
+        np.testing.assert_allclose(Hb[i], jax.hessian(energy)(xs[i], L0, k, 2.0e6).reshape(6, 6), rtol=1e-12, atol=1e-9)
+    same = jnp.zeros((2, 3))
+    np.testing.assert_array_equal(cubic_spring_hessian(same[0], same[1], L0, k, 2.0e6), jax.hessian(energy)(same, L0, k, 2.0e6).reshape(6, 6))

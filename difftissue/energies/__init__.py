@@ -29,13 +29,14 @@ from .neo_hookean import (
     stable_neo_hookean_energy_density,
     stable_neo_hookean_gamma,
 )
-from .springs import cubic_spring_energy, safe_norm, spring_extension
+from .springs import cubic_spring_energy, cubic_spring_hessian, safe_norm, spring_extension
 from .volume import tet_signed_volume, volume_constraint, volume_energy
 
 __all__ = [
     "safe_norm",
     "spring_extension",
     "cubic_spring_energy",
+    "cubic_spring_hessian",
     "tet_signed_volume",
     "volume_constraint",
     "volume_energy",
