@@ -56,8 +56,8 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = 
 
     with the spring constants ``k`` of :class:`~difftissue.models.SpringVolumeModel` (``mu h/4``
     per cube edge, ``mu h/2`` per face diagonal, summed over the cells holding the spring)
-    and pypbd volume stiffness ``k_V = (lambda - mu) / (6 V0)`` per tet (see the module notes
-    for the factor 6). difftissue's ``springs_volume`` puts the volume term on each cube (exact
+    and pypbd volume stiffness ``k_V = (lambda - mu) / (6 V0)`` per tet (the factor 6: the notes of
+    :mod:`~difftissue.export.pypbd_runner`). difftissue's ``springs_volume`` puts the volume term on each cube (exact
     trilinear volume) instead of on its six tets; both agree for any deformation that is
     homogeneous within each cube. Needs ``nu >= 1/4`` (``lambda >= mu``: a negative pypbd
     stiffness would be a negative compliance) and, with a mesh, a structured block
@@ -66,7 +66,7 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = 
 
     ``constraints="fem"``: pypbd ``FEMTetConstraint`` with the card's ``E`` and ``nu`` per tet.
     In pypbd 2.2.2 this is a PBD constraint whose converged response does not depend on ``E``
-    (module notes), so it is written only with ``approximate=True`` and says so in ``notes``.
+    (:mod:`~difftissue.export.pypbd_runner` notes), so it is written only with ``approximate=True`` and says so in ``notes``.
 
     Without ``mesh`` the scene holds the material alone: the Lamé parameters and the
     coefficients to build the constraints for any cube lattice. With ``mesh`` it is a complete

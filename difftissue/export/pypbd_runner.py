@@ -1,8 +1,10 @@
-"""pypbd scenes from material cards: write, load into pypbd, run to a static state (docs/export.md).
+"""pypbd scenes: read, load into pypbd, run to a static state or at their written budget, and
+the scene's energy (docs/export.md).
 
 pypbd (PyPI ``pypbd``, Python bindings of InteractiveComputerGraphics/PositionBasedDynamics,
 checked with 2.2.2) is driven through its public Python API only. A scene is a JSON file
-(``"format": "difftissue-pbd/1"``, :func:`pbd_scene` / :func:`write_pbd`) holding the
+(``"format": "difftissue-pbd/1"``, written by :func:`difftissue.export.pypbd.pbd_scene` /
+:func:`difftissue.export.pypbd.write_pbd`, read by :func:`read_pbd_scene`) holding the
 particles (rest positions, masses; mass 0 = static, pypbd's convention), the tetrahedra and the
 constraints with the stiffness values pypbd's ``add*Constraint*`` calls take, plus the
 boundary motion of the specimen. :func:`pbd_simulation_from_scene` builds the pypbd
