@@ -178,7 +178,7 @@ def _indentation_from_args(card, args, f: float):
     (lengths in --unit, the half-angle in degrees); missing values come from the card's scenario record."""
     import math
 
-    from .export_indentation import indentation_specimen
+    from .export.specimens import indentation_specimen
 
     if args.displacement is not None:
         raise _UsageError("--displacement is the compression block's; an indentation specimen takes --depth")
@@ -199,7 +199,7 @@ _HOW_TO_RUN = {
             "(WriteState); run a few steps past t = 1",
     "abaqus": "`abaqus job={stem}` (Abaqus) or `ccx -i {stem}` (CalculiX: C3D4 / C3D10 only, it has no hybrid elements, analytical "
               "surfaces or ENCASTRE); summed reactions [N] are printed to `{stem}.dat`",
-    "pbd": "in Python: `from difftissue.pbd import read_pbd_scene, run_pbd_scene; run_pbd_scene(read_pbd_scene('{f}'))` (pypbd)",
+    "pbd": "in Python: `from difftissue.export.pypbd_runner import read_pbd_scene, run_pbd_scene; run_pbd_scene(read_pbd_scene('{f}'))` (pypbd)",
     "xpbd": "load the JSON into your XPBD engine: compliances for the stated dt and iteration count (docs/export.md)",
     "vtu": "open `{f}` in ParaView (cell fields: the material per cell)",
 }
@@ -305,7 +305,7 @@ def _cmd_export(args) -> int:
                 if getattr(args, k) is not None}
     fitted = None
     if args.specimen == "fitted":
-        from .export_fitted import fitted_specimen_from_card
+        from .export.fitted import fitted_specimen_from_card
 
         extra = {k: v for k, v in ind_opts.items() if k != "scenario"}
         if extra or args.bonded_punch:
@@ -523,7 +523,7 @@ def _prepare_out(out: Path, *, force: bool, resume: bool) -> Path:
             if (out / name).exists():
                 raise OutputExistsError(f"{out / name} exists; refusing to overwrite it (choose another --out, pass --force, or --resume to continue that fit)")
         old_specimens = sorted(out.glob("specimen-*.vtu")) if out.is_dir() else []
-        if old_specimens:  # fitted specimen files of an earlier fit (difftissue.export_fitted)
+        if old_specimens:  # fitted specimen files of an earlier fit (difftissue.export.fitted)
             raise OutputExistsError(f"{old_specimens[0]} exists; refusing to overwrite it (choose another --out, pass --force, or --resume to continue that fit)")
         if ckpt.exists():
             raise OutputExistsError(f"{ckpt} exists (an interrupted fit); pass --resume to continue it or --force to start afresh")
@@ -569,7 +569,7 @@ def _run_config(cfg, out: Path, *, force: bool, resume: bool, progress: bool, st
                            f"(narrow fit.bounds or change the initial material; --debug shows the traceback){hint}") from e
     elapsed = time.perf_counter() - t0
     phases.phase("writing fit.json, material.json, plots and report.md")
-    from .export_indentation import scenario_record
+    from .export.card import scenario_record
 
     paths = write_fit_outputs(result, out, config=cfg.path if cfg.path is not None else cfg.raw, data_files=cfg.data_files, model=cfg.model_name,
                               force=force or resume, scenario_records=[scenario_record(s) for s in cfg.scenarios],

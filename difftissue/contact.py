@@ -106,6 +106,10 @@ class SphereIndenter(Indenter):
         c = self.tip(depth) + jnp.array([0.0, 0.0, self.radius])
         return self.radius - _safe_norm(x - c)
 
+    def record(self) -> dict:
+        """The indenter in a material card's scenario record: ``{"indenter": "sphere", "radius": R [m]}``."""
+        return {"indenter": "sphere", "radius": float(self.radius)}
+
 
 @dataclasses.dataclass(frozen=True)
 class ConeIndenter(Indenter):
@@ -128,6 +132,10 @@ class ConeIndenter(Indenter):
         r = _safe_norm(x[..., :2] - tip[:2])
         dz = x[..., 2] - tip[2]
         return dz * np.sin(self.half_angle) - r * np.cos(self.half_angle)
+
+    def record(self) -> dict:
+        """The indenter in a material card's scenario record: ``{"indenter": "cone", "half_angle": theta [rad]}``."""
+        return {"indenter": "cone", "half_angle": float(self.half_angle)}
 
 
 def surface_node_areas(mesh: TetMesh, nodes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -179,6 +187,7 @@ class ContactModel(ElasticModel):
         indenter: a :class:`SphereIndenter` or :class:`ConeIndenter` (static geometry).
         depth: indenter depth [m] (a leaf: :meth:`with_depth` does not recompile).
         contact_nodes: ``(K,)`` candidate surface nodes.
+        penalty: the dimensionless penalty the model was built with (see ``__init__``).
         penalty_factors: ``(K,)`` ``penalty * A_i / h_i`` [m]; ``kappa_i`` = this x the largest
             Young's modulus of the material. The penalty scales with ``E`` also under
             differentiation, so the computed force is exactly proportional to ``E`` (as for a
@@ -190,6 +199,7 @@ class ContactModel(ElasticModel):
     depth: jax.Array
     contact_nodes: np.ndarray
     penalty_factors: np.ndarray
+    penalty: float = eqx.field(static=True)
 
     def __init__(self, base: ElasticModel, indenter: Indenter, mesh: TetMesh, *, depth=0.0, nodes=None, penalty: float = 100.0):
         """
@@ -223,6 +233,7 @@ class ContactModel(ElasticModel):
         self.depth = jnp.asarray(depth, dtype=float)
         self.contact_nodes = ids
         self.penalty_factors = penalty * np.sqrt(area)
+        self.penalty = penalty
 
     def with_depth(self, depth) -> "ContactModel":
         """The same model with the indenter at ``depth`` [m] (traceable: no recompile)."""
@@ -309,6 +320,20 @@ class FlatPunch(eqx.Module):
     def apply(self, mesh: TetMesh, bc: BoundaryConditions, depth) -> BoundaryConditions:
         """``bc`` with the punch nodes' displacements prescribed for ``depth`` [m]."""
         return _prescribe(bc, self.nodes(mesh), depth, "xyz" if self.bonded else "z")
+
+    def effective_radius(self, points, nodes) -> float:
+        """Radius [m] of the outermost ring of ``nodes`` (the nodes under the punch, :meth:`nodes`)
+        around the punch axis: the punch radius the mesh represents (at most :attr:`radius`)."""
+        p = np.asarray(points, dtype=float)[np.asarray(nodes, dtype=np.int64)]
+        return float(np.max(np.hypot(p[:, 0] - self.axis_xy[0], p[:, 1] - self.axis_xy[1])))
+
+    def record(self, points, nodes) -> dict:
+        """The punch in a material card's scenario record: ``indenter``, the effective ``radius`` [m]
+        of the mesh's ``nodes`` under the punch (:meth:`effective_radius`; the exported specimen is
+        meshed anew, so the radius the fit's mesh represented is what it needs), ``radius_note``
+        and ``bonded_punch``."""
+        return {"indenter": "flat_punch", "radius": self.effective_radius(points, nodes),
+                "radius_note": "effective punch radius: the outermost node ring under the punch", "bonded_punch": self.bonded}
 
 
 class Platens(eqx.Module):

@@ -449,6 +449,14 @@ class Incision(eqx.Module):
         """The ``quantity`` after the cut, shape ``observed.shape`` (its unit)."""
         return _jitted(self, "_predict")(material)
 
+    def record(self) -> dict:
+        """The experiment as a material card's scenario record (:func:`difftissue.export.card.scenario_record`):
+        ``name``, ``type``, ``experiment = "incision"``, difftissue's ``model``, the fitted
+        ``quantity``, ``cut_length`` and ``cut_depth`` [m]; the cut mesh, its duplicated pairs
+        and boundary conditions go into a specimen file (:mod:`difftissue.export.fitted`)."""
+        return {"name": self.name, "type": type(self).__name__, "experiment": "incision", "model": str(self.model.base.kind),
+                "quantity": self.quantity, "cut_length": float(self.cut.length), "cut_depth": float(self.cut.depth)}
+
 
 _JITTED: dict[tuple[int, str], tuple[Any, Any]] = {}
 

@@ -28,9 +28,8 @@ import numpy as np
 from ._io import atomic_output, json_number, jsonable, sha256_file
 from ._version import __version__
 from .errors import OutputError, OutputExistsError
-from .export import card_from_fit, portable_path
-from .export_fitted import fitted_specimen, specimen_file_name, specimen_record, write_specimen
-from .export_indentation import scenario_record
+from .export.card import card_from_fit, portable_path, scenario_record
+from .export.fitted import fitted_specimen, specimen_file_name, specimen_record, write_specimen
 from .fit.problem import UNITS, unit_text
 from .fit.result import FitResult, ScenarioFit
 from .fit.statistics import (
@@ -447,13 +446,13 @@ def write_fit_outputs(
         model: model name (str) or object (its ``name`` or type name is recorded).
         scenario_names: names to record instead of the result's scenarios.
         scenario_records: per-scenario experiment records for the card
-            (:func:`difftissue.export_indentation.scenario_record`: indenter, radius, depths, ...),
+            (:func:`difftissue.export.card.scenario_record`: indenter, radius, depths, ...),
             used by ``difftissue export --specimen indentation``; default (with ``scenarios``)
             ``scenario_record(s)`` of each scenario.
         scenarios: the fitted scenarios: each :class:`~difftissue.scenarios.FEMField`,
             :class:`~difftissue.scenarios.Compression` and :class:`~difftissue.incision.Incision`
             gets its specimen file
-            (:func:`difftissue.export_fitted.write_specimen`: mesh, fixed masks, prescribed
+            (:func:`difftissue.export.fitted.write_specimen`: mesh, fixed masks, prescribed
             displacements, regions, cut pairs), recorded with its sha256 in its scenario record
             (``specimen_file``), which ``difftissue export --specimen fitted`` reads.
         data: the rows of each data file the fit used and those it reordered or left out, with

@@ -157,6 +157,18 @@ class AnalyticIndentation(eqx.Module):
             return analytic.layer_flat_punch_force(d, E, nu, self.size, self.thickness, base=self.base)
         return analytic.cone_force(d, E, nu, self.size)
 
+    def record(self) -> dict:
+        """The experiment as a material card's scenario record (``provenance.scenario_records``,
+        :func:`difftissue.export.card.scenario_record`): ``name``, ``type``, ``experiment =
+        "indentation"``, ``indenter``, ``radius`` [m] or ``half_angle`` [rad], the layer
+        ``thickness`` [m] (None: half-space), ``base``, ``solution``, the largest depth
+        ``max_depth`` [m] and the number of ``points``."""
+        rec: dict[str, Any] = {"name": self.name, "type": type(self).__name__, "experiment": "indentation",
+                               "indenter": self.indenter, ("half_angle" if self.indenter == "cone" else "radius"): float(self.size),
+                               "thickness": None if self.thickness is None else float(self.thickness), "base": self.base,
+                               "solution": self.solution}
+        return _with_depths(rec, self.abscissa)
+
 
 # ============================================================================ meshes
 def graded_axis(length: float, cells: int, first: float | None = None, *, core: float | None = None) -> np.ndarray:
@@ -440,6 +452,40 @@ class _Condensation(eqx.Module):
         return forces, us
 
 
+def _with_depths(rec: dict, depths, *, every: bool = False) -> dict:
+    """``rec`` with the largest depth ``max_depth`` [m] and the number of ``points`` of a
+    non-empty depth protocol (and, with ``every``, all ``depths`` [m])."""
+    if depths is not None and np.size(depths):
+        rec["max_depth"] = float(np.max(depths))
+        rec["points"] = int(np.size(depths))
+        if every:
+            rec["depths"] = [float(v) for v in np.asarray(depths).reshape(-1)]
+    return rec
+
+
+def _uniform_block_cells(points, tets, size, symmetry: str) -> list[int] | None:
+    """Full-block cell counts ``[nx, ny, nz]`` when the mesh ``(points [m], tets)`` is exactly
+    :func:`indentation_block` ``(size, cells, symmetry)`` with uniform cells (its quarter with
+    half the x and y cells for ``symmetry="quarter"``), else None."""
+    p = np.asarray(points, dtype=float)
+    t = np.asarray(tets)
+    span = float(np.linalg.norm(np.ptp(p, axis=0)))
+    counts = []
+    for a in range(3):
+        c = np.sort(p[:, a])
+        counts.append(int(np.sum(np.diff(c) > 1e-9 * span)))
+    if min(counts) < 1 or len(t) != 6 * counts[0] * counts[1] * counts[2]:
+        return None
+    try:
+        ref = indentation_block(size, counts, symmetry=symmetry)
+    except Exception:  # any size / count the generator refuses: not such a block
+        return None
+    if np.shape(ref.points) != p.shape or not np.allclose(ref.points, p, rtol=0, atol=1e-9 * span) or not np.array_equal(ref.tets, t):
+        return None
+    k = 2 if symmetry == "quarter" else 1
+    return [k * counts[0], k * counts[1], counts[2]]
+
+
 class Indentation(eqx.Module):
     """Simulated indentation of a specimen: force at each depth of a protocol.
 
@@ -463,7 +509,9 @@ class Indentation(eqx.Module):
     model: ElasticModel
     bc: BoundaryConditions
     punch_mask: np.ndarray | None
+    punch: FlatPunch | None
     condensation: "_Condensation | None"
+    symmetry: str = eqx.field(static=True)
     force_multiplier: float = eqx.field(static=True)
     options: SolverOptions = eqx.field(static=True)
     x_label: str = eqx.field(static=True, default="depth [m]")
@@ -530,6 +578,7 @@ class Indentation(eqx.Module):
         else:
             top = top_surface_nodes(mesh)
             axis = tuple(float(v) for v in (0.5 * (p[top, :2].min(axis=0) + p[top, :2].max(axis=0)) if axis_xy is None else axis_xy))
+        self.symmetry = symmetry
         self.force_multiplier = 4.0 if symmetry == "quarter" else 1.0
         bc = BoundaryConditions.free(mesh)
         if base == "bonded":
@@ -557,6 +606,7 @@ class Indentation(eqx.Module):
                 geom = ConeIndenter(float(half_angle), axis_xy=axis, surface_z=float(hi[2]))
             self.model = ContactModel(base_model, geom, mesh, penalty=penalty)
             self.punch_mask = None
+            self.punch = None
         elif indenter == "flat_punch":
             if radius is None:
                 raise ConfigError("a flat punch needs radius [m]")
@@ -567,6 +617,7 @@ class Indentation(eqx.Module):
             bc = punch.apply(mesh, bc, 0.0)
             self.model = base_model
             self.punch_mask = mask
+            self.punch = punch
         else:
             raise ConfigError(f"indenter must be 'sphere', 'cone' or 'flat_punch', got {indenter!r}")
         self.bc = bc
@@ -626,6 +677,43 @@ class Indentation(eqx.Module):
         shifts every depth (see :meth:`solve`)."""
         return self.solve(material, contact_offset)[0]
 
+    def record(self) -> dict:
+        """The experiment as a material card's scenario record (``provenance.scenario_records``,
+        :func:`difftissue.export.card.scenario_record`), from which an export rebuilds the
+        specimen and a lattice card is recalibrated (docs/export.md).
+
+        ``name``, ``type``, ``experiment = "indentation"``; the indenter (the sphere's or cone's
+        :meth:`~difftissue.contact.SphereIndenter.record`, or the punch's
+        :meth:`~difftissue.contact.FlatPunch.record`: its effective radius [m], the outermost
+        node ring under the punch, and ``bonded_punch``); ``base`` (``"bonded"`` / ``"sliding"``);
+        ``block_size`` [m] (a quarter-symmetric block at full size), ``symmetry``, the fit's
+        full-block ``cells`` when the mesh is a uniform :func:`indentation_block`; difftissue's
+        ``model``; the contact ``penalty`` (sphere, cone); ``max_depth`` [m], ``points`` and
+        every fitted depth ``depths`` [m]."""
+        rec: dict[str, Any] = {"name": self.name, "type": type(self).__name__, "experiment": "indentation"}
+        rest = np.asarray(self.model.rest_points)
+        if self.punch is None:
+            rec.update(self.model.indenter.record())
+        else:
+            rec.update(self.punch.record(rest, np.flatnonzero(self.punch_mask[:, 2])))
+        fixed = np.asarray(self.bc.fixed)
+        zr = rest[:, 2]
+        bottom = np.flatnonzero(np.abs(zr - zr.min()) <= 1e-9 * max(float(np.ptp(zr)), 1e-300))
+        rec["base"] = "bonded" if np.all(fixed[bottom]) else "sliding"
+        span = rest.max(axis=0) - rest.min(axis=0)
+        k = 2 if self.symmetry == "quarter" else 1
+        rec["block_size"] = [float(span[0] * k), float(span[1] * k), float(span[2])]
+        rec["symmetry"] = self.symmetry
+        cells = _uniform_block_cells(rest, self.model.tets, rec["block_size"], self.symmetry)
+        if cells is not None:
+            rec["cells"] = cells
+            rec["cells_note"] = ("the fit's mesh: indentation_block(block_size, cells, symmetry='none') of uniform cells"
+                                 + (" (the fit modelled the x >= 0, y >= 0 quarter with half the x and y cells)" if k == 2 else ""))
+        rec["model"] = str(self.model.kind) or None
+        if self.punch is None:
+            rec["penalty"] = float(self.model.penalty)
+        return _with_depths(rec, self.abscissa, every=True)
+
 
 class Compression(eqx.Module):
     """Unconfined compression between rigid platens: stress at each strain of a protocol.
@@ -650,6 +738,7 @@ class Compression(eqx.Module):
     height: float = eqx.field(static=True)
     area: float = eqx.field(static=True)
     measure: str = eqx.field(static=True)
+    bonded: bool = eqx.field(static=True)
     options: SolverOptions = eqx.field(static=True)
     x_label: str = eqx.field(static=True, default="strain [-]")
     y_label: str = eqx.field(static=True, default="stress [Pa]")
@@ -699,7 +788,8 @@ class Compression(eqx.Module):
         lo, hi = p.min(axis=0), p.max(axis=0)
         self.height = float(hi[2] - lo[2])
         self.area = float(np.sum(mesh.volumes()) / self.height)
-        platens = Platens(bonded=bonded)
+        self.bonded = bool(bonded)
+        platens = Platens(bonded=self.bonded)
         bottom, top = platens.faces(mesh)
         self.bc = platens.apply(mesh, BoundaryConditions.free(mesh), 0.0)
         mask = np.zeros(mesh.n_nodes, dtype=bool)
@@ -736,6 +826,30 @@ class Compression(eqx.Module):
     def predict(self, material: Material):
         """Stress [Pa] at each strain (compression positive)."""
         return self.solve(material)[0]
+
+    def protocol(self) -> dict:
+        """The protocol as recorded in a material card's scenario record: ``platens``
+        (``"bonded"`` / ``"frictionless"``), ``measure`` (``"engineering"`` / ``"true"``),
+        ``strains`` (the protocol in that measure, [-]), ``nominal_strains`` (``delta / H``),
+        ``height`` ``H`` [m], ``area`` ``A0`` [m^2] (volume / H, the area of the engineering
+        stress), ``top_displacement`` [m] (``-e H`` at the last nominal strain ``e``: the top
+        platen of the exported specimen) and ``reaction`` (``"z"``: the component summed over
+        the top face)."""
+        eps = np.asarray(self.abscissa, dtype=float)
+        if eps.size == 0:
+            raise DataError(f"compression scenario {self.name!r} has an empty strain protocol")
+        nominal = eps if self.measure == "engineering" else -np.expm1(-eps)
+        return {"platens": "bonded" if self.bonded else "frictionless", "measure": str(self.measure),
+                "strains": eps.tolist(), "nominal_strains": nominal.tolist(), "height": float(self.height),
+                "area": float(self.area), "top_displacement": float(-nominal[-1] * self.height), "reaction": "z"}
+
+    def record(self) -> dict:
+        """The experiment as a material card's scenario record (:func:`difftissue.export.card.scenario_record`):
+        ``name``, ``type``, ``experiment = "compression"``, difftissue's ``model`` and the
+        :meth:`protocol`; the mesh and boundary conditions go into a specimen file
+        (:mod:`difftissue.export.fitted`)."""
+        return {"name": self.name, "type": type(self).__name__, "experiment": "compression", "model": str(self.model.kind),
+                **self.protocol()}
 
 
 def _tet_volumes(x, tets):
@@ -950,6 +1064,12 @@ class FEMField(eqx.Module):
             m = self.reaction_mask
             out.append(jnp.stack([jnp.sum(jnp.where(jnp.asarray(m[:, c]), sol.reaction[:, c], 0.0)) for c in range(3) if m[:, c].any()]))
         return jnp.concatenate(out)
+
+    def record(self) -> dict:
+        """The experiment as a material card's scenario record (:func:`difftissue.export.card.scenario_record`):
+        ``name``, ``type``, ``experiment = "fem_field"`` and difftissue's ``model``; the mesh and
+        boundary conditions go into a specimen file (:mod:`difftissue.export.fitted`)."""
+        return {"name": self.name, "type": type(self).__name__, "experiment": "fem_field", "model": str(self.model.kind)}
 
 
 def _components_of(entry_components, key: str) -> list[int]:

@@ -32,6 +32,8 @@ def test_mkdocs_strict_build(tmp_path):
     assert (tmp_path / "site" / "api" / "fit" / "index.html").is_file()
     assert "difftissue.fit.fit_batch" in (tmp_path / "site" / "api" / "fit" / "index.html").read_text()
     assert "difftissue.report.write_fit_outputs" in (tmp_path / "site" / "api" / "report" / "index.html").read_text()
+    export_page = (tmp_path / "site" / "api" / "export" / "index.html").read_text()
+    assert "difftissue.export.card.MaterialCard" in export_page and "difftissue.export.dispatch.export" in export_page
 
 
 def _find_spec(name):

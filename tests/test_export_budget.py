@@ -21,18 +21,18 @@ import pytest
 from difftissue.boundary import BoundaryConditions
 from difftissue.errors import ExportError
 from difftissue.export import MaterialCard, export, xpbd_parameters
-from difftissue.export_budget import MAX_BUDGET_ERROR, xpbd_budget_reactions
-from difftissue.export_indentation import IndentationSpecimen, indentation_sets
+from difftissue.export.budget import MAX_BUDGET_ERROR, xpbd_budget_reactions
+from difftissue.export.specimens import IndentationSpecimen, indentation_sets
 from difftissue.mesh import block
 from difftissue.models import make_model
-from difftissue.pbd import read_pbd_scene
+from difftissue.export.pypbd_runner import read_pbd_scene
 from difftissue.solvers.static import solve_static
 
 E, NU = 12.0e3, 0.45
 
 _RUNNER = """
 import json, sys
-from difftissue.pbd import read_pbd_scene, run_pbd_budget
+from difftissue.export.pypbd_runner import read_pbd_scene, run_pbd_budget
 scene = read_pbd_scene(sys.argv[2])
 r = run_pbd_budget(scene, scene["budget_calibration"]["load_fractions"])
 open(sys.argv[1], "w").write(json.dumps({"reactions": r.reactions.tolist(), "converged": r.converged.tolist(),

@@ -39,8 +39,8 @@ from scipy.optimize import brentq
 
 from difftissue.boundary import BoundaryConditions
 from difftissue.export import MaterialCard, abaqus_number, export, write_abaqus
-from difftissue.export_fitted import fitted_specimen
-from difftissue.export_indentation import indentation_sets, indentation_specimen
+from difftissue.export.fitted import fitted_specimen
+from difftissue.export.specimens import indentation_sets, indentation_specimen
 from difftissue.materials import Material
 from difftissue.mesh import block
 from difftissue.energies.neo_hookean import deformation_gradient, det3

@@ -1,4 +1,4 @@
-"""Fitted compression specimens (difftissue.export_fitted, docs/export.md "Fitted specimens:
+"""Fitted compression specimens (difftissue.export.fitted, docs/export.md "Fitted specimens:
 fem_field, compression and incision"): a Compression fit's experiment (the model's block or
 cylinder mesh, the platens at the last strain of the protocol, the top face as reaction set)
 written as a specimen file with its protocol in the card, exported to FEBio / Abaqus / SOFA,
@@ -24,7 +24,8 @@ from test_export_fitted import _skfem_solve, parse_abaqus, parse_febio, parse_so
 from difftissue.cli import main
 from difftissue.errors import ExportError
 from difftissue.export import MaterialCard, export, read_card, write_card
-from difftissue.export_fitted import (
+from difftissue.export.card import scenario_record
+from difftissue.export.fitted import (
     MAX_STRAIN_INCREMENT,
     fitted_specimen,
     fitted_specimen_from_card,
@@ -32,9 +33,8 @@ from difftissue.export_fitted import (
     specimen_file_name,
     specimen_record,
     write_specimen,
-    xpbd_fitted_parameters,
 )
-from difftissue.export_indentation import scenario_record
+from difftissue.export.xpbd import xpbd_fitted_parameters
 from difftissue.mesh import block
 from difftissue.scenarios import Compression, cylinder
 
@@ -310,7 +310,7 @@ def test_bonded_compression_to_pypbd_reproduces_the_fitted_curve_at_its_budget(t
     import subprocess
     import sys
 
-    from difftissue.pbd import read_pbd_scene
+    from difftissue.export.pypbd_runner import read_pbd_scene
 
     c = CASES["block_bonded"]
     mesh = block((10 * MM, 10 * MM, 5 * MM), (4, 4, 2))  # 2.5 mm cubes: the pypbd spring lattice needs (near-)cubic cells
@@ -325,7 +325,7 @@ def test_bonded_compression_to_pypbd_reproduces_the_fitted_curve_at_its_budget(t
     # exporter chooses (and states) the first budget that does
     assert rec["budgets_tried"][0] == [pytest.approx(1 / 60), 1, 10] and rec["setting"] == scene["setting"]
     assert rec["budget"].startswith("CHOSEN") == (scene["setting"]["substeps"] != 1 or scene["setting"]["iterations"] != 10)
-    runner = ("import json, sys\nfrom difftissue.pbd import read_pbd_scene, run_pbd_budget\n"
+    runner = ("import json, sys\nfrom difftissue.export.pypbd_runner import read_pbd_scene, run_pbd_budget\n"
               "s = read_pbd_scene(sys.argv[1]); r = run_pbd_budget(s, s['budget_calibration']['load_fractions'])\n"
               "print(json.dumps({'R': r.reactions.tolist(), 'ok': r.converged.tolist()}))")
     proc = subprocess.run([sys.executable, "-c", runner, str(path)], capture_output=True, text=True,

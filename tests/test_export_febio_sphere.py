@@ -20,7 +20,7 @@ import pytest
 
 from difftissue.errors import ExportError
 from difftissue.export import FEBIO_INDENTER_MATERIAL, MaterialCard, export, febio_indenter_cap
-from difftissue.export_indentation import indentation_sets, indentation_specimen
+from difftissue.export.specimens import indentation_sets, indentation_specimen
 
 E, NU = 12.0e3, 0.42
 SIZE = (8e-3, 8e-3, 4e-3)

@@ -1,4 +1,4 @@
-"""Fitted specimens (difftissue.export_fitted, docs/export.md "Fitted specimens: fem_field and
+"""Fitted specimens (difftissue.export.fitted, docs/export.md "Fitted specimens: fem_field and
 incision"): the experiment of a fem_field or incision fit written with the fit outputs and
 exported as a complete model, parsed back from the written files and solved again.
 
@@ -22,15 +22,15 @@ from difftissue.boundary import BoundaryConditions
 from difftissue.cli import main
 from difftissue.errors import ExportError, OutputExistsError
 from difftissue.export import MaterialCard, export, read_card, to_skfem, write_card
-from difftissue.export_fitted import (
+from difftissue.export.card import scenario_record
+from difftissue.export.fitted import (
     fitted_specimen,
     fitted_specimen_from_card,
     specimen_file_name,
     specimen_record,
     write_specimen,
-    xpbd_fitted_parameters,
 )
-from difftissue.export_indentation import scenario_record
+from difftissue.export.xpbd import xpbd_fitted_parameters
 from difftissue.materials import Material, MaterialParameterization
 from difftissue.mesh import TetMesh, block, read_mesh, write_mesh
 from difftissue.models import make_model, stack_materials

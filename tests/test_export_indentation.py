@@ -23,8 +23,9 @@ import pytest
 from difftissue.cli import main
 from difftissue.errors import ExportError
 from difftissue.export import MaterialCard, export, read_card, write_card, xpbd_parameters
-from difftissue.export_indentation import (IndentationSpecimen, indentation_sets, indentation_specimen,
-                                           run_xpbd_indentation, scenario_record)
+from difftissue.export.card import scenario_record
+from difftissue.export.specimens import IndentationSpecimen, indentation_sets, indentation_specimen
+from difftissue.export.xpbd import run_xpbd_indentation
 from difftissue.scenarios import AnalyticIndentation, Indentation
 
 E, NU = 12.0e3, 0.42
@@ -343,7 +344,7 @@ def test_cli_export_indentation(tmp_path, capsys):
 
 _RUNNER = """
 import json, sys
-from difftissue.pbd import read_pbd_scene, run_pbd_scene
+from difftissue.export.pypbd_runner import read_pbd_scene, run_pbd_scene
 r = run_pbd_scene(read_pbd_scene(sys.argv[2]), rtol=1e-4, max_steps=20000, check_every=50)
 open(sys.argv[1], "w").write(json.dumps({"displacement": r.displacement.tolist(), "reaction": r.reaction.tolist(),
                                          "converged": r.converged, "steps": r.steps, "dt": r.dt}))
@@ -355,12 +356,12 @@ def test_pypbd_flat_punch_round_trip(tmp_path):
     solution of the energy the scene minimises (springs + per-tet volume, pbd_reference_model)."""
     pytest.importorskip("pypbd", reason="pypbd (PyPI) has no wheel for this platform/Python; the round trip needs it")
     from difftissue.boundary import BoundaryConditions
-    from difftissue.pbd import pbd_reference_model, read_pbd_scene, scene_forces
+    from difftissue.export.pypbd_runner import pbd_reference_model, read_pbd_scene, scene_forces
     from difftissue.solvers.static import solve_static
 
     card = _card(tmp_path, model="springs_volume", nu=0.45)
     spec = _punch(card, radius=3.0e-3, cells=(4, 4, 2))  # 2.5 mm cubes, punch = 5 nodes
-    from difftissue.pbd import write_pbd
+    from difftissue.export.pypbd import write_pbd
 
     path = write_pbd(card, tmp_path / "punch.json", indentation=spec, calibrate=False)  # the card's own lattice energy
     scene = read_pbd_scene(path)

@@ -3,7 +3,7 @@
 A ``springs_volume`` card holds lattice-effective (E, nu). Exported as an indentation specimen to
 a continuum target (Abaqus / CalculiX, FEBio, SOFA with a tet force field), E is recalibrated on
 the experiment the card was fitted to (its scenario record: indenter, block, the fit's mesh,
-depths; :func:`~difftissue.export_indentation.recalibrated_indentation_card`). Verified: the
+depths; :func:`~difftissue.export.recalibration.recalibrated_indentation_card`). Verified: the
 fitted flat-punch card exported to Abaqus and run in CalculiX reproduces the fit's data within
 2 %; the card's own values are far off. The "data" are forces the springs_volume model gives at
 the card's values (a fit to them returns those values exactly), so the fit's prediction is the
@@ -21,7 +21,9 @@ from calculix import run_deck
 
 from difftissue.errors import ExportError
 from difftissue.export import MaterialCard, export
-from difftissue.export_indentation import indentation_specimen, recalibrated_indentation_card, scenario_record
+from difftissue.export.card import scenario_record
+from difftissue.export.recalibration import recalibrated_indentation_card
+from difftissue.export.specimens import indentation_specimen
 from difftissue.materials import Material
 from difftissue.scenarios import Indentation, indentation_block
 

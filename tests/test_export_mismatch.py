@@ -16,17 +16,11 @@ import pytest
 from calculix import run_deck
 
 from difftissue.errors import ExportError
-from difftissue.export import (
-    MaterialCard,
-    _uniaxial_cube_stress,
-    export,
-    model_mismatch,
-    uniaxial_signed_errors,
-    write_abaqus,
-    write_febio,
-    write_sofa,
-)
-from difftissue.export_fitted import FittedSpecimen, abaqus_fitted_model, recalibrated_card, specimen_reactions
+from difftissue.export import MaterialCard, export, model_mismatch, uniaxial_signed_errors, write_abaqus, write_febio, write_sofa
+from difftissue.export.abaqus import abaqus_fitted_model
+from difftissue.export.approximations import _uniaxial_cube_stress
+from difftissue.export.fitted import FittedSpecimen
+from difftissue.export.recalibration import recalibrated_card, specimen_reactions
 from difftissue.mesh import block
 
 E, NU = 14.1e3, 0.4635  # the finding's springs_volume card (fem_field punch)

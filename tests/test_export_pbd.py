@@ -21,8 +21,8 @@ from difftissue.errors import ExportError
 from difftissue.export import MaterialCard, export, read_card, write_card
 from difftissue.mesh import block
 from difftissue.models import make_model
-from difftissue.pbd import (PYPBD_GRAVITY, pbd_reference_model, pbd_scene, read_pbd_scene, scene_energy, scene_forces,
-                            write_pbd)
+from difftissue.export.pypbd import pbd_scene, write_pbd
+from difftissue.export.pypbd_runner import PYPBD_GRAVITY, pbd_reference_model, read_pbd_scene, scene_energy, scene_forces
 from difftissue.solvers.static import solve_static
 
 E, NU = 12.0e3, 0.45
@@ -30,7 +30,7 @@ E, NU = 12.0e3, 0.45
 _RUNNER = """
 import json, sys
 import numpy as np
-from difftissue.pbd import read_pbd_scene, run_pbd_scene
+from difftissue.export.pypbd_runner import read_pbd_scene, run_pbd_scene
 out = {}
 for name, (path, kw) in json.loads(sys.argv[2]).items():
     scene = read_pbd_scene(path)
@@ -152,7 +152,7 @@ def test_pypbd_fem_constraint_does_not_represent_E():
     """pypbd 2.2.2's FEMTetConstraint is PBD (no compliance): the converged sag of a particle
     under gravity is far below the St. Venant-Kirchhoff value and not proportional to 1/E."""
     pytest.importorskip("pypbd", reason="pypbd (PyPI) has no wheel for this platform/Python")
-    from difftissue.pbd import pbd_simulation_from_scene
+    from difftissue.export.pypbd_runner import pbd_simulation_from_scene
 
     sags = {}
     for E_fem in (1.0e3, 1.0e5):

@@ -32,7 +32,7 @@ from difftissue.export import (
     write_febio,
     write_sofa,
 )
-from difftissue.export_indentation import indentation_specimen
+from difftissue.export.specimens import indentation_specimen
 from difftissue.mesh import block
 
 E, NU = 12e3, 0.45

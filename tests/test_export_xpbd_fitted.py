@@ -19,8 +19,9 @@ import pytest
 
 from difftissue.errors import ExportError
 from difftissue.export import MaterialCard, export
-from difftissue.export_budget import MAX_BUDGET_ERROR, xpbd_budget_reactions
-from difftissue.export_fitted import FittedSpecimen, fitted_specimen, xpbd_fitted_parameters
+from difftissue.export.budget import MAX_BUDGET_ERROR, xpbd_budget_reactions
+from difftissue.export.fitted import FittedSpecimen, fitted_specimen
+from difftissue.export.xpbd import xpbd_fitted_parameters
 from difftissue.mesh import block
 from difftissue.scenarios import Compression
 
@@ -137,11 +138,11 @@ def test_incision_xpbd_is_checked_on_the_opening_widths(tmp_path):
     import jax.numpy as jnp
 
     from difftissue.boundary import BoundaryConditions
-    from difftissue.export_budget import _snh_constraints
+    from difftissue.export.budget import xpbd_document_constraints
     from difftissue.solvers.xpbd import XPBDSettings, xpbd_quasi_static_constraints
 
     doc = xpbd_fitted_parameters(card, spec, dt=dt, iterations=10, calibrate=False)
-    cons, pts, masses = _snh_constraints(doc, 1.0, None)
+    cons, pts, masses = xpbd_document_constraints(doc, 1.0, None)
     sol = xpbd_quasi_static_constraints((cons,), jnp.asarray(pts), jnp.asarray(masses),
                                         BoundaryConditions(spec.fixed, jnp.zeros(pts.shape), jnp.zeros(pts.shape)),
                                         settings=XPBDSettings(dt=dt, substeps=1, iterations=10, damping=float("inf"), warm_start=False),

@@ -19,7 +19,9 @@ PACKAGE = ROOT / "difftissue"
 def test_import_contracts_are_kept():
     """``lint-imports`` on the contracts of pyproject.toml: physics layers, energies importing
     only errors, fit independent of scenarios/export/config/report, data free of physics, no
-    cycle inside the fit and data packages. Function-level imports count."""
+    cycle inside the fit, data and export packages, the export package's layers (dispatch ->
+    targets -> recalibration / budget -> specimens -> card), export below the CLI / config /
+    report and the physics below export. Function-level imports count."""
     pytest.importorskip("importlinter", reason="import-linter not installed (pip install '.[test]')")
     code = ("import sys\nfrom importlinter.cli import lint_imports\n"
             "sys.exit(lint_imports(config_filename='pyproject.toml', no_cache=True, no_logo=True))")
@@ -127,3 +129,87 @@ def test_every_public_name_keeps_its_import_path():
     assert not missing, missing
     assert set(DATA_NAMES) <= set(difftissue.data.__all__)
     assert all(hasattr(difftissue.fit, n) for n in difftissue.fit.__all__)
+
+
+# ------------------------------------------------------------------ the export package (issue 18)
+#: Every public name of difftissue/export.py before it became a package.
+EXPORT_NAMES = [
+    "CARD_VERSION", "MODEL_ENERGIES", "PARAMETER_UNITS", "TARGETS", "MaterialCard", "card_from_fit", "card_from_fit_json",
+    "resolve_effective_modulus", "read_card", "write_card", "abaqus_name", "abaqus_number", "abaqus_reaction_print",
+    "abaqus_quadratic", "ABAQUS_ELEMENTS", "model_mismatch", "uniaxial_signed_errors", "portable_path", "febio_material",
+    "febio_indenter_cap", "febio_prestrain_gradient", "pre_stretch_from_febio_gradient", "sofa_force_field",
+    "sofa_polynomial_coefficients", "springs_from_sofa_polynomial", "sofa_springs_split", "abaqus_material", "xpbd_parameters",
+    "write_febio", "write_sofa", "write_abaqus", "write_xpbd", "write_vtu", "to_skfem", "export", "UNITS", "UNITS_LINE",
+    "LAW_MODELS", "UNIAXIAL_STRAINS", "febio_model", "sofa_scene", "ABAQUS_FIELD_WIDTH", "abaqus_model", "FEBIO_INDENTER_MATERIAL",
+    "febio_indentation_model", "CONE_INCREMENTS_PER_CELL", "abaqus_indenter_mesh", "abaqus_indentation_model",
+    "sofa_indentation_scene",
+]
+
+#: The former modules, their public names and where they live now.
+MOVED_EXPORT_MODULES = {
+    "difftissue.export_fitted": {
+        "difftissue.export.fitted": ["SPECIMEN_FORMAT", "FITTED_EXPERIMENTS", "MAX_STRAIN_INCREMENT", "FittedSpecimen", "fitted_specimen",
+                                     "compression_protocol", "specimen_file_name", "write_specimen", "read_specimen",
+                                     "fitted_specimen_from_card", "specimen_record", "load_steps"],
+        "difftissue.export.recalibration": ["specimen_reactions", "recalibrated_card", "recalibrated_from_reactions",
+                                            "RECALIBRATION_STATES"],
+        "difftissue.export.febio": ["febio_fitted_model"],
+        "difftissue.export.abaqus": ["abaqus_fitted_model"],
+        "difftissue.export.sofa": ["sofa_fitted_scene"],
+        "difftissue.export.xpbd": ["xpbd_fitted_parameters", "xpbd_fitted_budget", "xpbd_fitted_field_check", "FIELD_CHECK_HALVINGS"],
+        "difftissue.export.dispatch": ["write_fitted"],
+    },
+    "difftissue.export_indentation": {
+        "difftissue.export.specimens": ["IndentationSpecimen", "indentation_specimen", "indentation_sets", "INDENTERS"],
+        "difftissue.export.card": ["scenario_record"],
+        "difftissue.export.xpbd": ["run_xpbd_indentation"],
+        "difftissue.export.recalibration": ["recalibrated_indentation_card", "indentation_card", "RECALIBRATION_DEPTHS"],
+    },
+    "difftissue.export_budget": {
+        "difftissue.export.budget": ["MAX_BUDGET_ERROR", "BUDGET_STATES", "MIN_SENSITIVITY", "PBD_BUDGETS", "load_fractions",
+                                     "card_reference_reactions", "calibrate_factor", "pbd_budget_calibration",
+                                     "xpbd_budget_reactions", "xpbd_budget_calibration"],
+    },
+    "difftissue.pbd": {
+        "difftissue.export.pypbd": ["DEFAULT_BUDGET", "pbd_scene", "write_pbd"],
+        "difftissue.export.pypbd_runner": ["SCENE_FORMAT", "PYPBD_GRAVITY", "read_pbd_scene", "pbd_simulation_from_scene",
+                                           "run_pbd_scene", "PBDRun", "scene_forces", "scene_energy", "pbd_reference_model",
+                                           "scaled_scene", "run_pbd_budget", "PBDBudgetRun"],
+    },
+}
+
+
+def test_difftissue_export_keeps_every_public_name():
+    import difftissue.export
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        missing = [n for n in EXPORT_NAMES if not hasattr(difftissue.export, n)]
+    assert not missing, missing
+    assert set(difftissue.export.__all__) == set(EXPORT_NAMES)
+
+
+@pytest.mark.parametrize("old", sorted(MOVED_EXPORT_MODULES))
+def test_moved_export_modules_are_deprecated_shims(monkeypatch, old):
+    import importlib
+
+    monkeypatch.delitem(sys.modules, old, raising=False)
+    with pytest.warns(DeprecationWarning, match=rf"{old.replace('.', chr(92) + '.')} moved"):
+        shim = importlib.import_module(old)
+    for new, names in MOVED_EXPORT_MODULES[old].items():
+        mod = importlib.import_module(new)
+        for n in names:
+            assert getattr(shim, n) is getattr(mod, n), f"{old}.{n} is not {new}.{n}"
+    assert sorted(shim.__all__) == sorted(n for names in MOVED_EXPORT_MODULES[old].values() for n in names)
+
+
+def test_no_export_module_imports_another_ones_private_names():
+    """The export modules share helpers under public names (a private module, ``_common``, may
+    hold them): no ``from .x import _name`` inside the package."""
+    bad = []
+    for path in sorted((PACKAGE / "export").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ImportFrom) and node.level:
+                bad += [f"{path.name}:{node.lineno} from {'.' * node.level}{node.module or ''} import {a.name}"
+                        for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
+    assert not bad, "\n".join(bad)
