@@ -43,3 +43,41 @@ def _find_spec(name):
         return importlib.util.find_spec(name)
     except ModuleNotFoundError:  # a missing parent package
         return None
+
+
+def test_the_code_blocks_of_cutting_md_run(tmp_path, monkeypatch):
+    """Every python block of docs/cutting.md runs, in order in one namespace (the cut and its
+    closure, the jitted scalpel sweep, pre-tension, the seed 003 surrogate, the incision), and
+    the values its comments state hold."""
+    import numpy as np
+    from docblocks import exec_blocks, python_blocks
+
+    blocks = python_blocks("cutting.md")
+    assert len(blocks) == 5
+    monkeypatch.chdir(tmp_path)
+    ns = {}
+    out = exec_blocks("cutting.md", blocks, ns)
+    assert "cut quality:" in out and "max opening" in out and "max surface width" in out
+    # The cut and its closure: pairs behind the scalpel open, those ahead stay tied.
+    cut, o, s = ns["cut"], ns["o"], ns["s"]
+    first = ns["cut_specimen"](ns["specimen"], ns["path"])
+    released = np.asarray(first.pair_s) <= s
+    width = np.asarray(o.width)
+    assert released.any() and (~released).any()
+    assert width[released].min() > 1e-7 and width[~released].max() < 1e-3 * width[released].min()
+    # The sweep: the widest opening grows as the scalpel advances.
+    sweep = [float(np.max(w)) for w in ns["sweep"]]
+    assert sweep[0] > 1e-7 and np.all(np.diff(sweep) > 0)
+    # Pre-tension: the numbers in the comments.
+    np.testing.assert_allclose(ns["T"], 27.3, rtol=2e-3)
+    np.testing.assert_allclose(ns["lam0"], 1.0183, rtol=1e-4)
+    # The surrogate: exact and smooth widths, copies w apart.
+    w, w_smooth = np.asarray(ns["w"]), np.asarray(ns["w_smooth"])
+    np.testing.assert_allclose(w, 0.5 * 1.1 * (1e-3 - ns["depths"]), rtol=1e-12, atol=1e-18)
+    assert np.all(w_smooth <= w) and np.all(w - w_smooth <= 1e-5 * np.log(2))
+    np.testing.assert_allclose(np.linalg.norm(np.asarray(ns["side_a"]) - np.asarray(ns["side_b"]), axis=1), w, atol=1e-15)
+    # The incision: the opening grows with the scalpel and the files are written.
+    max_w = np.asarray(ns["max_w"])
+    assert np.all(np.diff(max_w) >= -1e-12) and max_w[0] > 0
+    np.testing.assert_allclose(max_w[-1], float(ns["res"].opening.max_width), rtol=1e-6)
+    assert (tmp_path / "opened.png").is_file() and (tmp_path / "vtu" / "incision.pvd").is_file()
