@@ -284,3 +284,13 @@ def test_records_are_plain_json_with_the_model_and_range():
     assert rb["lattice_cubic_coefficient"] == 2.0 and rb["strain_range"] == [-0.3, 0.3]
     assert set(rb["by_direction"]) == set(DIRECTIONS)
     assert rb["value"] == pytest.approx(rb["at_lattice_b_zero"]["[100]"] + 2.0 * rb["continuum_b_per_lattice_b"]["[100]"], rel=1e-12)
+
+
+def test_the_cutting_page_pre_tension_block_runs():
+    """docs/cutting.md's pre-tension example prints the model's own tension and the linear one."""
+    from docblocks import exec_blocks, python_blocks
+
+    blocks = [b for b in python_blocks("cutting.md") if "constitutive import surface_tension" in b]
+    assert len(blocks) == 1
+    out = exec_blocks("cutting.md", blocks)
+    assert "T = 23.70 N/m (linear 27.27 N/m), lambda0 for 10 N/m (linear) = 1.0183" in out
