@@ -48,6 +48,7 @@ __all__ = [
     "MembraneState",
     "membrane_state",
     "surface_tension",
+    "pre_stretch_for_surface_tension",
     "DIRECTIONS",
     "UNIAXIAL_STRAIN_RANGE",
     "uniaxial_stress",
@@ -227,6 +228,47 @@ def surface_tension(kind: str, material: Material, thickness, *, cell_size=None)
     if _is_concrete(thickness) and not np.all(np.asarray(thickness, dtype=float) > 0):
         raise MaterialError(f"layer thickness must be > 0 m, got {thickness!r}")
     return thickness * membrane_state(kind, material, cell_size=cell_size).tension_per_thickness
+
+
+def pre_stretch_for_surface_tension(kind: str, material: Material, tension, thickness, *, cell_size=None):
+    """The pre-stretch ``lambda0`` [-] at which a layer of the model carries the surface tension
+    ``tension`` [N/m]: the inverse of :func:`surface_tension` in ``pre_stretch`` (the other fields
+    of ``material`` are kept; its ``pre_stretch`` is ignored).
+
+    Args:
+        kind, material, cell_size: as for :func:`surface_tension`.
+        tension: the surface tension ``T`` [N/m] (force per unit in-vivo length), >= 0 and below
+            what the model can carry.
+        thickness: the layer's mesh thickness ``t`` [m], > 0.
+
+    Newton's method on ``surface_tension(lambda0) = T`` from the linear inverse
+    (:func:`difftissue.materials.pre_stretch_from_surface_tension`, which gives a smaller
+    ``lambda0``: the models carry less than the linear tension). Jit-able, differentiable in
+    ``material``, ``tension`` and ``thickness``; a tension the model cannot reach (or one that
+    needs a ``lambda0`` outside ``springs_volume``'s range) is an error.
+    """
+    if _is_concrete(thickness) and not np.all(np.asarray(thickness, dtype=float) > 0):
+        raise MaterialError(f"layer thickness must be > 0 m, got {thickness!r}")
+    if _is_concrete(tension) and not (np.all(np.isfinite(np.asarray(tension, dtype=float))) and np.all(np.asarray(tension, dtype=float) >= 0)):
+        raise MaterialError(f"surface tension must be a finite number >= 0 N/m, got {tension!r}")
+    shape = _cell_shape(kind, cell_size)
+    mat = _checked(kind, shape, material.replace(pre_stretch=1.0) if _is_concrete(material) else material)
+    target = jnp.asarray(tension, dtype=float) / jnp.asarray(thickness, dtype=float)
+    return _pre_stretch_for(kind, shape, mat, target)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _pre_stretch_for(kind, shape, mat, target):
+    """``lambda0`` with ``tension_per_thickness(lambda0) = target`` [Pa]."""
+
+    def residual(y):
+        m = eqx.tree_at(lambda m: m.pre_stretch, mat, y[0])
+        return jnp.atleast_1d(_membrane_state(kind, shape, m).tension_per_thickness - target)
+
+    lam_lin = 1.0 + target * (1.0 - mat.poisson_ratio) / mat.youngs_modulus
+    y = _newton(residual, jax.jacfwd(residual), jnp.atleast_1d(lam_lin), f"pre-stretch of {kind} for a surface tension",
+                mat.youngs_modulus)
+    return y[0]
 
 
 # ------------------------------------------------------------------- uniaxial stress

@@ -20,6 +20,7 @@ from difftissue.constitutive import (
     continuum_cubic_coefficient,
     cubic_coefficient_record,
     membrane_state,
+    pre_stretch_for_surface_tension,
     surface_tension,
     surface_tension_record,
     uniaxial_stress,
@@ -169,6 +170,29 @@ def test_surface_tension_refuses_what_the_model_refuses():
         surface_tension("fem_linear", Material(jnp.array([E, E]), NU, pre_stretch=1.05), 1e-3)
 
 
+def test_pre_stretch_for_a_surface_tension_inverts_the_model():
+    """10 N/m on a 1.5 mm layer (E = 200 kPa, nu = 0.45): lambda0 = 1.01868 (fem_linear),
+    1.01938 (stable neo-Hookean), 1.01963 (springs_volume) against the linear inverse's 1.01833;
+    the model at that lambda0 carries 10 N/m to 1e-12; d lambda0 / d(E, T) vs central differences."""
+    m = Material(E, NU, pre_stretch=1.3)  # its pre_stretch is ignored
+    expected = {"fem_linear": 1.018676, "stable_neo_hookean": 1.019376, "springs_volume": 1.019635}
+    for kind, lam in expected.items():
+        lam0 = float(pre_stretch_for_surface_tension(kind, m, 10.0, 1.5e-3))
+        assert lam0 == pytest.approx(lam, abs=1e-6)
+        assert float(surface_tension(kind, m.replace(pre_stretch=lam0), 1.5e-3)) == pytest.approx(10.0, rel=1e-12)
+
+    def lam(q):
+        return pre_stretch_for_surface_tension("springs_volume", Material(q[0] * 1e5, NU), q[1], 1.5e-3)
+
+    q0 = jnp.array([2.0, 10.0])
+    g = np.asarray(jax.grad(lam)(q0))
+    for i in range(2):
+        dq = jnp.zeros(2).at[i].set(1e-6)
+        assert g[i] == pytest.approx((float(lam(q0 + dq)) - float(lam(q0 - dq))) / 2e-6, rel=1e-6)
+    with pytest.raises(MaterialError, match="surface tension"):
+        pre_stretch_for_surface_tension("fem_linear", m, -1.0, 1.5e-3)
+
+
 # ------------------------------------------------------------------ uniaxial stress, b
 def test_uniaxial_stress_matches_the_neo_hookean_closed_form_in_every_direction():
     eps = np.array([-0.3, -0.1, 0.1, 0.3])
@@ -290,7 +314,7 @@ def test_the_cutting_page_pre_tension_block_runs():
     """docs/cutting.md's pre-tension example prints the model's own tension and the linear one."""
     from docblocks import exec_blocks, python_blocks
 
-    blocks = [b for b in python_blocks("cutting.md") if "constitutive import surface_tension" in b]
+    blocks = [b for b in python_blocks("cutting.md") if "from difftissue.constitutive import" in b]
     assert len(blocks) == 1
     out = exec_blocks("cutting.md", blocks)
-    assert "T = 23.70 N/m (linear 27.27 N/m), lambda0 for 10 N/m (linear) = 1.0183" in out
+    assert "T = 23.70 N/m (linear 27.27 N/m); 10 N/m at lambda0 = 1.0194 (linear inverse 1.0183)" in out
