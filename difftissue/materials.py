@@ -72,13 +72,18 @@ class Material(eqx.Module):
     Attributes:
         youngs_modulus: small-strain Young's modulus ``E`` [Pa], > 0.
         poisson_ratio: small-strain Poisson's ratio ``nu`` [-], in (-1, 1/2).
-        cubic_coefficient: strain-stiffening coefficient ``b`` [-] of the uniaxial law
-            ``sigma = E (eps + b eps^3)``; 0 is linear. Springs of rest length ``L0`` and
-            linear stiffness ``k`` get ``a = b k / L0^2`` (force ``k x + a x^3``).
+        cubic_coefficient: strain-stiffening coefficient ``b`` [-] of the *springs* of the
+            ``springs_volume`` lattice: a spring of rest length ``L0`` and linear stiffness
+            ``k`` gets ``a = b k / L0^2`` (force ``k x + a x^3``), i.e. ``sigma = E (eps +
+            b eps^3)`` along each spring. The lattice as a material follows that law with a
+            different ``b_c`` (:func:`difftissue.constitutive.continuum_cubic_coefficient`;
+            nonzero at ``b = 0``); the FEM and stable neo-Hookean models ignore ``b``.
         density: mass density [kg/m^3], > 0 (soft tissue is close to 1000-1100).
         pre_stretch: in-plane equibiaxial pre-stretch ``lambda0`` [-] of a pre-tensioned
             layer (skin); 1 means no pre-tension. Rest lengths are scaled by 1/lambda0.
-            See :func:`surface_tension_from_pre_stretch` for the surface tension in N/m.
+            See :func:`difftissue.constitutive.surface_tension` for the surface tension [N/m]
+            a model's layer carries (:func:`surface_tension_from_pre_stretch` is the linear
+            formula).
 
     Construction with concrete values validates the ranges and raises
     :class:`~difftissue.errors.MaterialError` naming the field. Inside ``jit`` the values
@@ -353,19 +358,26 @@ def equibiaxial_pre_stress(material: Material):
     """Linear equibiaxial in-plane pre-stress ``sigma0 = E (lambda0 - 1) / (1 - nu)`` [Pa].
 
     Small-strain plane-stress relation for a layer stretched by ``lambda0`` in both in-plane
-    directions and free through its thickness.
+    directions and free through its thickness. The models' own stress at finite ``lambda0``:
+    :func:`difftissue.constitutive.membrane_state`.
     """
     eps0 = material.pre_stretch - 1.0
     return material.youngs_modulus * eps0 / (1.0 - material.poisson_ratio)
 
 
 def surface_tension_from_pre_stretch(material: Material, thickness):
-    """Surface tension ``T = sigma0 t`` [N/m] of a layer of thickness ``t`` [m] (linear, equibiaxial)."""
+    """Linearised surface tension ``T = sigma0 t = E (lambda0 - 1) t / (1 - nu)`` [N/m] of a
+    layer of thickness ``t`` [m] (small-strain, equibiaxial).
+
+    It overstates the tension the models carry by O(lambda0 - 1): 15-19 % at lambda0 = 1.05,
+    31-40 % at 1.10 (nu = 0.45). The model's own: :func:`difftissue.constitutive.surface_tension`.
+    """
     return equibiaxial_pre_stress(material) * thickness
 
 
 def pre_stretch_from_surface_tension(material: Material, surface_tension, thickness):
-    """Inverse of :func:`surface_tension_from_pre_stretch`: ``lambda0 = 1 + T (1 - nu) / (E t)``."""
+    """Inverse of :func:`surface_tension_from_pre_stretch`: ``lambda0 = 1 + T (1 - nu) / (E t)``
+    (linear: a model reaches the tension ``T`` at a larger ``lambda0``)."""
     if _is_concrete(thickness) and not np.all(np.asarray(thickness, dtype=float) > 0):
         raise MaterialError(f"layer thickness must be > 0 m, got {thickness!r}")
     return 1.0 + surface_tension * (1.0 - material.poisson_ratio) / (material.youngs_modulus * thickness)

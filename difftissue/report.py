@@ -27,11 +27,13 @@ import numpy as np
 
 from ._io import atomic_output, json_number, jsonable, sha256_file
 from ._version import __version__
-from .errors import OutputError, OutputExistsError
+from .constitutive import UNIAXIAL_STRAIN_RANGE, cubic_coefficient_record, surface_tension_record
+from .errors import DifftissueError, OutputError, OutputExistsError
 from .export.card import card_from_fit, portable_path, scenario_record
 from .export.fitted import fitted_specimen, specimen_file_name, specimen_record, write_specimen
 from .fit.problem import UNITS, unit_text
 from .fit.result import FitResult, ScenarioFit
+from .incision import Incision
 from .fit.statistics import (
     AUTOCORRELATION_LIMIT,
     BOUND_FRACTION,
@@ -42,7 +44,7 @@ from .fit.statistics import (
     FitQuality,
 )
 
-__all__ = ["write_fit_outputs", "package_versions", "config_record", "human_unit", "OUTPUT_FILES"]
+__all__ = ["write_fit_outputs", "derived_quantities", "package_versions", "config_record", "human_unit", "OUTPUT_FILES"]
 
 #: Files written by :func:`write_fit_outputs` (besides one ``specimen-<name>.vtu`` per simulated
 #: fem_field, compression or incision scenario).
@@ -136,6 +138,88 @@ def _fit_json(result: FitResult, *, config, data_files, model, scenario_names) -
         "config": config_record(config),
         "created": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
     }
+
+
+def _not_computed(err: Exception) -> dict:
+    return {"status": "not computed", "reason": f"{type(err).__name__}: {' '.join(str(err).split())[:300]}"}
+
+
+def derived_quantities(result: FitResult, *, model=None, scenarios: Sequence | None = None) -> dict | None:
+    """The fitted material's quantities that users transfer, from the models' own response
+    (:mod:`difftissue.constitutive`), for ``fit.json``'s ``derived``, the report and the card:
+
+    - ``surface_tension``: one record per :class:`~difftissue.incision.Incision` scenario whose
+      fitted material is pre-stretched (:func:`~difftissue.constitutive.surface_tension_record`:
+      the model's own tension [N/m] with its standard error, the layer, and the linearised value
+      ``E (lambda0 - 1) t / (1 - nu)`` under its own name);
+    - ``continuum_uniaxial_cubic_coefficient``: for ``springs_volume`` fits, what the lattice's
+      ``cubic_coefficient`` is as the continuum law ``sigma = E (eps + b_c eps^3)`` over the
+      strain range :data:`~difftissue.constitutive.UNIAXIAL_STRAIN_RANGE`
+      (:func:`~difftissue.constitutive.cubic_coefficient_record`, cube cells).
+
+    A quantity the model cannot evaluate is recorded as ``{"status": "not computed", "reason"}``.
+    Returns None when there is nothing to derive.
+    """
+    mat = result.material
+    fields = tuple(result.fields)
+    cov = np.asarray(result.covariance, dtype=float) if result.covariance is not None else None
+    out: dict[str, Any] = {}
+    tensions = []
+    for s in scenarios or ():
+        if not isinstance(s, Incision) or float(mat.pre_stretch) == 1.0:
+            continue
+        try:
+            rec = {"scenario": s.name, **surface_tension_record(s.kind, mat, s.fitted_layers(), fields=fields, covariance=cov)}
+        except (DifftissueError, RuntimeError) as err:
+            rec = {"scenario": s.name, "model": s.kind, **_not_computed(err)}
+        tensions.append(rec)
+    if tensions:
+        out["surface_tension"] = tensions
+    names = [m.strip() for m in str(model or "").split(";")] + [getattr(s, "kind", "") for s in scenarios or ()]
+    if "springs_volume" in names:
+        try:
+            out["continuum_uniaxial_cubic_coefficient"] = cubic_coefficient_record(mat, strain_range=UNIAXIAL_STRAIN_RANGE, fields=fields, covariance=cov)
+        except (DifftissueError, RuntimeError) as err:
+            out["continuum_uniaxial_cubic_coefficient"] = _not_computed(err)
+    return out or None
+
+
+def _derived_md(derived: Mapping | None) -> list[str]:
+    """report.md's "Derived quantities" section."""
+    if not derived:
+        return []
+    lines = ["", "## Derived quantities"]
+    for r in derived.get("surface_tension", ()):
+        if r.get("status") == "not computed":
+            lines += ["", f"**Surface tension** ({r['scenario']}, {r['model']}): not computed ({r['reason']})."]
+            continue
+        se = f" ± {r['standard_error']:.3g}" if r.get("standard_error") is not None else ""
+        layers = ", ".join(f"{d['name']} {1e3 * d['thickness']:.4g} mm" for d in r["layers"])
+        lines += ["", f"**Surface tension** ({r['scenario']}, model {r['model']}, pre_stretch {r['pre_stretch']:.6g}, layer {layers}): "
+                  f"**T = {r['value']:.4g}{se} N/m**, the in-plane force per unit in-vivo length the model's layer carries "
+                  "(its own equibiaxial stress with free top and bottom: Cauchy stress x current thickness). "
+                  f"The linear formula E (lambda0 - 1) t / (1 - nu) gives {r['linearised_surface_tension']:.4g} N/m"
+                  + (f" ({r['linearised_over_model']:.3f} x the model's)" if r.get("linearised_over_model") else "")
+                  + " (`linearised_surface_tension` in fit.json)."]
+    b = derived.get("continuum_uniaxial_cubic_coefficient")
+    if b and b.get("status") == "not computed":
+        lines += ["", f"**Continuum cubic coefficient**: not computed ({b['reason']})."]
+    elif b:
+        lo, hi = b["strain_range"]
+        se = f" ± {b['standard_error']:.3g}" if b.get("standard_error") is not None else ""
+        others = ", ".join(f"{d}: {v:.4g}" for d, v in b["by_direction"].items() if d != "[100]")
+        ends = b["stress_over_E_at_range_ends"]
+        lines += ["", f"**Continuum cubic coefficient**: springs_volume's cubic_coefficient b = {b['lattice_cubic_coefficient']:.6g} is the "
+                  "lattice's spring coefficient (a = b k / L0^2), not the b of a continuum law. In homogeneous uniaxial stress "
+                  f"(nominal stress, engineering strain in [{lo:g}, {hi:g}], lateral faces free) the lattice follows "
+                  f"sigma = E (eps + b_c eps^3) best with **b_c = {b['value']:.4g}{se}** along a cell edge of a cube lattice"
+                  + (f" ({others})" if others else "")
+                  + f"; at b = 0 the lattice alone gives b_c = {b['at_lattice_b_zero']['[100]']:.4g}, and b_c changes by "
+                  f"{b['continuum_b_per_lattice_b']['[100]']:.3g} per unit b. sigma/E at eps = {lo:g} / {hi:g}: lattice "
+                  f"{ends['lattice'][0]:.4g} / {ends['lattice'][1]:.4g}, the law {ends['continuum_law'][0]:.4g} / {ends['continuum_law'][1]:.4g}, "
+                  f"neo-Hookean FEM (same E, nu) {ends['fem_neo_hookean_b0'][0]:.4g} / {ends['fem_neo_hookean_b0'][1]:.4g}. "
+                  "Give a continuum solver b_c for this strain range, never b (`continuum_uniaxial_cubic_coefficient` in fit.json)."]
+    return lines
 
 
 #: SI prefixes for plot axes, by unit: (factor, label).
@@ -390,6 +474,7 @@ def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines += _start_md(record.get("start"))
     lines += _quality_md(result.quality)
     lines += _discretisation_md(result.discretisation)
+    lines += _derived_md(record.get("derived"))
     if len(result.fields) > 1:
         lines += ["", "## Correlations", "", "| | " + " | ".join(result.fields) + " |", "|---" * (len(result.fields) + 1) + "|"]
         for i, f in enumerate(result.fields):
@@ -496,10 +581,12 @@ def write_fit_outputs(
         if not Path(p).is_file():
             raise OutputError(f"data file {p} does not exist")
     names = list(scenario_names) if scenario_names is not None else list(result.scenario_names)
+    model_name = None if model is None else (model if isinstance(model, str) else getattr(model, "name", None) or type(model).__name__)
     record = _fit_json(result, config=config, data_files=data_files, model=model, scenario_names=scenario_names)
     record["data_warnings"] = [str(w) for w in data_warnings]
     record["data_rows"] = [dict(d) for d in data]
     record["start"] = jsonable(start) if start else None
+    record["derived"] = jsonable(derived_quantities(result, model=model_name, scenarios=scenarios))
     out.mkdir(parents=True, exist_ok=True)
     with atomic_output(paths["fit.json"], overwrite=force) as tmp:
         tmp.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n", encoding="utf-8")
@@ -513,9 +600,10 @@ def write_fit_outputs(
                 matched = scenario_records[-1:]
             for r in matched:
                 r["specimen_file"] = specimen_record(sp, paths[fname])
-    model_name = None if model is None else (model if isinstance(model, str) else getattr(model, "name", None) or type(model).__name__)
     card = card_from_fit(result, model=model_name or "unspecified", scenario_names=names, data_files=data_files,
                          scenario_records=scenario_records, base_dir=_config_dir(config))
+    if record["derived"]:
+        card.provenance["derived"] = record["derived"]
     with atomic_output(paths["material.json"], overwrite=force) as tmp:
         tmp.write_text(card.to_json(), encoding="utf-8")
     with atomic_output(paths["fit.png"], overwrite=force) as tmp:
