@@ -35,7 +35,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import analytic
-from .boundary import BoundaryConditions, check_rigid_modes
+from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_free_rigid_modes
 from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
 from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError, SelectorError
 from .materials import Material
@@ -483,6 +483,7 @@ class Indentation(eqx.Module):
         base: str = "bonded",
         symmetry: str = "none",
         axis_xy=None,
+        rollers: Sequence = (),
         penalty: float = 100.0,
         sigma=None,
         options: SolverOptions = SolverOptions(),
@@ -501,6 +502,13 @@ class Indentation(eqx.Module):
             symmetry: ``"quarter"`` or ``"none"`` (see the class docstring).
             axis_xy: indenter axis [m]; default (0, 0) with quarter symmetry, else the centre of
                 the top surface.
+            rollers: roller supports (:class:`~difftissue.boundary.Roller` or their data forms
+                ``"x-max"`` / ``{"set": selector, "components": "x"}``): the listed displacement
+                components held at zero, e.g. frictionless walls confining the sides. They add
+                to ``base`` and ``symmetry`` (the force is not multiplied: a symmetry model is
+                ``symmetry="quarter"``); a roller on the top surface's z (the contact surface)
+                or the punch is refused, and with a sliding base no pin is added where the
+                rollers already remove the in-plane rigid modes.
             penalty: contact penalty (see :class:`~difftissue.contact.ContactModel`).
             solver: ``"full"`` (a Newton solve of the whole specimen per depth),
                 ``"condensed"`` (the linear body condensed onto the candidate contact nodes,
@@ -540,11 +548,20 @@ class Indentation(eqx.Module):
             raise ConfigError(f"base must be 'bonded' or 'sliding', got {base!r}")
         if symmetry == "quarter":
             bc = bc.fix(mesh, {"face": "x-min"}, "x").fix(mesh, {"face": "y-min"}, "y")
-        elif base == "sliding":
+        if rollers:
+            loaded = np.zeros((mesh.n_nodes, 3), dtype=bool)
+            if indenter == "flat_punch" and radius is not None:
+                loaded[FlatPunch(float(radius), axis_xy=axis, bonded=bonded_punch).nodes(mesh)] = True if bonded_punch else [False, False, True]
+            else:
+                loaded[top_surface_nodes(mesh), 2] = True
+            bc = apply_rollers(bc, mesh, rollers, loaded=loaded)
+        if base == "sliding" and symmetry != "quarter":
+            # pins for the in-plane rigid modes the rollers (if any) leave free: u_x, u_y of the
+            # bottom node nearest the axis, u_y of the bottom node farthest from it along x
             bottom = np.flatnonzero(np.abs(p[:, 2] - lo[2]) <= tol)
             anchor = bottom[np.argmin(np.hypot(p[bottom, 0] - axis[0], p[bottom, 1] - axis[1]))]
             other = bottom[np.argmax(np.abs(p[bottom, 0] - p[anchor, 0]))]
-            bc = bc.fix(mesh, np.array([anchor]), "xy").fix(mesh, np.array([other]), "y")
+            bc = pin_free_rigid_modes(mesh, bc, [(anchor, "x"), (anchor, "y"), (other, "y")])
         base_model = make_model(mesh, model)
         if indenter in ("sphere", "cone"):
             if indenter == "sphere":
@@ -555,7 +572,7 @@ class Indentation(eqx.Module):
                 if half_angle is None:
                     raise ConfigError("a cone indenter needs half_angle [rad]")
                 geom = ConeIndenter(float(half_angle), axis_xy=axis, surface_z=float(hi[2]))
-            self.model = ContactModel(base_model, geom, mesh, penalty=penalty)
+            self.model = ContactModel(base_model, geom, mesh, penalty=penalty, mirror_planes=("x-min", "y-min") if symmetry == "quarter" else ())
             self.punch_mask = None
         elif indenter == "flat_punch":
             if radius is None:
@@ -663,6 +680,7 @@ class Compression(eqx.Module):
         model: str = "springs_volume",
         bonded: bool = False,
         measure: str = "engineering",
+        rollers: Sequence = (),
         sigma=None,
         options: SolverOptions = SolverOptions(),
         name: str = "compression",
@@ -676,6 +694,13 @@ class Compression(eqx.Module):
             model: elastic model name.
             bonded: no-slip platens (default frictionless).
             measure: ``"engineering"`` or ``"true"``.
+            rollers: roller supports on the sides (:class:`~difftissue.boundary.Roller` or their
+                data forms ``"x-min"`` / ``{"set": selector, "components": "x"}``): symmetry
+                planes of the specimen (the stress is that of the whole specimen: a half or
+                quarter model needs no factor) or frictionless walls (``["x-min", "x-max",
+                "y-min", "y-max"]``: confined compression). With frictionless platens the
+                in-plane pins are added only for the rigid modes the rollers leave free; a
+                roller on the top platen's z is refused.
         """
         self.name = str(name)
         eps = _as_1d("strains", strains)
@@ -701,7 +726,21 @@ class Compression(eqx.Module):
         self.area = float(np.sum(mesh.volumes()) / self.height)
         platens = Platens(bonded=bonded)
         bottom, top = platens.faces(mesh)
-        self.bc = platens.apply(mesh, BoundaryConditions.free(mesh), 0.0)
+        if not rollers:
+            self.bc = platens.apply(mesh, BoundaryConditions.free(mesh), 0.0)
+        else:
+            # the platens without their in-plane pins (symmetry_planes x and y), the rollers, then
+            # the pins Platens would add, each only where a rigid mode is still free
+            bc = platens.apply(mesh, BoundaryConditions.free(mesh), 0.0, symmetry_planes=("x", "y"))
+            loaded = np.zeros((mesh.n_nodes, 3), dtype=bool)
+            loaded[top, :] = True if bonded else [False, False, True]
+            bc = apply_rollers(bc, mesh, rollers, loaded=loaded)
+            c = p[bottom, :2].mean(axis=0)
+            anchor = bottom[np.argmin(np.linalg.norm(p[bottom, :2] - c, axis=1))]
+            d = p[bottom, :2] - p[anchor, :2]
+            other = bottom[np.argmax(np.abs(d[:, 0]) - 1e-3 * np.abs(d[:, 1]))]
+            self.bc = pin_free_rigid_modes(mesh, bc, [(anchor, "x"), (anchor, "y"), (other, "y")])
+            check_rigid_modes(p, self.bc.fixed)
         mask = np.zeros(mesh.n_nodes, dtype=bool)
         mask[top] = True
         self.top_mask = mask
