@@ -48,6 +48,7 @@ __all__ = [
     "block",
     "structured_grid",
     "layered_skin",
+    "layer_node_heights",
     "default_skin_layers",
     "signed_volumes",
     "mean_ratio_quality",
@@ -565,6 +566,7 @@ def layered_skin(
     resolution=(20, 20),
     *,
     cell_size: float | None = None,
+    grading=None,
 ) -> Specimen:
     """A layered skin specimen (epidermis / dermis / hypodermis style), one region per layer.
 
@@ -579,6 +581,11 @@ def layered_skin(
         resolution: lateral number of cells ``(nx, ny)``.
         cell_size: target cell height [m] for layers without a cell count; default the mean
             lateral cell size. Each layer gets ``max(1, floor(thickness / cell_size + 1/2))`` cells.
+        grading: ``{layer name: ratio}``: the cells through that layer grow geometrically, each
+            ``ratio`` times as high as the cell above it (``ratio > 1``: finest at the layer's
+            top, e.g. under the skin surface; ``< 1``: finest at its base; 1: uniform). The
+            heights ``h_k = h_0 ratio^k`` (k = 0 at the top) fill the thickness exactly. A
+            layer needs at least two cells to be graded.
 
     Returns:
         A :class:`Specimen` whose mesh has region names = layer names (region id = layer
@@ -612,15 +619,59 @@ def layered_skin(
         mats.append(mat)
         thick.append(t)
         ncells.append(n)
+    ratios = _layer_grading(grading, names, ncells)
     # Stack from the base (deepest layer, z = 0) upwards.
     zs = [0.0]
     cube_layer = []
     for idx in reversed(range(len(layers))):
-        zs.extend(zs[-1] + thick[idx] * np.arange(1, ncells[idx] + 1) / ncells[idx])
+        base = zs[-1]
+        zs.extend(base + layer_node_heights(thick[idx], ncells[idx], ratios[idx])[1:])
         cube_layer.extend([idx] * ncells[idx])
     cube_ids = np.repeat(np.asarray(cube_layer, dtype=np.int32), nx * ny)
     mesh = structured_grid(np.linspace(0, Lx, nx + 1), np.linspace(0, Ly, ny + 1), np.asarray(zs), cube_region_ids=cube_ids, region_names=names)
     return Specimen(mesh, tuple(mats))
+
+
+def layer_node_heights(thickness: float, cells: int, ratio: float = 1.0) -> np.ndarray:
+    """Node heights ``0 .. thickness`` [m] above the base of a layer of ``cells`` cells whose
+    heights grow by ``ratio`` from the top down: the cell at the top is ``h_0 = thickness
+    (ratio - 1) / (ratio^cells - 1)`` high, the one below it ``h_0 ratio``, ... (uniform for
+    ``ratio = 1``). The end points are exact (0 and ``thickness``)."""
+    t, n, r = float(thickness), int(cells), float(ratio)
+    if not (np.isfinite(t) and t > 0) or n < 1:
+        raise MeshError(f"a layer needs a positive thickness and >= 1 cell, got {thickness!r}, {cells!r}")
+    if not (np.isfinite(r) and r > 0):
+        raise MeshError(f"grading ratio must be a positive finite number (1 = uniform), got {ratio!r}")
+    if r == 1.0:
+        return t * np.arange(n + 1) / n
+    h = r ** np.arange(n)  # from the top down, h_0 = 1
+    depth = np.concatenate([[0.0], np.cumsum(h)]) / h.sum()  # 0 .. 1 from the top
+    z = t * (1.0 - depth[::-1])  # from the base up
+    z[0], z[-1] = 0.0, t
+    return z
+
+
+def _layer_grading(grading, names: list[str], ncells: list[int]) -> list[float]:
+    """The grading ratio of each layer from ``layered_skin``'s ``grading`` mapping."""
+    ratios = [1.0] * len(names)
+    if grading is None:
+        return ratios
+    if not isinstance(grading, dict):
+        raise MeshError(f"grading must be a mapping {{layer name: ratio}}, got {grading!r}")
+    for name, r in grading.items():
+        if name not in names:
+            raise MeshError(f"grading names layer {name!r}; the layers are {names}")
+        i = names.index(name)
+        try:
+            r = float(r)
+        except (TypeError, ValueError):
+            raise MeshError(f"layer {name!r}: grading ratio must be a positive number, got {grading[name]!r}") from None
+        if not (np.isfinite(r) and r > 0):
+            raise MeshError(f"layer {name!r}: grading ratio must be a positive finite number (1 = uniform), got {grading[name]!r}")
+        if ncells[i] < 2 and r != 1.0:
+            raise MeshError(f"layer {name!r}: grading needs at least two cells through the layer (it has {ncells[i]})")
+        ratios[i] = r
+    return ratios
 
 
 # ------------------------------------------------------------------------------ meshio
