@@ -179,7 +179,8 @@ def graded_axis(length: float, cells: int, first: float | None = None, *, core: 
             return np.linspace(0.0, length, cells + 1)
         outer = graded_axis(length - c, cells - n_core, first)
         return np.concatenate([np.linspace(0.0, c, n_core + 1), c + outer[1:]])
-    if first is None or first >= length / cells:
+    if first is None or first >= length / cells or cells == 1:
+        # (one cell spans the length whatever its first size: brentq would have no root)
         return np.linspace(0.0, length, cells + 1)
     if first <= 0:
         raise ModelError(f"first cell size must be > 0 m, got {first}")

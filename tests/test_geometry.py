@@ -248,6 +248,15 @@ def test_layer_grading_positions_volumes_and_refusals():
         layer_node_heights(1e-3, 3, -1.0)
 
 
+def test_graded_axis_with_one_cell_beyond_the_core():
+    """One cell beyond a uniform core spans the rest (it used to fail in brentq, which made a
+    coarsened graded indentation block unbuildable)."""
+    from difftissue.scenarios import graded_axis
+
+    np.testing.assert_array_equal(graded_axis(1.6e-3, 1, 2e-4), [0.0, 1.6e-3])
+    np.testing.assert_allclose(graded_axis(2e-3, 2, 4e-4, core=4e-4), [0.0, 4e-4, 2e-3], rtol=1e-15)
+
+
 @pytest.mark.parametrize("model", ["fem_linear", "stable_neo_hookean"])
 def test_half_incision_on_a_symmetry_roller_reproduces_the_whole(model):
     """A cut across a pre-tensioned graded skin, modelled whole and as the half x >= 0 with a
@@ -269,3 +278,139 @@ def test_half_incision_on_a_symmetry_roller_reproduces_the_whole(model):
     w_whole = np.asarray(Incision(cut_whole, positions=s + 2 * mm, **kw).predict(layers[0][2]))
     assert w_half.min() > 1e-5  # it opens
     np.testing.assert_allclose(w_half, w_whole, rtol=1e-8)
+
+
+# ----------------------------------------------------------------------- the config
+def _toml_blocks(marker: str) -> str:
+    import re
+
+    from docblocks import page_text
+
+    return next(b for b in re.findall(r"```toml\n(.*?)```", page_text("configuration.md"), flags=re.S) if marker in b)
+
+
+_HEAD = '[material]\nyoungs_modulus = 2e4\npoisson_ratio = 0.45\npre_stretch = 1.05\n[fit]\nparameters = ["youngs_modulus"]\n'
+
+
+@pytest.fixture(scope="module")
+def curve_dir(tmp_path_factory):
+    from difftissue import analytic
+
+    d = np.linspace(5e-6, 60e-6, 6)
+    f = np.asarray(analytic.hertz_force(d, 2e4, 0.45, 1e-3))
+    path = tmp_path_factory.mktemp("curve") / "curve.csv"
+    path.write_text("depth (um),force (uN)\n" + "\n".join(f"{a * 1e6:.6f},{b * 1e6:.8f}" for a, b in zip(d, f)) + "\n")
+    return path.parent
+
+
+def test_the_graded_indentation_example_of_configuration_md_runs(curve_dir):
+    from difftissue.config import load_config
+    from difftissue.scenarios import graded_axis
+
+    (curve_dir / "sphere.toml").write_text(_HEAD + _toml_blocks('rollers = ["x-max", "y-max"]'))
+    cfg = load_config(curve_dir / "sphere.toml")
+    exp = cfg.experiments[0]
+    sc = getattr(exp.scenario, "scenario", exp.scenario)
+    p = np.asarray(sc.model.rest_points)
+    xs = np.unique(p[:, 0])
+    np.testing.assert_allclose(xs, graded_axis(2e-3, 8, 1e-4, core=4e-4), rtol=1e-12)
+    np.testing.assert_allclose(np.diff(xs)[:4], 1e-4, rtol=1e-9)  # the uniform core
+    zs = np.unique(p[:, 2])
+    np.testing.assert_allclose(np.diff(zs)[-4:], 1e-4, rtol=1e-9)  # under the surface
+    walls = np.isclose(p[:, 0], 2e-3)
+    inside = walls & (p[:, 1] > 1e-9) & (p[:, 1] < 2e-3 - 1e-9) & (p[:, 2] > 1e-9)  # off the other planes and the base
+    assert np.all(sc.bc.fixed[walls, 0]) and inside.sum() == 7 * 8 and not np.any(sc.bc.fixed[inside, 1:])
+    f = np.asarray(exp.scenario.predict(Material(2e4, 0.45)))
+    assert np.all(np.isfinite(f)) and np.all(np.diff(f) > 0)
+    coarse, info = exp.coarsen()
+    assert info["coarse_cells"] == [4, 4, 4]
+    np.testing.assert_allclose(np.unique(np.asarray(getattr(coarse, "scenario", coarse).model.rest_points)[:, 0])[:3], [0, 2e-4, 4e-4], atol=1e-15)
+
+
+def test_the_half_incision_example_of_configuration_md_runs(tmp_path):
+    from difftissue.config import load_config
+
+    (tmp_path / "cut.toml").write_text(_HEAD.replace('"youngs_modulus"]', '"pre_stretch"]') + _toml_blocks('name = "half_cut"'))
+    sc = load_config(tmp_path / "cut.toml").experiments[0].scenario
+    p = np.asarray(sc.cut.mesh.points)
+    x0 = np.isclose(p[:, 0], 0.0) & (p[:, 1] > 1e-3) & (p[:, 1] < 7e-3) & (p[:, 2] > 0)
+    assert np.all(sc.bc.fixed[x0, 0]) and not np.any(sc.bc.fixed[x0, 1:])
+    column = np.isclose(p[:, 0], 8e-3) & np.isclose(p[:, 1], 0.0)  # far from the cut (snapping moves nodes near it)
+    heights = np.diff(np.sort(p[column, 2]))[::-1]  # from the surface down
+    np.testing.assert_allclose(heights[1:4] / heights[:3], 1.5, rtol=1e-9)
+    np.testing.assert_allclose(heights[:4].sum(), 2e-3, rtol=1e-12)
+    w = np.asarray(sc.predict(Material(2e4, 0.45, pre_stretch=1.05)))
+    assert w.shape == (1,) and w[0] > 0
+
+
+def _indentation(curve_dir, **change):
+    e = {"name": "s", "scenario": "indentation", "model": "fem_linear", "length_unit": "um",
+         "data": {"format": "table", "path": "curve.csv", "columns": {"depth": "depth (um)", "force": "force (uN)"}},
+         "indenter": {"shape": "sphere", "radius": 1.0, "length_unit": "mm"},
+         "specimen": {"size": [4, 4, 2], "cells": [4, 4, 4], "refine": 0.2, "core": 0.4, "length_unit": "mm"}}
+    e.update(change)
+    return {"material": {"youngs_modulus": 2e4, "poisson_ratio": 0.45}, "fit": {"parameters": ["youngs_modulus"]}, "experiment": [e]}
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"rollers": "x-max"}, r"^experiment\[0\]\.rollers: must be a list"),
+    ({"rollers": ["top"]}, r"^experiment\[0\]\.rollers\[0\]: must be one of 'x-min'"),
+    ({"rollers": [{"set": {"face": "x-max"}}]}, r"^experiment\[0\]\.rollers\[0\]\.components: missing"),
+    ({"rollers": [{"set": {"face": "x-max"}, "components": "xyz"}]}, r"^experiment\[0\]\.rollers\[0\]\.components: a roller holding x, y and z"),
+    ({"rollers": [{"set": {"face": "x-max"}, "components": "q"}]}, r"^experiment\[0\]\.rollers\[0\]\.components: must be letters"),
+    ({"rollers": [{"set": {"cube": 1}, "components": "x"}]}, r"^experiment\[0\]\.rollers\[0\]\.set: "),
+    ({"rollers": [{"face": "x-max"}]}, r"^experiment\[0\]\.rollers\[0\]: unknown key 'face'"),
+    ({"rollers": ["x-min"]}, r"^experiment\[0\]: rollers\[0\]: the roller on face x-min has no effect"),
+    ({"rollers": ["z-max"]}, r"^experiment\[0\]: rollers\[0\]: .*where the load is applied"),
+    ({"specimen": {"size": [4, 4, 2], "cells": 4, "core": 0.4, "length_unit": "mm"}}, r"^experiment\[0\]\.specimen\.core: needs refine"),
+    ({"specimen": {"size": [4, 4, 2], "cells": 4, "refine": 0.2, "core": 2, "length_unit": "mm"}}, r"^experiment\[0\]\.specimen\.core: must be smaller"),
+    ({"specimen": {"size": [4, 4, 2], "cells": 4, "refine": 0.2, "core": 0.1, "length_unit": "mm"}}, r"^experiment\[0\]\.specimen\.core: must be at least one cell"),
+    ({"specimen": {"size": [4, 4, 2], "cells": 4, "refine": 0.2, "core": -1, "length_unit": "mm"}}, r"^experiment\[0\]\.specimen\.core: must be a positive length"),
+    ({"specimen": {"size": [4, 4, 2], "cells": 4, "refine": 0.1, "core": 0.5, "length_unit": "mm"}}, r"^experiment\[0\]\.specimen: a uniform core .* needs 5 cells"),
+])
+def test_indentation_config_errors_name_the_key(curve_dir, change, match):
+    with pytest.raises(errors.DifftissueError, match=match):
+        parse_config(_indentation(curve_dir, **change), base_dir=curve_dir)
+
+
+def test_compression_config_rollers():
+    from pathlib import Path
+
+    data = str(Path(__file__).resolve().parents[1] / "data/compression/EF10_50T_A1.csv")
+    e = {"name": "c", "scenario": "compression", "model": "fem_linear", "data": {"format": "instron", "path": data}, "max_strain": 0.1, "points": 4,
+         "specimen": {"size": [10, 10, 10], "cells": [1, 1, 1], "length_unit": "mm"}, "rollers": ["x-min", "x-max", "y-min", "y-max"]}
+    cfg = parse_config({"material": {"youngs_modulus": 2e4, "poisson_ratio": 0.45}, "fit": {"parameters": ["youngs_modulus"]}, "experiment": [e]})
+    sc = getattr(cfg.experiments[0].scenario, "scenario", cfg.experiments[0].scenario)
+    assert sc.bc.fixed[:, :2].all()  # every node of the one-cell block is on two walls
+    e["rollers"] = ["z-min"]
+    with pytest.raises(errors.DifftissueError, match=r"^experiment\[0\]: rollers\[0\]: the roller on face z-min has no effect"):
+        parse_config({"material": {"youngs_modulus": 2e4, "poisson_ratio": 0.45}, "fit": {"parameters": ["youngs_modulus"]}, "experiment": [e]})
+
+
+def _incision(**change):
+    e = {"name": "wound", "scenario": "incision", "length_unit": "mm", "data": {"quantity": "max_width", "value": 0.3},
+         "specimen": {"size": [8, 8], "cells": [8, 8], "layers": [{"name": "dermis", "thickness": 1, "cells": 2, "fitted": True},
+                                                                 {"name": "fat", "thickness": 2, "cells": 2, "youngs_modulus": 5e3, "poisson_ratio": 0.45}]},
+         "cut": {"path": [[2, 4], [6, 4]], "depth": 1}}
+    for k, v in change.items():
+        if k == "dermis":
+            e["specimen"]["layers"][0].update(v)
+        else:
+            e[k] = v
+    return {"material": {"youngs_modulus": 2e5, "poisson_ratio": 0.45, "pre_stretch": 1.05}, "fit": {"parameters": ["pre_stretch"]}, "experiment": [e]}
+
+
+def test_incision_config_boundary_and_grading():
+    sc = parse_config(_incision(boundary={"lateral": "roller", "base": "sliding"}, dermis={"grading": 2.0})).experiments[0].scenario
+    p = np.asarray(sc.cut.mesh.points)
+    xface = np.isclose(p[:, 0], 0.0) | np.isclose(p[:, 0], 8e-3)
+    assert np.all(sc.bc.fixed[xface, 0]) and not np.any(sc.bc.fixed[xface & ~np.isclose(p[:, 1], 0.0) & ~np.isclose(p[:, 1], 8e-3), 1])
+    np.testing.assert_allclose(np.unique(p[:, 2])[-3:], [2e-3, 2e-3 + 2e-3 / 3, 3e-3], rtol=1e-12)  # dermis cells 1/3, 2/3 mm from the top
+    for change, match in (({"boundary": {"lateral": "sliding"}}, r"^experiment\[0\]\.boundary\.lateral: must be one of 'held', 'roller', 'free'"),
+                          ({"boundary": {"rollers": ["x-min"], "lateral": "held", "walls": 1}}, r"^experiment\[0\]\.boundary: unknown key 'walls'"),
+                          ({"boundary": {"rollers": [{"set": {"face": "x-min"}, "components": "x"}]}}, r"^experiment\[0\]: rollers\[0\]: .*no effect"),
+                          ({"boundary": {"lateral": "free", "base": "sliding", "rollers": ["x-min"]}}, r"^experiment\[0\]: .*rigid motion free"),
+                          ({"dermis": {"grading": 0}}, r"^experiment\[0\]\.specimen\.layers\[0\]\.grading: must be a positive number"),
+                          ({"dermis": {"grading": 1.5, "cells": 1}}, r"^experiment\[0\]\.specimen\.layers\[0\]\.grading: needs at least two cells")):
+        with pytest.raises(errors.DifftissueError, match=match):
+            parse_config(_incision(**change))
