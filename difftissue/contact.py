@@ -200,6 +200,7 @@ class ContactModel(ElasticModel):
         indenter: a :class:`SphereIndenter` or :class:`ConeIndenter` (static geometry).
         depth: indenter depth [m] (a leaf: :meth:`with_depth` does not recompile).
         contact_nodes: ``(K,)`` candidate surface nodes.
+        penalty: the dimensionless penalty given (static).
         penalty_factors: ``(K,)`` ``penalty * A_i / h_i`` [m]; ``kappa_i`` = this x the largest
             Young's modulus of the material. The penalty scales with ``E`` also under
             differentiation, so the computed force is exactly proportional to ``E`` (as for a
@@ -211,6 +212,7 @@ class ContactModel(ElasticModel):
     depth: jax.Array
     contact_nodes: np.ndarray
     penalty_factors: np.ndarray
+    penalty: float = eqx.field(static=True, default=100.0)
 
     def __init__(self, base: ElasticModel, indenter: Indenter, mesh: TetMesh, *, depth=0.0, nodes=None, penalty: float = 100.0,
                  mirror_planes: Sequence[str] = ()):
@@ -256,6 +258,7 @@ class ContactModel(ElasticModel):
         self.contact_nodes = ids
         # the whole specimen's kappa = penalty E (copies A_i) / sqrt(copies A_i), shared by the copies
         self.penalty_factors = penalty * np.sqrt(copies * area) / copies
+        self.penalty = float(penalty)
 
     def with_depth(self, depth) -> "ContactModel":
         """The same model with the indenter at ``depth`` [m] (traceable: no recompile)."""

@@ -217,7 +217,9 @@ def scenario_record(scenario) -> dict | None:
         model = getattr(scenario, "model", None)
         rec["model"] = str(getattr(getattr(model, "base", model), "kind", "")) or None
         factors = getattr(model, "penalty_factors", None)
-        if factors is not None:  # ContactModel: penalty_factors = penalty sqrt(A_i)
+        if getattr(model, "penalty", None) is not None:  # ContactModel keeps the penalty given
+            rec["penalty"] = float(model.penalty)
+        elif factors is not None:  # ContactModel: penalty_factors = penalty sqrt(A_i)
             from .contact import surface_node_areas
 
             _, area = surface_node_areas(_model_mesh(model), np.asarray(model.contact_nodes))
