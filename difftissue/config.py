@@ -1934,11 +1934,11 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     p = _join(path, "specimen")
     if "specimen" not in e:
         _fail(p, "missing (required): e.g. { size = [12, 12], cells = [12, 12], layers = [{ name = \"dermis\", thickness = 2, cells = 2, fitted = true }, ...] }")
-    spec = _table(e["specimen"], p, ("size", "cells", "layers", "mesh", "length_unit", "reorient"))
+    spec = _table(e["specimen"], p, ("size", "cells", "layers", "refine", "refine_at", "core", "mesh", "length_unit", "reorient"))
     files = list(files)
     fitted = None
     if "mesh" in spec:
-        for k in ("size", "cells", "layers"):
+        for k in ("size", "cells", "layers", "refine", "refine_at", "core"):
             if k in spec:
                 _fail(_join(p, k), "not used with 'mesh' (every region of a mesh file takes [material])")
         mesh, mfile = _mesh_file(spec, p, base_dir)
@@ -1980,8 +1980,24 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
             layers.append((lname, thick, mat, nc))
         if not fitted:
             _fail(lp, "no layer has fitted = true: the [material] must apply to at least one layer")
+        lateral = {}
+        if "refine" in spec:
+            lateral["refine"] = _length(spec["refine"], _join(p, "refine"), sunit)
+            if "refine_at" in spec:
+                at = spec["refine_at"]
+                if not isinstance(at, list) or len(at) != 2:
+                    _fail(_join(p, "refine_at"), f"must be a point [x, y] on the top surface in {sunit[0]}, got {_show(at)}")
+                lateral["refine_at"] = tuple(_number(v, _join(_join(p, "refine_at"), i), what=f"a coordinate in {sunit[0]}") * sunit[1] for i, v in enumerate(at))
+                if not all(0 <= a <= s for a, s in zip(lateral["refine_at"], size)):
+                    _fail(_join(p, "refine_at"), f"must lie on the top surface, within [0, {size[0] / sunit[1]:g}] x [0, {size[1] / sunit[1]:g}] {sunit[0]}")
+            if "core" in spec:
+                lateral["core"] = _lengths(spec["core"], _join(p, "core"), sunit, n=2)
+        else:
+            for k in ("refine_at", "core"):
+                if k in spec:
+                    _fail(_join(p, k), "needs refine (the lateral cell size at the refinement lines)")
         try:
-            specimen = layered_skin(layers, size=size, resolution=cells, grading=grading or None)
+            specimen = layered_skin(layers, size=size, resolution=cells, grading=grading or None, **lateral)
         except DifftissueError as err:
             _reraise(p, err)
     # the cut

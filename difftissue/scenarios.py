@@ -39,7 +39,7 @@ from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_
 from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
 from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError, SelectorError
 from .materials import Material
-from .mesh import TetMesh, structured_grid
+from .mesh import TetMesh, graded_axis, structured_grid
 from .interpolation import interpolation_operator
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
@@ -159,39 +159,6 @@ class AnalyticIndentation(eqx.Module):
 
 
 # ============================================================================ meshes
-def graded_axis(length: float, cells: int, first: float | None = None, *, core: float | None = None) -> np.ndarray:
-    """Node coordinates ``0 .. length`` [m] with ``cells`` cells growing geometrically from
-    ``first`` [m] (uniform when ``first`` is None or ``>= length / cells``).
-
-    With ``core`` [m], cells of size ``first`` are kept uniform up to ``core`` (rounded to
-    whole cells) and grow geometrically only beyond it: a contact region that widens with
-    depth stays resolved (linear tets need about ten cells across the contact radius).
-    """
-    length, cells = float(length), int(cells)
-    if not (length > 0 and cells >= 1):
-        raise ModelError(f"an axis needs a positive length and >= 1 cell, got {length}, {cells}")
-    if core is not None and first is not None and 0 < core < length:
-        n_core = max(1, int(round(core / first)))
-        if n_core >= cells:
-            raise ModelError(f"a uniform core of {core:g} m with cells of {first:g} m needs {n_core} cells; give more than that ({cells} given)")
-        c = n_core * first
-        if c >= length:
-            return np.linspace(0.0, length, cells + 1)
-        outer = graded_axis(length - c, cells - n_core, first)
-        return np.concatenate([np.linspace(0.0, c, n_core + 1), c + outer[1:]])
-    if first is None or first >= length / cells or cells == 1:
-        # (one cell spans the length whatever its first size: brentq would have no root)
-        return np.linspace(0.0, length, cells + 1)
-    if first <= 0:
-        raise ModelError(f"first cell size must be > 0 m, got {first}")
-    from scipy.optimize import brentq
-
-    q = brentq(lambda q: first * (q**cells - 1.0) / (q - 1.0) - length, 1.0 + 1e-12, 1e3)
-    x = np.concatenate([[0.0], np.cumsum(first * q ** np.arange(cells))])
-    x[-1] = length
-    return x
-
-
 def indentation_block(size, cells, *, symmetry: str = "quarter", refine: float | None = None, core: float | None = None) -> TetMesh:
     """A block for indentation along -z at the axis x = y = 0, top surface at ``z = size[2]``.
 

@@ -336,6 +336,7 @@ def test_the_half_incision_example_of_configuration_md_runs(tmp_path):
     x0 = np.isclose(p[:, 0], 0.0) & (p[:, 1] > 1e-3) & (p[:, 1] < 7e-3) & (p[:, 2] > 0)
     assert np.all(sc.bc.fixed[x0, 0]) and not np.any(sc.bc.fixed[x0, 1:])
     column = np.isclose(p[:, 0], 8e-3) & np.isclose(p[:, 1], 0.0)  # far from the cut (snapping moves nodes near it)
+    np.testing.assert_allclose(np.unique(p[:, 0])[:8], np.arange(8) * 5e-4, rtol=1e-12, atol=1e-15)  # 0.5 mm cells to x = 3.5 mm
     heights = np.diff(np.sort(p[column, 2]))[::-1]  # from the surface down
     np.testing.assert_allclose(heights[1:4] / heights[:3], 1.5, rtol=1e-9)
     np.testing.assert_allclose(heights[:4].sum(), 2e-3, rtol=1e-12)
@@ -414,3 +415,37 @@ def test_incision_config_boundary_and_grading():
                           ({"dermis": {"grading": 1.5, "cells": 1}}, r"^experiment\[0\]\.specimen\.layers\[0\]\.grading: needs at least two cells")):
         with pytest.raises(errors.DifftissueError, match=match):
             parse_config(_incision(**change))
+
+
+def test_lateral_refinement_of_a_layered_skin():
+    from difftissue.mesh import refined_axis
+
+    x = refined_axis(8e-3, 8, 4e-3, 2e-4, core=6e-4)
+    np.testing.assert_allclose(x, [0, 3.4e-3, 3.6e-3, 3.8e-3, 4e-3, 4.2e-3, 4.4e-3, 4.6e-3, 8e-3], rtol=1e-12, atol=1e-15)
+    x = refined_axis(8e-3, 8, 2e-3, 2e-4)  # off-centre: 2 cells left, 6 right, growing geometrically
+    h = np.diff(x)
+    assert x[0] == 0 and x[-1] == 8e-3 and np.all(h > 0) and h[1] == pytest.approx(2e-4) and h[2] == pytest.approx(2e-4)
+    np.testing.assert_allclose(h[3:] / h[2:-1], h[3] / h[2], rtol=1e-9)  # one ratio on the right
+    one_sided = refined_axis(8e-3, 8, 0.0, 2e-4)
+    np.testing.assert_allclose(refined_axis(8e-3, 8, 8e-3, 2e-4), 8e-3 - one_sided[::-1], rtol=1e-12)
+    layers = [("dermis", 2e-3, Material(2e5, 0.45), 2), ("fat", 3e-3, Material(5e3, 0.45), 2)]
+    skin = layered_skin(layers, size=(8e-3, 6e-3), resolution=(12, 10), refine=2.5e-4, refine_at=(4e-3, 3e-3), core=(1e-3, 5e-4), grading={"fat": 0.5})
+    p = np.asarray(skin.mesh.points)
+    xs, ys = np.unique(p[:, 0]), np.unique(p[:, 1])
+    assert len(xs) == 13 and len(ys) == 11
+    np.testing.assert_allclose(np.diff(xs)[2:10], 2.5e-4, rtol=1e-9)  # 4 core cells each side of x = 4 mm
+    np.testing.assert_allclose(np.diff(ys)[3:7], 2.5e-4, rtol=1e-9)
+    assert float(skin.mesh.volumes().sum()) == pytest.approx(8e-3 * 6e-3 * 5e-3, rel=1e-14) and np.all(skin.mesh.volumes() > 0)
+    for kw, match in ((dict(core=1e-3), "need refine"), (dict(refine=-1.0), "positive lateral cell size"), (dict(refine=2.5e-4, refine_at=(9e-3, 1e-3)), "must lie in"),
+                      (dict(refine=2.5e-4, refine_at=(1.0,)), "point"), (dict(refine=2.5e-4, core=0.0), "positive lengths")):
+        with pytest.raises(errors.MeshError, match=match):
+            layered_skin(layers, size=(8e-3, 6e-3), resolution=(12, 10), **kw)
+    with pytest.raises(errors.ModelError, match="needs 8 cells"):
+        layered_skin(layers, size=(8e-3, 6e-3), resolution=(12, 10), refine=2.5e-4, core=2e-3)
+    for change, match in (({"refine_at": [0, 4]}, r"specimen\.refine_at: needs refine"), ({"refine": 0.5, "refine_at": [9, 4]}, r"specimen\.refine_at: must lie on the top surface"),
+                          ({"refine": 0.5, "core": [1, 1, 1]}, r"specimen\.core: must be 2 positive lengths"), ({"refine": 0.5, "core": 3}, r"^experiment\[0\]\.specimen: .*needs 6 cells"),
+                          ({"refine": 0.5, "core": 5}, r"^experiment\[0\]\.specimen: core 0.005 m reaches past a side")):
+        cfg = _incision()
+        cfg["experiment"][0]["specimen"].update(change)
+        with pytest.raises(errors.DifftissueError, match=match):
+            parse_config(cfg)
