@@ -8,15 +8,18 @@ depth or a load).
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any, Sequence
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .errors import BoundaryConditionError, RigidModeError
-from .selectors import select_nodes
+from .errors import BoundaryConditionError, RigidModeError, SelectorError
+from .selectors import select_nodes, selector_from_dict
 
-__all__ = ["BoundaryConditions", "rigid_modes", "check_rigid_modes"]
+__all__ = ["BoundaryConditions", "Roller", "ROLLER_FACES", "apply_rollers", "rigid_modes", "rigid_mode_rank", "pin_free_rigid_modes", "check_rigid_modes"]
 
 _COMPONENTS = {"x": 0, "y": 1, "z": 2}
 
@@ -132,6 +135,130 @@ class BoundaryConditions(eqx.Module):
         return ~self.fixed
 
 
+#: The faces of the mesh's bounding box a roller can name, with the component normal to each.
+ROLLER_FACES = {"x-min": "x", "x-max": "x", "y-min": "y", "y-max": "y", "z-min": "z", "z-max": "z"}
+
+
+@dataclasses.dataclass(frozen=True)
+class Roller:
+    """A roller (frictionless symmetry) support: the ``components`` of the displacement of the
+    selected nodes are held at zero (at their mesh positions); the other components are free
+    and carry no force (zero tangential traction).
+
+    On a symmetry plane of the specimen and its loads the roller holds the component normal to
+    the plane, e.g. ``Roller("x-min")`` (``u_x = 0`` on the face ``x = min x``): the model is the
+    part on one side of the plane and reproduces the whole specimen's solution there.
+
+    Attributes:
+        nodes: a bounding-box face name (``"x-min"``, ..., ``"z-max"``; the component defaults to
+            the face's normal), a selector table (:mod:`difftissue.selectors`, SI coordinates)
+            or the name of a point-data mask of the mesh (nonzero = member).
+        components: the held components, letters from ``"xyz"`` (required unless ``nodes`` is a
+            face name).
+    """
+
+    nodes: Any
+    components: str = ""
+
+    def __post_init__(self):
+        nodes, comps = self.nodes, self.components
+        if isinstance(nodes, str) and nodes in ROLLER_FACES:
+            comps = comps or ROLLER_FACES[nodes]
+        elif isinstance(nodes, dict):
+            try:
+                selector_from_dict(nodes)
+            except SelectorError as err:
+                raise BoundaryConditionError(f"roller nodes: {err}") from None
+        elif not (isinstance(nodes, str) and nodes.strip()) and not hasattr(nodes, "mask"):
+            raise BoundaryConditionError(f"roller nodes must be a face name ({', '.join(ROLLER_FACES)}), a selector table or a point-data mask name, got {nodes!r}")
+        if not comps:
+            raise BoundaryConditionError(f"a roller on {self.describe_nodes()} needs components (letters from 'xyz': the held displacement components)")
+        if not isinstance(comps, str) or any(c not in _COMPONENTS for c in comps) or len(set(comps)) != len(comps):
+            raise BoundaryConditionError(f"roller components must be distinct letters from 'xyz', got {comps!r}")
+        if len(comps) == 3:
+            raise BoundaryConditionError(f"a roller holding all of x, y, z on {self.describe_nodes()} is a clamp, not a roller: leave one component free")
+        object.__setattr__(self, "components", "".join(sorted(comps)))
+
+    @classmethod
+    def from_spec(cls, spec) -> "Roller":
+        """A roller from its data form: a face name ``"x-min"`` or a table
+        ``{"set": selector-or-mask-name, "components": "x"}``."""
+        if isinstance(spec, Roller):
+            return spec
+        if isinstance(spec, str):
+            if spec not in ROLLER_FACES:
+                raise BoundaryConditionError(f"a roller given by name must be a face of the bounding box ({', '.join(ROLLER_FACES)}), got {spec!r}")
+            return cls(spec)
+        if isinstance(spec, dict):
+            unknown = set(spec) - {"set", "components"}
+            if unknown or "set" not in spec:
+                raise BoundaryConditionError(f"a roller table needs 'set' (a selector or mask name) and 'components'; got keys {sorted(spec)}")
+            return cls(spec["set"], spec.get("components", ""))
+        raise BoundaryConditionError(f"a roller must be a face name such as 'x-min' or a table {{set = ..., components = 'x'}}, got {spec!r}")
+
+    def describe_nodes(self) -> str:
+        n = self.nodes
+        if isinstance(n, str):
+            return f"face {n}" if n in ROLLER_FACES else f"node set {n!r}"
+        return f"selector {n.to_dict() if hasattr(n, 'to_dict') else n}"
+
+    def node_indices(self, mesh) -> np.ndarray:
+        """The selected nodes of ``mesh`` (sorted indices)."""
+        n = self.nodes
+        if isinstance(n, str) and n in ROLLER_FACES:
+            return select_nodes(mesh, {"face": n})
+        if isinstance(n, str):
+            data = getattr(mesh, "point_data", {}) or {}
+            if n not in data:
+                raise BoundaryConditionError(f"roller: {n!r} is not a point-data node set of the mesh (point fields: {sorted(data)})")
+            idx = np.flatnonzero(np.asarray(data[n]).reshape(len(np.asarray(mesh.points)), -1)[:, 0] != 0)
+            if idx.size == 0:
+                raise BoundaryConditionError(f"roller: node set {n!r} is empty")
+            return idx
+        return select_nodes(mesh, n)
+
+    def to_spec(self):
+        """The data form (see :meth:`from_spec`)."""
+        if isinstance(self.nodes, str) and self.nodes in ROLLER_FACES and self.components == ROLLER_FACES[self.nodes]:
+            return self.nodes
+        nodes = self.nodes.to_dict() if hasattr(self.nodes, "to_dict") else self.nodes
+        return {"set": nodes, "components": self.components}
+
+
+def apply_rollers(bc: BoundaryConditions, mesh, rollers: Sequence, *, loaded: np.ndarray | None = None, what: str = "rollers") -> BoundaryConditions:
+    """``bc`` with roller supports added (see :class:`Roller`): the listed components held at zero.
+
+    Args:
+        bc: the other boundary conditions of ``mesh``.
+        rollers: :class:`Roller` objects or their data forms (:meth:`Roller.from_spec`).
+        loaded: ``(N, 3)`` bool, the components a load is prescribed on (a platen, a punch, the
+            contact surface); a roller on any of them is refused.
+        what: the name used in error messages (e.g. the config key).
+
+    Raises:
+        BoundaryConditionError: a roller that selects no node, touches a loaded component, or
+            holds nothing new (every component it selects is already prescribed: it would have
+            no effect).
+    """
+    if isinstance(rollers, (str, dict, Roller)):
+        raise BoundaryConditionError(f"{what} must be a list of rollers, got {rollers!r}")
+    for i, spec in enumerate(rollers):
+        try:
+            r = Roller.from_spec(spec)
+            idx = r.node_indices(mesh)
+        except (BoundaryConditionError, SelectorError) as err:
+            raise BoundaryConditionError(f"{what}[{i}]: {err}") from None
+        comps = _components(r.components)
+        sel = np.zeros(bc.fixed.shape, dtype=bool)
+        sel[idx[:, None], np.asarray(comps)[None, :]] = True
+        if loaded is not None and np.any(sel & np.asarray(loaded, dtype=bool)):
+            raise BoundaryConditionError(f"{what}[{i}]: the roller on {r.describe_nodes()} holds {r.components} where the load is applied (a platen, punch or contact surface); hold other faces")
+        if not np.any(sel & ~bc.fixed):
+            raise BoundaryConditionError(f"{what}[{i}]: the roller on {r.describe_nodes()} has no effect: the components {r.components} of its nodes are already prescribed by the other boundary conditions")
+        bc = bc.fix(mesh, idx, r.components, (0.0, 0.0, 0.0))
+    return bc
+
+
 def rigid_modes(points: np.ndarray) -> np.ndarray:
     """The six rigid-body modes ``(6, N, 3)``: translations x, y, z and rotations about x, y, z
     through the centroid (unit-scaled)."""
@@ -148,6 +275,37 @@ def rigid_modes(points: np.ndarray) -> np.ndarray:
 
 
 _MODE_NAMES = ("translation x", "translation y", "translation z", "rotation about x", "rotation about y", "rotation about z")
+
+
+def rigid_mode_rank(points: np.ndarray, fixed: np.ndarray) -> int:
+    """How many of the six rigid-body modes the prescribed components ``fixed`` ``(N, 3)``
+    remove (6: none is left free)."""
+    modes = rigid_modes(points)[:, np.asarray(fixed, dtype=bool)]
+    if modes.shape[1] == 0:
+        return 0
+    s = np.linalg.svd(modes.T, compute_uv=False)
+    return int(np.sum(s > 1e-10 * max(float(s.max()), 1.0)))
+
+
+def pin_free_rigid_modes(mesh, bc: BoundaryConditions, candidates: Sequence[tuple[int, str]]) -> BoundaryConditions:
+    """``bc`` with the rigid-body modes it leaves free removed by pinning single components.
+
+    ``candidates`` are ``(node, component)`` pairs tried in order; each is prescribed (at zero
+    displacement) only when it removes a mode still free. A pin that removes a free
+    translation carries no force when the loads have no net component along it (a free
+    rotation: no net moment), so the solution is that of the unpinned problem.
+    """
+    points = np.asarray(mesh.points)
+    rank = rigid_mode_rank(points, bc.fixed)
+    for node, comp in candidates:
+        if rank == 6:
+            break
+        trial = bc.fixed.copy()
+        trial[int(node), _COMPONENTS[comp]] = True
+        r = rigid_mode_rank(points, trial)
+        if r > rank:
+            bc, rank = bc.fix(mesh, np.array([int(node)]), comp), r
+    return bc
 
 
 def check_rigid_modes(points: np.ndarray, fixed: np.ndarray) -> None:

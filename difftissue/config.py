@@ -87,8 +87,8 @@ TISSUE_RANGES: dict[str, tuple[float, float]] = {
 _COMMON_EXPERIMENT_KEYS = ("name", "scenario", "data", "sigma", "points", "length_unit")
 _EXPERIMENT_KEYS = {
     "analytic_indentation": _COMMON_EXPERIMENT_KEYS + ("indenter", "solution", "thickness", "base", "max_depth"),
-    "indentation": _COMMON_EXPERIMENT_KEYS + ("model", "indenter", "specimen", "base", "max_depth", "penalty", "solver"),
-    "compression": _COMMON_EXPERIMENT_KEYS + ("model", "specimen", "platens", "measure", "max_strain", "solver"),
+    "indentation": _COMMON_EXPERIMENT_KEYS + ("model", "indenter", "specimen", "base", "rollers", "max_depth", "penalty", "solver"),
+    "compression": _COMMON_EXPERIMENT_KEYS + ("model", "specimen", "platens", "rollers", "measure", "max_strain", "solver"),
     "fem_field": ("name", "scenario", "data", "model", "prescribed", "observe", "reaction", "displacement_sigma", "force_sigma", "solver",
                   "reference_mesh", "specimen", "tolerance"),
     "incision": ("name", "scenario", "data", "sigma", "length_unit", "model", "specimen", "cut", "boundary", "scalpel_steps", "solver"),
@@ -1453,6 +1453,7 @@ def _compression(e, path, name, base_dir) -> Experiment:
     plausibility = _compression_plausibility(path, curve, x, y, measure)
     sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), y, "Pa")
     platens = _choice(e.get("platens", "frictionless"), _join(path, "platens"), ("frictionless", "bonded"))
+    rollers = _rollers(e["rollers"], _join(path, "rollers")) if "rollers" in e else ()
     model = _model(e, path, "springs_volume")
     options = _solver_options(e, path)
     p = _join(path, "specimen")
@@ -1489,14 +1490,14 @@ def _compression(e, path, name, base_dir) -> Experiment:
             mesh = cylinder(dia, hei, nr, nh)
             coarse_mesh, skip = _coarse_cylinder(dia, hei, nr, nh)
     try:
-        sc = Compression(mesh, x, y, model=model, bonded=platens == "bonded", measure=measure, sigma=sigma, options=options, name=name)
+        sc = Compression(mesh, x, y, model=model, bonded=platens == "bonded", measure=measure, rollers=rollers, sigma=sigma, options=options, name=name)
     except DifftissueError as err:
         _reraise(path, err)
     coarsen = None
     if coarse_mesh is not None:
         def coarsen():
             m, info = coarse_mesh()
-            return Compression(m, x, y, model=model, bonded=platens == "bonded", measure=measure, sigma=sigma, options=options, name=name), info
+            return Compression(m, x, y, model=model, bonded=platens == "bonded", measure=measure, rollers=rollers, sigma=sigma, options=options, name=name), info
     return Experiment(name, "compression", model, sc, tuple(files), notes, prov, plausibility, _compression_estimate(x, y),
                       coarsen=coarsen, coarsen_skip=skip)
 
@@ -1646,6 +1647,7 @@ def _indentation(e, path, name, base_dir) -> Experiment:
     kw = _indenter(e, path, curve, "indentation")
     model = _model(e, path, "springs_volume")
     base = _choice(e.get("base", "bonded"), _join(path, "base"), ("bonded", "sliding"))
+    rollers = _rollers(e["rollers"], _join(path, "rollers")) if "rollers" in e else ()
     penalty = _positive(e["penalty"], _join(path, "penalty")) if "penalty" in e else 100.0
     if "penalty" in e and kw["indenter"] == "flat_punch":
         _fail(_join(path, "penalty"), "not used by a flat punch (its displacement is prescribed)")
@@ -1653,7 +1655,7 @@ def _indentation(e, path, name, base_dir) -> Experiment:
     p = _join(path, "specimen")
     if "specimen" not in e:
         _fail(p, "missing (required): e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" } or { mesh = \"specimen.vtu\", length_unit = \"mm\" }")
-    spec = _table(e["specimen"], p, ("shape", "size", "cells", "symmetry", "refine", "mesh", "length_unit", "reorient"))
+    spec = _table(e["specimen"], p, ("shape", "size", "cells", "symmetry", "refine", "core", "mesh", "length_unit", "reorient"))
     files = [file]
     symmetry = "none"
     coarse_mesh, skip = None, _MESH_FILE_SKIP
@@ -1671,29 +1673,39 @@ def _indentation(e, path, name, base_dir) -> Experiment:
         refine = _length(spec["refine"], _join(p, "refine"), sunit) if "refine" in spec else None
         if refine is not None and model == "springs_volume":
             _fail(_join(p, "refine"), "graded cells are not cubes: use model 'fem_linear', 'fem_neo_hookean' or 'stable_neo_hookean' with refine")
+        core = _length(spec["core"], _join(p, "core"), sunit) if "core" in spec else None
+        if core is not None:
+            if refine is None:
+                _fail(_join(p, "core"), "needs refine (the size of the uniform cells kept within core of the axis and the surface)")
+            reach = min(size[0] / 2, size[1] / 2, size[2])
+            if not core < reach:
+                _fail(_join(p, "core"), f"must be smaller than the half-width and the height of the specimen ({reach / sunit[1]:.6g} {sunit[0]}), got {spec['core']!r}")
+            if core < refine:
+                _fail(_join(p, "core"), f"must be at least one cell of refine ({refine / sunit[1]:.6g} {sunit[0]}), got {spec['core']!r}")
         try:
-            mesh = indentation_block(size, cells, symmetry=symmetry, refine=refine)
+            mesh = indentation_block(size, cells, symmetry=symmetry, refine=refine, core=core)
         except DifftissueError as err:
             _reraise(p, err)
-        coarse_mesh, skip = _coarse_indentation_block(size, cells, symmetry, refine)
+        coarse_mesh, skip = _coarse_indentation_block(size, cells, symmetry, refine, core)
         if depth.max() >= size[2]:
             _fail(_join(path, "max_depth"), f"the deepest point ({depth.max():.3g} m) reaches the specimen's height ({size[2]:.3g} m)")
     try:
-        sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
+        sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
     except DifftissueError as err:
         _reraise(path, err)
     coarsen = None
     if coarse_mesh is not None:
         def coarsen():
             m, info = coarse_mesh()
-            return Indentation(m, depth, force, model=model, base=base, symmetry=symmetry, penalty=penalty, sigma=sigma, options=options, name=name, **kw), info
+            return Indentation(m, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw), info
     return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve),
                       _indentation_estimate(depth, force, sigma, kw), coarsen=coarsen, coarsen_skip=skip)
 
 
-def _coarse_indentation_block(size, cells, symmetry: str, refine):
+def _coarse_indentation_block(size, cells, symmetry: str, refine, core=None):
     """Like :func:`_coarse_block` for :func:`~difftissue.scenarios.indentation_block`: half the
-    cells, the same size and symmetry; a graded block doubles its first cell ``refine`` [m]."""
+    cells, the same size and symmetry; a graded block doubles its first cell ``refine`` [m]
+    (keeping the uniform ``core`` [m], which then holds half as many cells)."""
     from .scenarios import indentation_block
 
     coarse, ratios = _halved(cells)
@@ -1701,7 +1713,12 @@ def _coarse_indentation_block(size, cells, symmetry: str, refine):
         return None, f"the specimen has one cell in each direction ({list(cells)}): there is no coarser mesh"
     info = {"fine_cells": list(cells), "coarse_cells": list(coarse), "refinement_ratio": _size_ratio(ratios)}
     r2 = None if refine is None else 2.0 * refine
-    return (lambda: (indentation_block(size, coarse, symmetry=symmetry, refine=r2), info)), None
+    if core is not None:
+        try:
+            indentation_block(size, coarse, symmetry=symmetry, refine=r2, core=core)
+        except DifftissueError as err:
+            return None, f"the coarser block (cells {list(coarse)}, refine {r2:.6g} m, core {core:.6g} m) cannot be built: {err}"
+    return (lambda: (indentation_block(size, coarse, symmetry=symmetry, refine=r2, core=core), info)), None
 
 
 def _node_set_spec(value, path: str):
@@ -1724,6 +1741,30 @@ def _components(value, path: str) -> str:
     if not isinstance(value, str) or not value or any(c not in "xyz" for c in value) or len(set(value)) != len(value):
         _fail(path, f"must be letters from 'xyz' (e.g. \"z\" or \"xyz\"), got {_show(value)}")
     return value
+
+
+def _rollers(value, path: str) -> tuple:
+    """``rollers``: a list of face names (``"x-min"``: the face's normal component held) or
+    tables ``{ set = selector-or-mask-name, components = "x" }``; returns
+    :class:`~difftissue.boundary.Roller` objects."""
+    from .boundary import ROLLER_FACES, Roller
+
+    if not isinstance(value, list):
+        _fail(path, f"must be a list of faces such as [\"x-min\", \"y-min\"] or tables {{ set = ..., components = \"x\" }}, got {_show(value)}")
+    out = []
+    for i, entry in enumerate(value):
+        q = _join(path, i)
+        if isinstance(entry, str):
+            _choice(entry, q, tuple(ROLLER_FACES))
+            out.append(Roller(entry))
+            continue
+        t = _table(entry, q, ("set", "components"), ("set", "components"))
+        nodes = _node_set_spec(t["set"], _join(q, "set"))
+        comps = _components(t["components"], _join(q, "components"))
+        if len(comps) == 3:
+            _fail(_join(q, "components"), "a roller holding x, y and z is a clamp: leave at least one component free")
+        out.append(Roller(nodes, comps))
+    return tuple(out)
 
 
 def _fem_field(e, path, name, base_dir) -> Experiment:
@@ -1833,7 +1874,7 @@ def _fem_field_specimen(e, path, base_dir, result):
 
 # ============================================================================ incision
 _INCISION_QUANTITIES = ("surface_width", "max_width", "width_over_length")
-_LAYER_KEYS = ("name", "thickness", "cells", "fitted") + tuple(FIELDS)
+_LAYER_KEYS = ("name", "thickness", "cells", "grading", "fitted") + tuple(FIELDS)
 
 
 def _incision_data(e: Mapping, path: str, base_dir: Path, unit: tuple[str, float]):
@@ -1893,11 +1934,11 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     p = _join(path, "specimen")
     if "specimen" not in e:
         _fail(p, "missing (required): e.g. { size = [12, 12], cells = [12, 12], layers = [{ name = \"dermis\", thickness = 2, cells = 2, fitted = true }, ...] }")
-    spec = _table(e["specimen"], p, ("size", "cells", "layers", "mesh", "length_unit", "reorient"))
+    spec = _table(e["specimen"], p, ("size", "cells", "layers", "refine", "refine_at", "core", "mesh", "length_unit", "reorient"))
     files = list(files)
     fitted = None
     if "mesh" in spec:
-        for k in ("size", "cells", "layers"):
+        for k in ("size", "cells", "layers", "refine", "refine_at", "core"):
             if k in spec:
                 _fail(_join(p, k), "not used with 'mesh' (every region of a mesh file takes [material])")
         mesh, mfile = _mesh_file(spec, p, base_dir)
@@ -1913,13 +1954,17 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
         lp = _join(p, "layers")
         if not isinstance(spec["layers"], list) or not spec["layers"]:
             _fail(lp, "must be a non-empty list of tables { name, thickness, cells, fitted | material fields }")
-        layers, fitted = [], []
+        layers, fitted, grading = [], [], {}
         for i, lay in enumerate(spec["layers"]):
             q = _join(lp, i)
             t = _table(lay, q, _LAYER_KEYS, ("name", "thickness"))
             lname = _string(t["name"], _join(q, "name"))
             thick = _length(t["thickness"], _join(q, "thickness"), sunit)
             nc = _integer(t.get("cells", 1), _join(q, "cells"), minimum=1)
+            if "grading" in t:
+                grading[lname] = _positive(t["grading"], _join(q, "grading"))
+                if nc < 2:
+                    _fail(_join(q, "grading"), f"needs at least two cells through the layer (cells = {nc})")
             is_fitted = _bool(t.get("fitted", False), _join(q, "fitted"))
             fields = {k: t[k] for k in FIELDS if k in t}
             if is_fitted:
@@ -1935,8 +1980,24 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
             layers.append((lname, thick, mat, nc))
         if not fitted:
             _fail(lp, "no layer has fitted = true: the [material] must apply to at least one layer")
+        lateral = {}
+        if "refine" in spec:
+            lateral["refine"] = _length(spec["refine"], _join(p, "refine"), sunit)
+            if "refine_at" in spec:
+                at = spec["refine_at"]
+                if not isinstance(at, list) or len(at) != 2:
+                    _fail(_join(p, "refine_at"), f"must be a point [x, y] on the top surface in {sunit[0]}, got {_show(at)}")
+                lateral["refine_at"] = tuple(_number(v, _join(_join(p, "refine_at"), i), what=f"a coordinate in {sunit[0]}") * sunit[1] for i, v in enumerate(at))
+                if not all(0 <= a <= s for a, s in zip(lateral["refine_at"], size)):
+                    _fail(_join(p, "refine_at"), f"must lie on the top surface, within [0, {size[0] / sunit[1]:g}] x [0, {size[1] / sunit[1]:g}] {sunit[0]}")
+            if "core" in spec:
+                lateral["core"] = _lengths(spec["core"], _join(p, "core"), sunit, n=2)
+        else:
+            for k in ("refine_at", "core"):
+                if k in spec:
+                    _fail(_join(p, k), "needs refine (the lateral cell size at the refinement lines)")
         try:
-            specimen = layered_skin(layers, size=size, resolution=cells)
+            specimen = layered_skin(layers, size=size, resolution=cells, grading=grading or None, **lateral)
         except DifftissueError as err:
             _reraise(p, err)
     # the cut
@@ -1961,16 +2022,17 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     except DifftissueError as err:
         _reraise(cp, err)
     bp = _join(path, "boundary")
-    b = _table(e.get("boundary", {}), bp, ("lateral", "base"))
-    lateral = _choice(b.get("lateral", "held"), _join(bp, "lateral"), ("held", "free"))
+    b = _table(e.get("boundary", {}), bp, ("lateral", "base", "rollers"))
+    lateral = _choice(b.get("lateral", "held"), _join(bp, "lateral"), ("held", "roller", "free"))
     base = _choice(b.get("base", "clamped"), _join(bp, "base"), ("clamped", "sliding"))
+    rollers = _rollers(b["rollers"], _join(bp, "rollers")) if "rollers" in b else ()
     steps = _integer(e.get("scalpel_steps", 4), _join(path, "scalpel_steps"), minimum=1)
     so = _solver_options(e, path)
     options = IncisionOptions(scalpel_steps=steps, rtol=so.rtol, xtol=so.xtol, max_steps=so.max_steps, linear_solver=so.linear_solver, failure=so.failure)
     if model == "springs_volume" and getattr(cut.mesh, "lattice", None) is None:
         _fail(_join(path, "model"), "an imported mesh has no cube lattice: use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean'")
     try:
-        sc = Incision(cut, model=model, quantity=quantity, positions=positions, observed=observed, sigma=sigma, fitted_regions=fitted, lateral=lateral, base=base, options=options, name=name)
+        sc = Incision(cut, model=model, quantity=quantity, positions=positions, observed=observed, sigma=sigma, fitted_regions=fitted, lateral=lateral, base=base, rollers=rollers, options=options, name=name)
     except DifftissueError as err:
         _reraise(path, err)
     notes = (f"{path}: {cut.quality}",)

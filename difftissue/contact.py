@@ -38,6 +38,7 @@ from .errors import BoundaryConditionError, ModelError
 from .materials import Material
 from .mesh import TetMesh
 from .models import ElasticModel, ElementTerm
+from .selectors import BoundingBoxFace
 
 __all__ = [
     "Indenter",
@@ -159,6 +160,26 @@ def surface_node_areas(mesh: TetMesh, nodes: np.ndarray | None = None) -> tuple[
     return ids.astype(np.int32), area[ids]
 
 
+def _mirrored_areas(mesh: TetMesh, ids: np.ndarray, planes: Sequence[str]) -> tuple[np.ndarray, np.ndarray]:
+    """Tributary areas [m^2] of nodes ``ids`` without the boundary faces that lie on the mirror
+    ``planes`` (interior faces of the whole specimen), and the number of mirror copies of each
+    node (2 per plane it lies on)."""
+    p = np.asarray(mesh.points, dtype=float)
+    copies = np.ones(len(p))
+    f = mesh.boundary_faces
+    keep = np.ones(len(f), dtype=bool)
+    for plane in planes:
+        if not isinstance(plane, str) or plane.count("-") != 1 or plane.split("-")[0] not in "xyz" or plane.split("-")[1] not in ("min", "max"):
+            raise BoundaryConditionError(f"mirror planes must be faces of the bounding box such as 'x-min', got {plane!r}")
+        on = BoundingBoxFace(*plane.split("-"), tolerance=1e-9).mask(p)  # type: ignore[arg-type]
+        copies[on] *= 2.0
+        keep &= ~np.all(on[f], axis=1)
+    a = 0.5 * np.linalg.norm(np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]]), axis=1)
+    area = np.zeros(len(p))
+    np.add.at(area, f[keep].reshape(-1), np.repeat(a[keep] / 3.0, 3))
+    return area[ids], copies[ids]
+
+
 def top_surface_nodes(mesh: TetMesh, *, tolerance: float = 1e-9) -> np.ndarray:
     """Boundary nodes on the top plane ``z = max z`` (within ``tolerance`` x the mesh size)."""
     p = np.asarray(mesh.points)
@@ -187,7 +208,7 @@ class ContactModel(ElasticModel):
         indenter: a :class:`SphereIndenter` or :class:`ConeIndenter` (static geometry).
         depth: indenter depth [m] (a leaf: :meth:`with_depth` does not recompile).
         contact_nodes: ``(K,)`` candidate surface nodes.
-        penalty: the dimensionless penalty the model was built with (see ``__init__``).
+        penalty: the dimensionless penalty given (static).
         penalty_factors: ``(K,)`` ``penalty * A_i / h_i`` [m]; ``kappa_i`` = this x the largest
             Young's modulus of the material. The penalty scales with ``E`` also under
             differentiation, so the computed force is exactly proportional to ``E`` (as for a
@@ -199,9 +220,10 @@ class ContactModel(ElasticModel):
     depth: jax.Array
     contact_nodes: np.ndarray
     penalty_factors: np.ndarray
-    penalty: float = eqx.field(static=True)
+    penalty: float = eqx.field(static=True, default=100.0)
 
-    def __init__(self, base: ElasticModel, indenter: Indenter, mesh: TetMesh, *, depth=0.0, nodes=None, penalty: float = 100.0):
+    def __init__(self, base: ElasticModel, indenter: Indenter, mesh: TetMesh, *, depth=0.0, nodes=None, penalty: float = 100.0,
+                 mirror_planes: Sequence[str] = ()):
         """
         Args:
             base: the elastic model of ``mesh``.
@@ -212,6 +234,13 @@ class ContactModel(ElasticModel):
                 :func:`top_surface_nodes`); they must be boundary nodes.
             penalty: dimensionless penalty ``kappa_i h_i / (E A_i)``; larger is stiffer contact
                 (less penetration) but a worse-conditioned Newton system.
+            mirror_planes: faces of the mesh's bounding box (``"x-min"``, ...) that are symmetry
+                planes: the mesh is the part of a specimen mirrored there (e.g. the quarter
+                model of :func:`~difftissue.scenarios.indentation_block`). A node on ``k`` such
+                planes gets ``2^-k`` of the whole specimen's penalty ``kappa_i`` (its area
+                ``A_i`` and length ``h_i = sqrt(A_i)`` taken from the mirrored surface, the faces
+                on the planes left out), so the part's contact forces times the number of
+                mirror images are the whole specimen's.
         """
         if not isinstance(base, ElasticModel) or isinstance(base, ContactModel):
             raise ModelError("ContactModel needs a plain ElasticModel as base (one indenter per model)")
@@ -226,14 +255,18 @@ class ContactModel(ElasticModel):
         ids, area = surface_node_areas(mesh, top_surface_nodes(mesh) if nodes is None else nodes)
         if ids.size == 0:
             raise BoundaryConditionError("no candidate contact nodes on the surface")
+        copies = np.ones(len(ids))
+        if mirror_planes:
+            area, copies = _mirrored_areas(mesh, ids, mirror_planes)
         for k in ("kind", "rest_points", "tets", "tet_regions", "tet_Dm_inv", "tet_volumes", "region_names", "nu_min"):
             setattr(self, k, getattr(base, k))
         self.base = base
         self.indenter = indenter
         self.depth = jnp.asarray(depth, dtype=float)
         self.contact_nodes = ids
-        self.penalty_factors = penalty * np.sqrt(area)
-        self.penalty = penalty
+        # the whole specimen's kappa = penalty E (copies A_i) / sqrt(copies A_i), shared by the copies
+        self.penalty_factors = penalty * np.sqrt(copies * area) / copies
+        self.penalty = float(penalty)
 
     def with_depth(self, depth) -> "ContactModel":
         """The same model with the indenter at ``depth`` [m] (traceable: no recompile)."""
@@ -373,8 +406,11 @@ class Platens(eqx.Module):
             c = p[bottom, :2].mean(axis=0)
             sym = set(symmetry_planes)
             if not {"x", "y"} <= sym:
+                # a plane normal to x already holds translation x and rotation about z: only
+                # translation y is left, and pinning u_y anywhere carries no force (u_x of a
+                # node off the plane is not zero in the homogeneous solution: it stays free)
                 anchor = bottom[np.argmin(np.linalg.norm(p[bottom, :2] - c, axis=1))]
-                bc = bc.fix(mesh, np.array([anchor]), "xy")
+                bc = bc.fix(mesh, np.array([anchor]), "".join(a for a in "xy" if a not in sym))
                 if not sym:
                     # a second bottom node away from the anchor along x stops rotation about z
                     d = p[bottom, :2] - p[anchor, :2]

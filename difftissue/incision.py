@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._io import atomic_output
-from .boundary import BoundaryConditions
+from .boundary import ROLLER_FACES, BoundaryConditions, Roller, apply_rollers, rigid_mode_rank
 from .cutting import Cut, CutClosureModel, Opening, closed_mask, opening_width
 from .errors import ConfigError, CutError, DataError
 from .constitutive import surface_tension as _model_surface_tension
@@ -116,29 +116,49 @@ class IncisionResult(NamedTuple):
     opening: Opening
 
 
-def incision_boundary(mesh, *, lateral: str = "held", base: str = "clamped") -> BoundaryConditions:
+def incision_boundary(mesh, *, lateral: str = "held", base: str = "clamped", rollers: Sequence = ()) -> BoundaryConditions:
     """Boundary conditions of an incision specimen.
 
     Args:
         mesh: the cut mesh (``cut.mesh``) or any :class:`~difftissue.mesh.TetMesh`.
-        lateral: ``"held"``: the faces ``x-min, x-max, y-min, y-max`` fixed in x and y at the
-            mesh positions (the stretched, in-vivo state: the surrounding skin keeps its
-            tension; z free); ``"free"``: nothing (an excised specimen, which shrinks to
-            ``1/lambda0`` before it is cut).
+        lateral: the side faces ``x-min, x-max, y-min, y-max`` (those not named in
+            ``rollers``): ``"held"``: fixed in x and y at the mesh positions (the stretched,
+            in-vivo state: the surrounding skin keeps its tension; z free); ``"roller"``: only
+            the normal component held (``u_x = 0`` on the x faces, ``u_y = 0`` on the y faces:
+            the faces keep their stretched positions but slide along themselves, frictionless);
+            ``"free"``: nothing (an excised specimen, which shrinks to ``1/lambda0`` before it
+            is cut).
         base: ``"clamped"``: the base ``z = min z`` fixed in x, y, z; ``"sliding"``: u_z = 0
-            there (needs ``lateral="held"`` to remove the in-plane rigid modes).
+            there.
+        rollers: roller supports (:class:`~difftissue.boundary.Roller` or their data forms):
+            a side face named here (``"x-min"``) is a roller (symmetry plane) instead of taking
+            ``lateral``, e.g. the plane through the middle of a cut, normal to it, in a half
+            model; a table ``{"set": selector, "components": "y"}`` holds those components of
+            any node set at zero in addition.
+
+    Raises:
+        ConfigError: an unknown ``lateral`` or ``base``, or conditions that leave a rigid-body
+            mode free (``lateral="free"`` with ``base="sliding"`` and no rollers that hold it).
+        BoundaryConditionError: a roller that selects nothing or has no effect.
     """
-    if lateral not in ("held", "free"):
-        raise ConfigError(f"lateral must be 'held' or 'free', got {lateral!r}")
+    if lateral not in ("held", "roller", "free"):
+        raise ConfigError(f"lateral must be 'held', 'roller' or 'free', got {lateral!r}")
     if base not in ("clamped", "sliding"):
         raise ConfigError(f"base must be 'clamped' or 'sliding', got {base!r}")
-    if lateral == "free" and base == "sliding":
-        raise ConfigError("lateral='free' with base='sliding' leaves in-plane rigid motion: clamp the base or hold the lateral faces")
+    if isinstance(rollers, (str, dict, Roller)):
+        raise ConfigError(f"rollers must be a list, got {rollers!r}")
+    named = {r for r in rollers if isinstance(r, str)} | {r.nodes for r in rollers if isinstance(r, Roller) and isinstance(r.nodes, str) and r.components == ROLLER_FACES.get(r.nodes)}
     bc = BoundaryConditions.free(mesh)
-    if lateral == "held":
-        for face in ("x-min", "x-max", "y-min", "y-max"):
-            bc = bc.fix(mesh, {"face": face}, "xy")
-    return bc.fix(mesh, {"face": "z-min"}, "xyz" if base == "clamped" else "z")
+    for face in ("x-min", "x-max", "y-min", "y-max"):
+        if face in named or lateral == "free":
+            continue
+        bc = bc.fix(mesh, {"face": face}, "xy" if lateral == "held" else face[0])
+    bc = bc.fix(mesh, {"face": "z-min"}, "xyz" if base == "clamped" else "z")
+    bc = apply_rollers(bc, mesh, rollers)
+    if rigid_mode_rank(np.asarray(mesh.points), bc.fixed) < 6:
+        raise ConfigError(f"lateral={lateral!r} with base={base!r}" + (f" and rollers {list(rollers)}" if len(rollers) else "")
+                          + " leaves in-plane rigid motion free: clamp the base, hold the lateral faces or add rollers that hold them")
+    return bc
 
 
 def depth_profile(cut: Cut, width, *, s: float | None = None):
@@ -230,6 +250,7 @@ class Incision(eqx.Module):
         fitted_regions: Sequence[str | int] | None = None,
         lateral: str = "held",
         base: str = "clamped",
+        rollers: Sequence = (),
         bc: BoundaryConditions | None = None,
         options: IncisionOptions = IncisionOptions(),
         name: str = "incision",
@@ -246,7 +267,7 @@ class Incision(eqx.Module):
             materials: one material per region for the regions that are not fitted (default
                 the specimen's); required with ``fitted_regions`` on a bare mesh.
             fitted_regions: region names or indices the fitted material applies to (None: all).
-            lateral, base: see :func:`incision_boundary` (ignored when ``bc`` is given).
+            lateral, base, rollers: see :func:`incision_boundary` (not used when ``bc`` is given).
             bc: explicit boundary conditions on ``cut.mesh``.
             options: :class:`IncisionOptions`.
         """
@@ -265,7 +286,9 @@ class Incision(eqx.Module):
         self.quantity = quantity
         mesh = cut.mesh
         self.model = CutClosureModel(make_model(mesh, model), cut, -jnp.inf, penalty_factor=options.penalty_factor)
-        self.bc = incision_boundary(mesh, lateral=lateral, base=base) if bc is None else bc
+        if bc is not None and (lateral, base, tuple(rollers)) != ("held", "clamped", ()):
+            raise ConfigError("give either bc or lateral / base / rollers, not both")
+        self.bc = incision_boundary(mesh, lateral=lateral, base=base, rollers=rollers) if bc is None else bc
         # materials of the regions that are not fitted
         if materials is None:
             materials = cut.materials

@@ -31,6 +31,7 @@ from .errors import (
     InvertedElementError,
     MaterialError,
     MeshError,
+    ModelError,
     NonFiniteCoordinatesError,
     NonManifoldSurfaceWarning,
     UnsupportedMeshError,
@@ -47,7 +48,10 @@ __all__ = [
     "Finding",
     "block",
     "structured_grid",
+    "graded_axis",
+    "refined_axis",
     "layered_skin",
+    "layer_node_heights",
     "default_skin_layers",
     "signed_volumes",
     "mean_ratio_quality",
@@ -502,6 +506,67 @@ def structured_grid(
     return TetMesh(points, tets, np.repeat(cid, 6), region_names, lattice=lattice)
 
 
+def graded_axis(length: float, cells: int, first: float | None = None, *, core: float | None = None) -> np.ndarray:
+    """Node coordinates ``0 .. length`` [m] with ``cells`` cells growing geometrically from
+    ``first`` [m] (uniform when ``first`` is None or ``>= length / cells``).
+
+    With ``core`` [m], cells of size ``first`` are kept uniform up to ``core`` (rounded to
+    whole cells) and grow geometrically only beyond it: a contact region that widens with
+    depth stays resolved (linear tets need about ten cells across the contact radius).
+    """
+    length, cells = float(length), int(cells)
+    if not (length > 0 and cells >= 1):
+        raise ModelError(f"an axis needs a positive length and >= 1 cell, got {length}, {cells}")
+    if core is not None and first is not None and 0 < core < length:
+        n_core = max(1, int(round(core / first)))
+        if n_core >= cells:
+            raise ModelError(f"a uniform core of {core:g} m with cells of {first:g} m needs {n_core} cells; give more than that ({cells} given)")
+        c = n_core * first
+        if c >= length:
+            return np.linspace(0.0, length, cells + 1)
+        outer = graded_axis(length - c, cells - n_core, first)
+        return np.concatenate([np.linspace(0.0, c, n_core + 1), c + outer[1:]])
+    if first is None or first >= length / cells or cells == 1:
+        # (one cell spans the length whatever its first size: brentq would have no root)
+        return np.linspace(0.0, length, cells + 1)
+    if first <= 0:
+        raise ModelError(f"first cell size must be > 0 m, got {first}")
+    from scipy.optimize import brentq
+
+    q = brentq(lambda q: first * (q**cells - 1.0) / (q - 1.0) - length, 1.0 + 1e-12, 1e3)
+    x = np.concatenate([[0.0], np.cumsum(first * q ** np.arange(cells))])
+    x[-1] = length
+    return x
+
+
+def refined_axis(length: float, cells: int, center: float, first: float, *, core: float | None = None) -> np.ndarray:
+    """Node coordinates ``0 .. length`` [m] with ``cells`` cells, finest (``first`` [m]) at
+    ``center`` [m] and growing geometrically towards both ends (:func:`graded_axis` on each
+    side; with ``core`` [m] uniform within ``core`` of ``center``). The cells are shared between
+    the two sides in proportion to their lengths (at least one each); a ``center`` on an end
+    grades one side only."""
+    L, n, c = float(length), int(cells), float(center)
+    if not (np.isfinite(c) and -1e-12 * L <= c <= L * (1 + 1e-12)):
+        raise MeshError(f"the refinement centre {center!r} m must lie in [0, {L:g}] m")
+    tol = 1e-9 * L
+    sides = [s for s in (c, L - c) if s > tol]
+    if core is not None and any(core >= s for s in sides):
+        raise MeshError(f"core {core:g} m reaches past a side of the axis (the refinement line at {c:g} m of {L:g} m): "
+                        "give a core shorter than the distance to each side it grades")
+    if c <= tol:
+        return graded_axis(L, n, first, core=core)
+    if c >= L - tol:
+        return L - graded_axis(L, n, first, core=core)[::-1]
+    if n < 2:
+        raise MeshError(f"refining about an interior point needs at least two cells along the axis, got {n}")
+    n_left = min(n - 1, max(1, int(round(n * c / L))))
+    left = c - graded_axis(c, n_left, first, core=core)[::-1]
+    right = c + graded_axis(L - c, n - n_left, first, core=core)
+    x = np.concatenate([left, right[1:]])
+    x[0], x[-1] = 0.0, L
+    return x
+
+
 def block(size, resolution, *, origin=(0.0, 0.0, 0.0), region_name: str = "tissue") -> TetMesh:
     """A rectangular block of ``resolution`` cubes split into 6 tets each.
 
@@ -565,6 +630,10 @@ def layered_skin(
     resolution=(20, 20),
     *,
     cell_size: float | None = None,
+    grading=None,
+    refine: float | None = None,
+    refine_at=None,
+    core=None,
 ) -> Specimen:
     """A layered skin specimen (epidermis / dermis / hypodermis style), one region per layer.
 
@@ -579,6 +648,17 @@ def layered_skin(
         resolution: lateral number of cells ``(nx, ny)``.
         cell_size: target cell height [m] for layers without a cell count; default the mean
             lateral cell size. Each layer gets ``max(1, floor(thickness / cell_size + 1/2))`` cells.
+        grading: ``{layer name: ratio}``: the cells through that layer grow geometrically, each
+            ``ratio`` times as high as the cell above it (``ratio > 1``: finest at the layer's
+            top, e.g. under the skin surface; ``< 1``: finest at its base; 1: uniform). The
+            heights ``h_k = h_0 ratio^k`` (k = 0 at the top) fill the thickness exactly. A
+            layer needs at least two cells to be graded.
+        refine: lateral refinement: the cells are ``refine`` [m] wide at the lines
+            ``x = refine_at[0]`` and ``y = refine_at[1]`` and grow geometrically away from them
+            (:func:`refined_axis`; e.g. around a cut), keeping ``resolution`` cells per axis.
+        refine_at: ``(x, y)`` [m] of the refinement lines (default the centre of the top).
+        core: ``w`` or ``(wx, wy)`` [m]: the cells stay ``refine`` wide within this distance
+            of the lines (e.g. half the cut length along the cut) and grow only beyond it.
 
     Returns:
         A :class:`Specimen` whose mesh has region names = layer names (region id = layer
@@ -593,6 +673,21 @@ def layered_skin(
         raise MeshError(f"size must be positive lateral lengths in metres, got {size!r}")
     if nx < 1 or ny < 1:
         raise MeshError(f"resolution must be positive numbers of cells, got {resolution!r}")
+    if refine is None:
+        if refine_at is not None or core is not None:
+            raise MeshError("refine_at and core need refine (the lateral cell size at the refinement lines)")
+        xs, ys = np.linspace(0, Lx, nx + 1), np.linspace(0, Ly, ny + 1)
+    else:
+        if not (np.isfinite(float(refine)) and float(refine) > 0):
+            raise MeshError(f"refine must be a positive lateral cell size in metres, got {refine!r}")
+        at = (0.5 * Lx, 0.5 * Ly) if refine_at is None else tuple(float(v) for v in np.asarray(refine_at, dtype=float).reshape(-1))
+        if len(at) != 2:
+            raise MeshError(f"refine_at must be a point (x, y) in metres, got {refine_at!r}")
+        cores = (None, None) if core is None else tuple(float(v) for v in np.broadcast_to(np.asarray(core, dtype=float), (2,)))
+        if core is not None and not all(np.isfinite(c) and c > 0 for c in cores):
+            raise MeshError(f"core must be one or two positive lengths in metres, got {core!r}")
+        xs = refined_axis(Lx, nx, at[0], float(refine), core=cores[0])
+        ys = refined_axis(Ly, ny, at[1], float(refine), core=cores[1])
     h = float(cell_size) if cell_size is not None else 0.5 * (Lx / nx + Ly / ny)
     names, mats, thick, ncells = [], [], [], []
     for entry in layers:
@@ -612,15 +707,59 @@ def layered_skin(
         mats.append(mat)
         thick.append(t)
         ncells.append(n)
+    ratios = _layer_grading(grading, names, ncells)
     # Stack from the base (deepest layer, z = 0) upwards.
     zs = [0.0]
     cube_layer = []
     for idx in reversed(range(len(layers))):
-        zs.extend(zs[-1] + thick[idx] * np.arange(1, ncells[idx] + 1) / ncells[idx])
+        base = zs[-1]
+        zs.extend(base + layer_node_heights(thick[idx], ncells[idx], ratios[idx])[1:])
         cube_layer.extend([idx] * ncells[idx])
     cube_ids = np.repeat(np.asarray(cube_layer, dtype=np.int32), nx * ny)
-    mesh = structured_grid(np.linspace(0, Lx, nx + 1), np.linspace(0, Ly, ny + 1), np.asarray(zs), cube_region_ids=cube_ids, region_names=names)
+    mesh = structured_grid(xs, ys, np.asarray(zs), cube_region_ids=cube_ids, region_names=names)
     return Specimen(mesh, tuple(mats))
+
+
+def layer_node_heights(thickness: float, cells: int, ratio: float = 1.0) -> np.ndarray:
+    """Node heights ``0 .. thickness`` [m] above the base of a layer of ``cells`` cells whose
+    heights grow by ``ratio`` from the top down: the cell at the top is ``h_0 = thickness
+    (ratio - 1) / (ratio^cells - 1)`` high, the one below it ``h_0 ratio``, ... (uniform for
+    ``ratio = 1``). The end points are exact (0 and ``thickness``)."""
+    t, n, r = float(thickness), int(cells), float(ratio)
+    if not (np.isfinite(t) and t > 0) or n < 1:
+        raise MeshError(f"a layer needs a positive thickness and >= 1 cell, got {thickness!r}, {cells!r}")
+    if not (np.isfinite(r) and r > 0):
+        raise MeshError(f"grading ratio must be a positive finite number (1 = uniform), got {ratio!r}")
+    if r == 1.0:
+        return t * np.arange(n + 1) / n
+    h = r ** np.arange(n)  # from the top down, h_0 = 1
+    depth = np.concatenate([[0.0], np.cumsum(h)]) / h.sum()  # 0 .. 1 from the top
+    z = t * (1.0 - depth[::-1])  # from the base up
+    z[0], z[-1] = 0.0, t
+    return z
+
+
+def _layer_grading(grading, names: list[str], ncells: list[int]) -> list[float]:
+    """The grading ratio of each layer from ``layered_skin``'s ``grading`` mapping."""
+    ratios = [1.0] * len(names)
+    if grading is None:
+        return ratios
+    if not isinstance(grading, dict):
+        raise MeshError(f"grading must be a mapping {{layer name: ratio}}, got {grading!r}")
+    for name, r in grading.items():
+        if name not in names:
+            raise MeshError(f"grading names layer {name!r}; the layers are {names}")
+        i = names.index(name)
+        try:
+            r = float(r)
+        except (TypeError, ValueError):
+            raise MeshError(f"layer {name!r}: grading ratio must be a positive number, got {grading[name]!r}") from None
+        if not (np.isfinite(r) and r > 0):
+            raise MeshError(f"layer {name!r}: grading ratio must be a positive finite number (1 = uniform), got {grading[name]!r}")
+        if ncells[i] < 2 and r != 1.0:
+            raise MeshError(f"layer {name!r}: grading needs at least two cells through the layer (it has {ncells[i]})")
+        ratios[i] = r
+    return ratios
 
 
 # ------------------------------------------------------------------------------ meshio

@@ -35,11 +35,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import analytic
-from .boundary import BoundaryConditions, check_rigid_modes
+from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_free_rigid_modes
 from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
 from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError, SelectorError
 from .materials import Material
-from .mesh import TetMesh, structured_grid
+from .mesh import TetMesh, graded_axis, structured_grid
 from .interpolation import interpolation_operator
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
@@ -171,38 +171,6 @@ class AnalyticIndentation(eqx.Module):
 
 
 # ============================================================================ meshes
-def graded_axis(length: float, cells: int, first: float | None = None, *, core: float | None = None) -> np.ndarray:
-    """Node coordinates ``0 .. length`` [m] with ``cells`` cells growing geometrically from
-    ``first`` [m] (uniform when ``first`` is None or ``>= length / cells``).
-
-    With ``core`` [m], cells of size ``first`` are kept uniform up to ``core`` (rounded to
-    whole cells) and grow geometrically only beyond it: a contact region that widens with
-    depth stays resolved (linear tets need about ten cells across the contact radius).
-    """
-    length, cells = float(length), int(cells)
-    if not (length > 0 and cells >= 1):
-        raise ModelError(f"an axis needs a positive length and >= 1 cell, got {length}, {cells}")
-    if core is not None and first is not None and 0 < core < length:
-        n_core = max(1, int(round(core / first)))
-        if n_core >= cells:
-            raise ModelError(f"a uniform core of {core:g} m with cells of {first:g} m needs {n_core} cells; give more than that ({cells} given)")
-        c = n_core * first
-        if c >= length:
-            return np.linspace(0.0, length, cells + 1)
-        outer = graded_axis(length - c, cells - n_core, first)
-        return np.concatenate([np.linspace(0.0, c, n_core + 1), c + outer[1:]])
-    if first is None or first >= length / cells:
-        return np.linspace(0.0, length, cells + 1)
-    if first <= 0:
-        raise ModelError(f"first cell size must be > 0 m, got {first}")
-    from scipy.optimize import brentq
-
-    q = brentq(lambda q: first * (q**cells - 1.0) / (q - 1.0) - length, 1.0 + 1e-12, 1e3)
-    x = np.concatenate([[0.0], np.cumsum(first * q ** np.arange(cells))])
-    x[-1] = length
-    return x
-
-
 def indentation_block(size, cells, *, symmetry: str = "quarter", refine: float | None = None, core: float | None = None) -> TetMesh:
     """A block for indentation along -z at the axis x = y = 0, top surface at ``z = size[2]``.
 
@@ -531,6 +499,7 @@ class Indentation(eqx.Module):
         base: str = "bonded",
         symmetry: str = "none",
         axis_xy=None,
+        rollers: Sequence = (),
         penalty: float = 100.0,
         sigma=None,
         options: SolverOptions = SolverOptions(),
@@ -549,6 +518,13 @@ class Indentation(eqx.Module):
             symmetry: ``"quarter"`` or ``"none"`` (see the class docstring).
             axis_xy: indenter axis [m]; default (0, 0) with quarter symmetry, else the centre of
                 the top surface.
+            rollers: roller supports (:class:`~difftissue.boundary.Roller` or their data forms
+                ``"x-max"`` / ``{"set": selector, "components": "x"}``): the listed displacement
+                components held at zero, e.g. frictionless walls confining the sides. They add
+                to ``base`` and ``symmetry`` (the force is not multiplied: a symmetry model is
+                ``symmetry="quarter"``); a roller on the top surface's z (the contact surface)
+                or the punch is refused, and with a sliding base no pin is added where the
+                rollers already remove the in-plane rigid modes.
             penalty: contact penalty (see :class:`~difftissue.contact.ContactModel`).
             solver: ``"full"`` (a Newton solve of the whole specimen per depth),
                 ``"condensed"`` (the linear body condensed onto the candidate contact nodes,
@@ -589,11 +565,20 @@ class Indentation(eqx.Module):
             raise ConfigError(f"base must be 'bonded' or 'sliding', got {base!r}")
         if symmetry == "quarter":
             bc = bc.fix(mesh, {"face": "x-min"}, "x").fix(mesh, {"face": "y-min"}, "y")
-        elif base == "sliding":
+        if rollers:
+            loaded = np.zeros((mesh.n_nodes, 3), dtype=bool)
+            if indenter == "flat_punch" and radius is not None:
+                loaded[FlatPunch(float(radius), axis_xy=axis, bonded=bonded_punch).nodes(mesh)] = True if bonded_punch else [False, False, True]
+            else:
+                loaded[top_surface_nodes(mesh), 2] = True
+            bc = apply_rollers(bc, mesh, rollers, loaded=loaded)
+        if base == "sliding" and symmetry != "quarter":
+            # pins for the in-plane rigid modes the rollers (if any) leave free: u_x, u_y of the
+            # bottom node nearest the axis, u_y of the bottom node farthest from it along x
             bottom = np.flatnonzero(np.abs(p[:, 2] - lo[2]) <= tol)
             anchor = bottom[np.argmin(np.hypot(p[bottom, 0] - axis[0], p[bottom, 1] - axis[1]))]
             other = bottom[np.argmax(np.abs(p[bottom, 0] - p[anchor, 0]))]
-            bc = bc.fix(mesh, np.array([anchor]), "xy").fix(mesh, np.array([other]), "y")
+            bc = pin_free_rigid_modes(mesh, bc, [(anchor, "x"), (anchor, "y"), (other, "y")])
         base_model = make_model(mesh, model)
         if indenter in ("sphere", "cone"):
             if indenter == "sphere":
@@ -604,7 +589,7 @@ class Indentation(eqx.Module):
                 if half_angle is None:
                     raise ConfigError("a cone indenter needs half_angle [rad]")
                 geom = ConeIndenter(float(half_angle), axis_xy=axis, surface_z=float(hi[2]))
-            self.model = ContactModel(base_model, geom, mesh, penalty=penalty)
+            self.model = ContactModel(base_model, geom, mesh, penalty=penalty, mirror_planes=("x-min", "y-min") if symmetry == "quarter" else ())
             self.punch_mask = None
             self.punch = None
         elif indenter == "flat_punch":
@@ -752,6 +737,7 @@ class Compression(eqx.Module):
         model: str = "springs_volume",
         bonded: bool = False,
         measure: str = "engineering",
+        rollers: Sequence = (),
         sigma=None,
         options: SolverOptions = SolverOptions(),
         name: str = "compression",
@@ -765,6 +751,13 @@ class Compression(eqx.Module):
             model: elastic model name.
             bonded: no-slip platens (default frictionless).
             measure: ``"engineering"`` or ``"true"``.
+            rollers: roller supports on the sides (:class:`~difftissue.boundary.Roller` or their
+                data forms ``"x-min"`` / ``{"set": selector, "components": "x"}``): symmetry
+                planes of the specimen (the stress is that of the whole specimen: a half or
+                quarter model needs no factor) or frictionless walls (``["x-min", "x-max",
+                "y-min", "y-max"]``: confined compression). With frictionless platens the
+                in-plane pins are added only for the rigid modes the rollers leave free; a
+                roller on the top platen's z is refused.
         """
         self.name = str(name)
         eps = _as_1d("strains", strains)
@@ -791,7 +784,21 @@ class Compression(eqx.Module):
         self.bonded = bool(bonded)
         platens = Platens(bonded=self.bonded)
         bottom, top = platens.faces(mesh)
-        self.bc = platens.apply(mesh, BoundaryConditions.free(mesh), 0.0)
+        if not rollers:
+            self.bc = platens.apply(mesh, BoundaryConditions.free(mesh), 0.0)
+        else:
+            # the platens without their in-plane pins (symmetry_planes x and y), the rollers, then
+            # the pins Platens would add, each only where a rigid mode is still free
+            bc = platens.apply(mesh, BoundaryConditions.free(mesh), 0.0, symmetry_planes=("x", "y"))
+            loaded = np.zeros((mesh.n_nodes, 3), dtype=bool)
+            loaded[top, :] = True if bonded else [False, False, True]
+            bc = apply_rollers(bc, mesh, rollers, loaded=loaded)
+            c = p[bottom, :2].mean(axis=0)
+            anchor = bottom[np.argmin(np.linalg.norm(p[bottom, :2] - c, axis=1))]
+            d = p[bottom, :2] - p[anchor, :2]
+            other = bottom[np.argmax(np.abs(d[:, 0]) - 1e-3 * np.abs(d[:, 1]))]
+            self.bc = pin_free_rigid_modes(mesh, bc, [(anchor, "x"), (anchor, "y"), (other, "y")])
+            check_rigid_modes(p, self.bc.fixed)
         mask = np.zeros(mesh.n_nodes, dtype=bool)
         mask[top] = True
         self.top_mask = mask
