@@ -670,20 +670,29 @@ def _pull_scenario():
     return Pull("pull", np.array([25.0]), observed, 1e-3 * np.ones(1)), seen
 
 
-@pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning", "ignore::difftissue.errors.FitQualityWarning")
-@pytest.mark.parametrize("method,separate", [("adam", False), ("adam", True), ("lbfgs", False), ("lbfgs", True)])
-def test_reverse_mode_fit_rejects_a_failed_trial_point(method, separate):
-    """A trial point whose static solve fails gives a NaN loss and gradient (failure="nan");
-    Adam halves the step, L-BFGS's line search shortens it: the fit continues to the optimum
-    instead of stopping with a non-finite loss (Adam did) or raising."""
+@pytest.fixture(scope="module")
+def pull():
+    """One pull scenario for the four reverse-mode cases, and one reverse-mode
+    ``SeparatelyCompiled`` of it: its solve, gradient and separately compiled programs are
+    compiled once for the module (the cases clear the recorded trial points themselves)."""
     from difftissue.config import SeparatelyCompiled
 
     sc, seen = _pull_scenario()
+    return sc, seen, SeparatelyCompiled(sc, mode="reverse")
+
+
+@pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning", "ignore::difftissue.errors.FitQualityWarning")
+@pytest.mark.parametrize("method,separate", [("adam", False), ("adam", True), ("lbfgs", False), ("lbfgs", True)])
+def test_reverse_mode_fit_rejects_a_failed_trial_point(method, separate, pull):
+    """A trial point whose static solve fails gives a NaN loss and gradient (failure="nan");
+    Adam halves the step, L-BFGS's line search shortens it: the fit continues to the optimum
+    instead of stopping with a non-finite loss (Adam did) or raising."""
+    sc, seen, separately_compiled = pull
     assert np.isnan(float(sc.predict(Material(40.0, 0.3))[0]))  # the premise: a failing region
     assert np.isnan(float(jax.grad(lambda E: sc.predict(Material(E, 0.3))[0])(40.0)))
     seen.clear()
     kw = {"learning_rate": 1.5, "max_steps": 300} if method == "adam" else {"max_steps": 100}
-    target = SeparatelyCompiled(sc, mode="reverse") if separate else sc
+    target = separately_compiled if separate else sc
     # Adam's first step is learning_rate in log E: 200 exp(-1.5) = 45 Pa, a failing trial point.
     res = fit(target, MaterialParameterization(("youngs_modulus",)), Material(200.0, 0.3), method=method, jac="bwd", **kw)
     failed = [E for E, v in seen if not np.isfinite(v)]
