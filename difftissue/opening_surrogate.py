@@ -110,7 +110,8 @@ def surrogate_width(node_depth, cut_depth, alpha, c, w_max=math.inf, *, smoothin
         c: scale > 0 [-] (width per unit depth at ``alpha = 0``).
         w_max: cap [m] > 0 (``inf``: no cap).
         smoothing: ``None`` for the exact ``min``; ``s`` [m] > 0 for :func:`smooth_min`, whose
-            width is below the exact one by at most ``s ln 2`` (at the cap's corner).
+            width is below the exact one by at most ``s ln 2`` (at the cap's corner) and never
+            below 0 (clipped at the cut bottom, where the smooth minimum dips below 0).
 
     Returns:
         Widths [m], the broadcast shape of the arguments. Concrete bad values raise
@@ -133,7 +134,9 @@ def surrogate_width(node_depth, cut_depth, alpha, c, w_max=math.inf, *, smoothin
     raw = c * (jnp.asarray(cut_depth) - jnp.asarray(node_depth)) / (1.0 - alpha)
     if smoothing is None:
         return jnp.minimum(raw, w_max)
-    return smooth_min(raw, w_max, smoothing)
+    # At the cut bottom (raw = 0) the smooth minimum is -s log(1 + exp(-w_max / s)) < 0: a width
+    # is never negative (open_duplicated_nodes refuses that), so it is clipped at 0 there.
+    return jnp.maximum(smooth_min(raw, w_max, smoothing), 0.0)
 
 
 def alpha_from_pre_stretch(pre_stretch):

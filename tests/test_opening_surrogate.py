@@ -171,3 +171,22 @@ def test_fit_refuses_unidentifiable_or_bad_input():
         fit_surrogate(h + D, w, D, alpha=0.3)
     with pytest.raises(SurrogateError, match="alpha"):
         fit_surrogate(h, w, D, alpha=1.2)
+
+
+def test_smooth_width_is_never_negative_at_the_cut_bottom():
+    """At the cut bottom the smooth minimum dips below 0 (-s log(1 + exp(-w_max/s))); the width
+    is clipped at 0 so that open_duplicated_nodes takes it (it refuses negative widths)."""
+    import numpy as np
+
+    from difftissue.opening_surrogate import open_duplicated_nodes, smooth_min, surrogate_width
+
+    d, s, w_max = 2e-3, 1e-4, 5e-4
+    assert float(smooth_min(0.0, w_max, s)) < 0.0  # what the clip guards against
+    h = np.array([0.0, 0.5 * d, d])
+    w = np.asarray(surrogate_width(h, d, 0.2, 0.3, w_max, smoothing=s))
+    assert np.all(w >= 0.0) and w[-1] == 0.0
+    pos = np.zeros((3, 3))
+    normals = np.tile([0.0, 1.0, 0.0], (3, 1))
+    dirs = np.tile([1.0, 0.0, 0.0], (3, 1))
+    opened = np.asarray(open_duplicated_nodes(pos, normals, dirs, w))
+    assert np.all(np.isfinite(opened))
