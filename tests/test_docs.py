@@ -69,8 +69,10 @@ def test_the_code_blocks_of_cutting_md_run(tmp_path, monkeypatch):
     sweep = [float(np.max(w)) for w in ns["sweep"]]
     assert sweep[0] > 1e-7 and np.all(np.diff(sweep) > 0)
     # Pre-tension: the numbers in the comments.
-    np.testing.assert_allclose(ns["T"], 27.3, rtol=2e-3)
-    np.testing.assert_allclose(ns["lam0"], 1.0183, rtol=1e-4)
+    np.testing.assert_allclose(ns["T"], 23.70, rtol=2e-3)  # the model's own tension
+    np.testing.assert_allclose(ns["T_lin"], 27.27, rtol=2e-3)  # the linear formula
+    np.testing.assert_allclose(ns["lam0"], 1.0194, rtol=1e-4)
+    np.testing.assert_allclose(ns["lam0_lin"], 1.0183, rtol=1e-4)
     # The surrogate: exact and smooth widths, copies w apart.
     w, w_smooth = np.asarray(ns["w"]), np.asarray(ns["w_smooth"])
     np.testing.assert_allclose(w, 0.5 * 1.1 * (1e-3 - ns["depths"]), rtol=1e-12, atol=1e-18)
