@@ -63,6 +63,18 @@ def _is_concrete(tree) -> bool:
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(tree))
 
 
+#: SI unit of every material field a fit or a card may hold ("1" for dimensionless); the one
+#: table :data:`difftissue.fit.UNITS` and :data:`difftissue.export.card.PARAMETER_UNITS` name.
+FIELD_UNITS: dict[str, str] = {
+    "youngs_modulus": "Pa",
+    "poisson_ratio": "1",
+    "cubic_coefficient": "1",
+    "density": "kg/m^3",
+    "pre_stretch": "1",
+    "surface_tension": "N/m",
+}
+
+
 class Material(eqx.Module):
     """An isotropic, (optionally) strain-stiffening, pre-stretched tissue material.
 

@@ -22,7 +22,7 @@ from typing import Any, Mapping, Sequence
 
 from .._io import atomic_output, sha256_file
 from ..errors import EffectiveModulusError, ExportError
-from ..materials import Material
+from ..materials import FIELD_UNITS, Material
 from ._common import UNITS, UNITS_LINE, difftissue_version, finite
 
 __all__ = [
@@ -72,14 +72,7 @@ MODEL_ENERGIES: dict[str, str] = {
 
 
 #: SI unit of every parameter a card may hold.
-PARAMETER_UNITS: dict[str, str] = {
-    "youngs_modulus": "Pa",
-    "poisson_ratio": "1",
-    "cubic_coefficient": "1",
-    "density": "kg/m^3",
-    "pre_stretch": "1",
-    "surface_tension": "N/m",
-}
+PARAMETER_UNITS: dict[str, str] = FIELD_UNITS
 
 
 _DEFAULTS = {"cubic_coefficient": 0.0, "density": 1000.0, "pre_stretch": 1.0}

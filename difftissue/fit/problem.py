@@ -16,18 +16,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from ..materials import Material, MaterialParameterization
+from ..materials import FIELD_UNITS, Material, MaterialParameterization
 
 
 #: SI unit of every material field ("1" for dimensionless).
-UNITS: dict[str, str] = {
-    "youngs_modulus": "Pa",
-    "poisson_ratio": "1",
-    "cubic_coefficient": "1",
-    "density": "kg/m^3",
-    "pre_stretch": "1",
-    "surface_tension": "N/m",
-}
+UNITS: dict[str, str] = FIELD_UNITS
 
 
 def unit_text(unit: str) -> str:
