@@ -213,3 +213,48 @@ def test_no_export_module_imports_another_ones_private_names():
                 bad += [f"{path.name}:{node.lineno} from {'.' * node.level}{node.module or ''} import {a.name}"
                         for a in node.names if a.name.startswith("_") and not a.name.startswith("__")]
     assert not bad, "\n".join(bad)
+
+
+# ------------------------------------------------------------------ the config package (issue 18)
+#: Every public name of difftissue/config.py before it became a package, and the private ones
+#: the tests and docs use (``_build_experiment``, ``_coarse_block``, ``_cubic_estimate``).
+CONFIG_NAMES = [
+    "SCENARIOS", "FIELDS", "TISSUE_RANGES", "Experiment", "FitConfig", "tissue_range_check", "SeparatelyCompiled", "load_config",
+    "parse_config", "PLAUSIBLE_MODULUS", "PLAUSIBLE_DEPTH_OVER_RADIUS", "SMALL_STRAIN_FRACTION", "CUBIC_START_MAX_SE",
+    "PLAUSIBLE_MAX_STRAIN", "PERCENT_SUSPECT_STRAIN", "_build_experiment", "_coarse_block", "_cubic_estimate",
+]
+
+
+def test_difftissue_config_keeps_every_public_name():
+    import difftissue.config
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)  # the package path is the module path: no shim
+        missing = [n for n in CONFIG_NAMES if not hasattr(difftissue.config, n)]
+    assert not missing, missing
+    assert {"FitConfig", "Experiment", "load_config", "parse_config", "SCENARIOS", "FIELDS"} <= set(difftissue.config.__all__)
+    assert all(hasattr(difftissue.config, n) for n in difftissue.config.__all__)
+    # the CLI and tests patch these where the CLI looks them up
+    assert difftissue.config.load_config.__module__ == "difftissue.config.parser"
+    assert difftissue.config.FitConfig.__module__ == "difftissue.config.fitconfig"
+
+
+def test_the_config_layers_contract_places_every_module():
+    """The ``config-layers`` contract is exhaustive and names the package's modules."""
+    contract = _contracts()["config-layers"]
+    named = {m.strip() for layer in contract["layers"] for m in layer.split("|")}
+    modules = {p.stem for p in (PACKAGE / "config").glob("*.py") if p.stem != "__init__"}
+    assert contract["exhaustive"] and named == modules, (named, modules)
+
+
+def test_no_config_module_imports_a_function_level_difftissue_module():
+    """Imports of difftissue modules sit at the top of the config modules (none inside a
+    function, where they could hide a cycle or an upward import from a reader)."""
+    bad = []
+    for path in sorted((PACKAGE / "config").glob("*.py")):
+        tree = ast.parse(path.read_text(encoding="utf-8"))
+        top = set(map(id, tree.body))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ImportFrom) and node.level and id(node) not in top:
+                bad.append(f"{path.name}:{node.lineno}")
+    assert not bad, bad

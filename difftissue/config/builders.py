@@ -1,0 +1,626 @@
+"""Building one experiment from its ``[[experiment]]`` table: the data (through
+:mod:`~difftissue.config.rows`), the specimen mesh (generated block, cylinder, layered skin, or
+a mesh file), the indenter, platens, rollers, node sets, the cut, and the scenario
+(:class:`~difftissue.scenarios.AnalyticIndentation`, :class:`~difftissue.scenarios.Indentation`,
+:class:`~difftissue.scenarios.Compression`, :class:`~difftissue.scenarios.FEMField`,
+:class:`~difftissue.incision.Incision`), with its builder on a coarser mesh for the
+discretisation estimate. Each returns an :class:`~difftissue.config.Experiment`.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..boundary import ROLLER_FACES, Roller
+from ..cutting import ScalpelPath, cut_specimen
+from ..errors import DifftissueError
+from ..incision import Incision, IncisionOptions
+from ..materials import Material
+from ..mesh import Specimen, block, layered_skin, read_mesh
+from ..models import MODELS
+from ..scenarios import AnalyticIndentation, Compression, FEMField, Indentation, SolverOptions, cylinder, indentation_block
+from ..selectors import selector_from_dict
+from .estimates import _compression_estimate, _compression_plausibility, _indentation_estimate, _plausibility
+from .experiment import Experiment
+from .rows import _force_depth, _load_data, _stress_strain
+from .schema import (
+    _DATA_FORMATS,
+    _MESH_UNITS,
+    _SOLVER_KEYS,
+    FIELDS,
+    _bool,
+    _choice,
+    _counts,
+    _fail,
+    _integer,
+    _is_number,
+    _join,
+    _length,
+    _lengths,
+    _material_values,
+    _number,
+    _positive,
+    _reraise,
+    _resolve,
+    _show,
+    _sigma,
+    _string,
+    _table,
+    _unit_of,
+)
+
+def _solver_options(e: Mapping, path: str):
+    if "solver" not in e:
+        return SolverOptions()
+    p = _join(path, "solver")
+    t = _table(e["solver"], p, _SOLVER_KEYS)
+    kw: dict[str, Any] = {}
+    for k in ("rtol", "xtol"):
+        if k in t:
+            kw[k] = _positive(t[k], _join(p, k))
+    if "max_steps" in t:
+        kw["max_steps"] = _integer(t["max_steps"], _join(p, "max_steps"), minimum=1)
+    if "linear_solver" in t:
+        kw["linear_solver"] = _choice(t["linear_solver"], _join(p, "linear_solver"), ("auto", "multigrid", "sparse", "dense", "cg"))
+    return SolverOptions(**kw)
+
+
+def _model(e: Mapping, path: str, default: str) -> str:
+    return _choice(e.get("model", default), _join(path, "model"), MODELS)
+
+
+def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path, *, material=None) -> Experiment:
+    kind = e["scenario"]
+    if kind == "incision":
+        return _incision(e, path, name, base_dir, material)
+    builder = {"analytic_indentation": _analytic, "indentation": _indentation, "compression": _compression, "fem_field": _fem_field}[kind]
+    return builder(e, path, name, base_dir)
+
+
+def _indenter(e, path, curve, kind):
+    p = _join(path, "indenter")
+    if "indenter" not in e:
+        _fail(p, "missing (required): e.g. { shape = \"sphere\", radius = 27.5e-6 }")
+    t = _table(e["indenter"], p, ("shape", "radius", "half_angle_deg", "bonded", "length_unit"), ("shape",))
+    shape = _choice(t["shape"], _join(p, "shape"), ("sphere", "flat_punch", "cone"))
+    unit = _unit_of(t, p)
+    kw: dict[str, Any] = {"indenter": shape}
+    if shape == "cone":
+        for k in ("radius", "bonded"):
+            if k in t:
+                _fail(_join(p, k), "not used by a cone (give half_angle_deg)")
+        if "half_angle_deg" not in t:
+            _fail(_join(p, "half_angle_deg"), "missing (required for a cone): the half-angle in degrees")
+        deg = _number(t["half_angle_deg"], _join(p, "half_angle_deg"), check=lambda v: 0 < v < 90, rule="an angle in degrees in (0, 90)")
+        kw["half_angle"] = math.radians(deg)
+    else:
+        if "half_angle_deg" in t:
+            _fail(_join(p, "half_angle_deg"), f"not used by a {shape} (give radius)")
+        if "radius" not in t:
+            _fail(_join(p, "radius"), f"missing (required for a {shape}): a length in {unit[0]}, or \"instrument\" for the tip radius in the data file")
+        r = t["radius"]
+        if r == "instrument":
+            inst = getattr(curve, "metadata", {}).get("instrument", {}) or {}
+            if not inst.get("tip_radius"):
+                _fail(_join(p, "radius"), "\"instrument\": the data file records no tip radius; give the radius as a length")
+            kw["radius"] = float(inst["tip_radius"])
+        else:
+            kw["radius"] = _length(r, _join(p, "radius"), unit)
+        if "bonded" in t:
+            if shape != "flat_punch" or kind != "indentation":
+                _fail(_join(p, "bonded"), "only a simulated flat punch (scenario \"indentation\") can be bonded")
+            kw["bonded_punch"] = _bool(t["bonded"], _join(p, "bonded"))
+    return kw
+
+
+def _analytic(e, path, name, base_dir) -> Experiment:
+    curve, file, notes, depth, force, sigma, unit, prov = _force_depth(e, path, base_dir, "analytic_indentation")
+    kw = _indenter(e, path, curve, "analytic_indentation")
+    solution = _choice(e.get("solution", "half_space"), _join(path, "solution"), ("half_space", "exact_layer", "dimitriadis"))
+    thickness = _length(e["thickness"], _join(path, "thickness"), unit) if "thickness" in e else None
+    if solution != "half_space" and thickness is None:
+        _fail(_join(path, "thickness"), f"missing (required by solution = {solution!r}): the layer thickness in {unit[0]}")
+    if solution == "half_space" and thickness is not None:
+        _fail(_join(path, "thickness"), "not used by solution = 'half_space'; choose 'exact_layer' or 'dimitriadis' for a layer")
+    base = _choice(e.get("base", "bonded"), _join(path, "base"), ("bonded", "lubricated"))
+    if kw["indenter"] == "cone" and solution != "half_space":
+        _fail(_join(path, "solution"), "a cone has only the 'half_space' solution")
+    if kw["indenter"] == "flat_punch" and solution == "dimitriadis":
+        _fail(_join(path, "solution"), "'dimitriadis' is for a sphere; a flat punch on a layer uses 'exact_layer' (Hayes)")
+    try:
+        sc = AnalyticIndentation(depth, force, thickness=thickness, solution=solution, base=base, sigma=sigma, name=name, **kw)
+    except DifftissueError as err:
+        _reraise(path, err)
+    model = {"sphere": "hertz", "flat_punch": "sneddon_flat_punch", "cone": "sneddon_cone"}[kw["indenter"]] if solution == "half_space" else f"{solution}_{kw['indenter']}"
+    return Experiment(name, "analytic_indentation", model, sc, (file,), notes, prov, _plausibility(path, depth, force, kw, curve),
+                      _indentation_estimate(depth, force, sigma, kw), coarsen_skip="a closed-form solution: no mesh, no discretisation error")
+
+
+def _compression(e, path, name, base_dir) -> Experiment:
+    curve, file, notes, x, y, prov = _stress_strain(e, path, base_dir)
+    measure = _choice(e.get("measure", "engineering"), _join(path, "measure"), ("engineering", "true"))
+    plausibility = _compression_plausibility(path, curve, x, y, measure)
+    sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), y, "Pa")
+    platens = _choice(e.get("platens", "frictionless"), _join(path, "platens"), ("frictionless", "bonded"))
+    rollers = _rollers(e["rollers"], _join(path, "rollers")) if "rollers" in e else ()
+    model = _model(e, path, "springs_volume")
+    options = _solver_options(e, path)
+    p = _join(path, "specimen")
+    spec = _table(e.get("specimen", {}), p, ("shape", "size", "cells", "diameter", "height", "cells_radial", "cells_height", "mesh", "length_unit", "reorient"))
+    files = [file]
+    coarse_mesh, skip = None, _MESH_FILE_SKIP
+    if "mesh" in spec:
+        mesh, mfile = _mesh_file(spec, p, base_dir)
+        files.append(mfile)
+    else:
+        shape = _choice(spec.get("shape", "block"), _join(p, "shape"), ("block", "cylinder"))
+        unit = _unit_of(spec, p)
+        h_data = curve.height or 0.01
+        d_data = curve.diameter or h_data
+        if shape == "block":
+            for k in ("diameter", "height", "cells_radial", "cells_height"):
+                if k in spec:
+                    _fail(_join(p, k), "not used by shape = 'block' (give size and cells)")
+            # default: a cube of the specimen's height (frictionless platens: any shape gives the same answer)
+            size = _lengths(spec["size"], _join(p, "size"), unit) if "size" in spec else (h_data, h_data, h_data)
+            cells = _counts(spec.get("cells", [2, 2, 2]), _join(p, "cells"))
+            mesh = block(size, cells)
+            coarse_mesh, skip = _coarse_block(size, cells)
+        else:
+            for k in ("size", "cells"):
+                if k in spec:
+                    _fail(_join(p, k), "not used by shape = 'cylinder' (give diameter, height, cells_radial, cells_height)")
+            dia = _length(spec["diameter"], _join(p, "diameter"), unit) if "diameter" in spec else d_data
+            hei = _length(spec["height"], _join(p, "height"), unit) if "height" in spec else h_data
+            nr = _integer(spec.get("cells_radial", 4), _join(p, "cells_radial"), minimum=1)
+            nh = _integer(spec.get("cells_height", 4), _join(p, "cells_height"), minimum=1)
+            if model == "springs_volume":
+                _fail(_join(path, "model"), "a cylinder mesh has no cube lattice: use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean' (or a block: with frictionless platens any shape gives the same answer)")
+            mesh = cylinder(dia, hei, nr, nh)
+            coarse_mesh, skip = _coarse_cylinder(dia, hei, nr, nh)
+    try:
+        sc = Compression(mesh, x, y, model=model, bonded=platens == "bonded", measure=measure, rollers=rollers, sigma=sigma, options=options, name=name)
+    except DifftissueError as err:
+        _reraise(path, err)
+    coarsen = None
+    if coarse_mesh is not None:
+        def coarsen():
+            m, info = coarse_mesh()
+            return Compression(m, x, y, model=model, bonded=platens == "bonded", measure=measure, rollers=rollers, sigma=sigma, options=options, name=name), info
+    return Experiment(name, "compression", model, sc, tuple(files), notes, prov, plausibility, _compression_estimate(x, y),
+                      coarsen=coarsen, coarsen_skip=skip)
+
+
+#: Why an experiment on a mesh file has no discretisation estimate.
+_MESH_FILE_SKIP = "the specimen is a mesh file: difftissue cannot build a coarser version of it (give size and cells to get the estimate)"
+
+
+def _halved(counts) -> tuple[tuple[int, ...], list[float]]:
+    """Half the cells in each direction (at least 1) and each direction's fine / coarse ratio [-]."""
+    coarse = tuple(max(1, int(n) // 2) for n in counts)
+    return coarse, [n / c for n, c in zip(counts, coarse)]
+
+
+def _size_ratio(ratios) -> float:
+    """Coarse / fine cell size [-] from per-direction ratios: the geometric mean (h ~ cell volume^(1/3))."""
+    return float(np.prod(ratios) ** (1.0 / len(ratios)))
+
+
+def _coarse_block(size, cells, **kw):
+    """``(builder, None)`` of a block of about half the cells (``builder() -> (mesh, info)``), or
+    ``(None, reason)`` when every direction already has one cell."""
+    coarse, ratios = _halved(cells)
+    if coarse == tuple(cells):
+        return None, f"the specimen has one cell in each direction ({list(cells)}): there is no coarser mesh"
+    info = {"fine_cells": list(cells), "coarse_cells": list(coarse), "refinement_ratio": _size_ratio(ratios)}
+    return (lambda: (block(size, coarse, **kw), info)), None
+
+
+def _coarse_cylinder(dia, hei, nr, nh):
+    """Like :func:`_coarse_block` for a cylinder of ``nr`` radial and ``nh`` axial cells."""
+    (cr, ch), (rr, rh) = _halved((nr, nh))
+    if (cr, ch) == (nr, nh):
+        return None, "the cylinder has one radial and one axial cell: there is no coarser mesh"
+    info = {"fine_cells": {"radial": nr, "height": nh}, "coarse_cells": {"radial": cr, "height": ch}, "refinement_ratio": _size_ratio((rr, rr, rh))}
+    return (lambda: (cylinder(dia, hei, cr, ch), info)), None
+
+
+def _mesh_file(spec: dict, p: str, base_dir: Path):
+    for k in spec:
+        if k not in ("mesh", "length_unit", "reorient"):
+            _fail(_join(p, k), "not used with 'mesh' (a mesh file takes only length_unit and reorient)")
+    unit = _unit_of(spec, p, _MESH_UNITS)
+    file = _resolve(base_dir, spec["mesh"], _join(p, "mesh"))
+    reorient = _bool(spec.get("reorient", False), _join(p, "reorient"))
+    try:
+        return read_mesh(file, length_unit=unit[0], reorient=reorient), file
+    except DifftissueError as err:
+        _reraise(_join(p, "mesh"), err)
+
+
+def _indentation(e, path, name, base_dir) -> Experiment:
+    curve, file, notes, depth, force, sigma, unit, prov = _force_depth(e, path, base_dir, "indentation")
+    kw = _indenter(e, path, curve, "indentation")
+    model = _model(e, path, "springs_volume")
+    base = _choice(e.get("base", "bonded"), _join(path, "base"), ("bonded", "sliding"))
+    rollers = _rollers(e["rollers"], _join(path, "rollers")) if "rollers" in e else ()
+    penalty = _positive(e["penalty"], _join(path, "penalty")) if "penalty" in e else 100.0
+    if "penalty" in e and kw["indenter"] == "flat_punch":
+        _fail(_join(path, "penalty"), "not used by a flat punch (its displacement is prescribed)")
+    options = _solver_options(e, path)
+    p = _join(path, "specimen")
+    if "specimen" not in e:
+        _fail(p, "missing (required): e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" } or { mesh = \"specimen.vtu\", length_unit = \"mm\" }")
+    spec = _table(e["specimen"], p, ("shape", "size", "cells", "symmetry", "refine", "core", "mesh", "length_unit", "reorient"))
+    files = [file]
+    symmetry = "none"
+    coarse_mesh, skip = None, _MESH_FILE_SKIP
+    if "mesh" in spec:
+        mesh, mfile = _mesh_file(spec, p, base_dir)
+        files.append(mfile)
+    else:
+        _choice(spec.get("shape", "block"), _join(p, "shape"), ("block",))
+        sunit = _unit_of(spec, p)
+        if "size" not in spec:
+            _fail(_join(p, "size"), f"missing (required): [Lx, Ly, H] of the whole specimen in {sunit[0]}")
+        size = _lengths(spec["size"], _join(p, "size"), sunit)
+        cells = _counts(spec.get("cells", [6, 6, 4]), _join(p, "cells"))
+        symmetry = _choice(spec.get("symmetry", "quarter"), _join(p, "symmetry"), ("quarter", "none"))
+        refine = _length(spec["refine"], _join(p, "refine"), sunit) if "refine" in spec else None
+        if refine is not None and model == "springs_volume":
+            _fail(_join(p, "refine"), "graded cells are not cubes: use model 'fem_linear', 'fem_neo_hookean' or 'stable_neo_hookean' with refine")
+        core = _length(spec["core"], _join(p, "core"), sunit) if "core" in spec else None
+        if core is not None:
+            if refine is None:
+                _fail(_join(p, "core"), "needs refine (the size of the uniform cells kept within core of the axis and the surface)")
+            reach = min(size[0] / 2, size[1] / 2, size[2])
+            if not core < reach:
+                _fail(_join(p, "core"), f"must be smaller than the half-width and the height of the specimen ({reach / sunit[1]:.6g} {sunit[0]}), got {spec['core']!r}")
+            if core < refine:
+                _fail(_join(p, "core"), f"must be at least one cell of refine ({refine / sunit[1]:.6g} {sunit[0]}), got {spec['core']!r}")
+        try:
+            mesh = indentation_block(size, cells, symmetry=symmetry, refine=refine, core=core)
+        except DifftissueError as err:
+            _reraise(p, err)
+        coarse_mesh, skip = _coarse_indentation_block(size, cells, symmetry, refine, core)
+        if depth.max() >= size[2]:
+            _fail(_join(path, "max_depth"), f"the deepest point ({depth.max():.3g} m) reaches the specimen's height ({size[2]:.3g} m)")
+    try:
+        sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
+    except DifftissueError as err:
+        _reraise(path, err)
+    coarsen = None
+    if coarse_mesh is not None:
+        def coarsen():
+            m, info = coarse_mesh()
+            return Indentation(m, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw), info
+    return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve),
+                      _indentation_estimate(depth, force, sigma, kw), coarsen=coarsen, coarsen_skip=skip)
+
+
+def _coarse_indentation_block(size, cells, symmetry: str, refine, core=None):
+    """Like :func:`_coarse_block` for :func:`~difftissue.scenarios.indentation_block`: half the
+    cells, the same size and symmetry; a graded block doubles its first cell ``refine`` [m]
+    (keeping the uniform ``core`` [m], which then holds half as many cells)."""
+    coarse, ratios = _halved(cells)
+    if coarse == tuple(cells):
+        return None, f"the specimen has one cell in each direction ({list(cells)}): there is no coarser mesh"
+    info = {"fine_cells": list(cells), "coarse_cells": list(coarse), "refinement_ratio": _size_ratio(ratios)}
+    r2 = None if refine is None else 2.0 * refine
+    if core is not None:
+        try:
+            indentation_block(size, coarse, symmetry=symmetry, refine=r2, core=core)
+        except DifftissueError as err:
+            return None, f"the coarser block (cells {list(coarse)}, refine {r2:.6g} m, core {core:.6g} m) cannot be built: {err}"
+    return (lambda: (indentation_block(size, coarse, symmetry=symmetry, refine=r2, core=core), info)), None
+
+
+def _node_set_spec(value, path: str):
+    if isinstance(value, str):
+        return _string(value, path)
+    if isinstance(value, Mapping):
+        try:
+            selector_from_dict(dict(value))
+        except DifftissueError as err:
+            _reraise(path, err)
+        except (TypeError, KeyError, ValueError) as err:
+            _fail(path, f"not a valid selector: {err}")
+        return dict(value)
+    _fail(path, f"must be the name of a point-data node set or a selector table, got {_show(value)}")
+
+
+def _components(value, path: str) -> str:
+    if not isinstance(value, str) or not value or any(c not in "xyz" for c in value) or len(set(value)) != len(value):
+        _fail(path, f"must be letters from 'xyz' (e.g. \"z\" or \"xyz\"), got {_show(value)}")
+    return value
+
+
+def _rollers(value, path: str) -> tuple:
+    """``rollers``: a list of face names (``"x-min"``: the face's normal component held) or
+    tables ``{ set = selector-or-mask-name, components = "x" }``; returns
+    :class:`~difftissue.boundary.Roller` objects."""
+    if not isinstance(value, list):
+        _fail(path, f"must be a list of faces such as [\"x-min\", \"y-min\"] or tables {{ set = ..., components = \"x\" }}, got {_show(value)}")
+    out = []
+    for i, entry in enumerate(value):
+        q = _join(path, i)
+        if isinstance(entry, str):
+            _choice(entry, q, tuple(ROLLER_FACES))
+            out.append(Roller(entry))
+            continue
+        t = _table(entry, q, ("set", "components"), ("set", "components"))
+        nodes = _node_set_spec(t["set"], _join(q, "set"))
+        comps = _components(t["components"], _join(q, "components"))
+        if len(comps) == 3:
+            _fail(_join(q, "components"), "a roller holding x, y and z is a clamp: leave at least one component free")
+        out.append(Roller(nodes, comps))
+    return tuple(out)
+
+
+def _fem_field(e, path, name, base_dir) -> Experiment:
+    p = _join(path, "prescribed")
+    if "prescribed" not in e:
+        _fail(p, "missing (required): the node sets whose displacement the reference prescribed, e.g. [{ set = \"bottom\" }, { set = \"punch\", components = \"z\" }]")
+    pres = e["prescribed"]
+    if not isinstance(pres, list) or not pres:
+        _fail(p, f"must be a non-empty list of tables {{ set = ..., components = \"xyz\" }}, got {_show(pres)}")
+    prescribed = []
+    for i, entry in enumerate(pres):
+        q = _join(p, i)
+        t = _table(entry, q, ("set", "components"), ("set",))
+        prescribed.append({"set": _node_set_spec(t["set"], _join(q, "set")), "components": _components(t.get("components", "xyz"), _join(q, "components"))})
+    observe = _node_set_spec(e["observe"], _join(path, "observe")) if "observe" in e else None
+    reaction = None
+    if "reaction" in e:
+        q = _join(path, "reaction")
+        t = _table(e["reaction"], q, ("set", "components", "force", "field"), ("set",))
+        comps = _components(t.get("components", "z"), _join(q, "components"))
+        reaction = {"set": _node_set_spec(t["set"], _join(q, "set")), "components": comps}
+        if ("force" in t) == ("field" in t):
+            _fail(q, "give exactly one of 'force' (total force in N, one value per component) or 'field' (a nodal reaction point field of the file)")
+        if "force" in t:
+            f = t["force"]
+            f = [f] if _is_number(f) else f
+            if not isinstance(f, list) or len(f) != len(comps):
+                _fail(_join(q, "force"), f"must be {len(comps)} number(s) in N (one per component {comps!r}), got {_show(t['force'])}")
+            reaction["force"] = [_number(v, _join(_join(q, "force"), j), what="a force in N") for j, v in enumerate(f)]
+        else:
+            reaction["field"] = _string(t["field"], _join(q, "field"))
+    ds = _positive(e["displacement_sigma"], _join(path, "displacement_sigma"), "m") if "displacement_sigma" in e else None
+    fs = _positive(e["force_sigma"], _join(path, "force_sigma"), "N") if "force_sigma" in e else None
+    if fs is not None and reaction is None:
+        _fail(_join(path, "force_sigma"), "needs a 'reaction' to compare")
+    model = _model(e, path, "fem_linear")
+    options = _solver_options(e, path)
+    mode = _choice(e.get("reference_mesh", "interpolate" if "specimen" in e else "own"), _join(path, "reference_mesh"), ("own", "interpolate"))
+    if mode == "interpolate" and "specimen" not in e:
+        _fail(_join(path, "specimen"), "missing (required with reference_mesh = \"interpolate\"): the model's own mesh, e.g. { cells = [8, 8, 4] } "
+              "(a block spanning the reference's bounding box) or { mesh = \"model.vtu\", length_unit = \"mm\" }")
+    if mode == "own":
+        for k in ("specimen", "tolerance"):
+            if k in e:
+                _fail(_join(path, k), "not used with reference_mesh = \"own\" (the model runs on the reference's mesh)")
+    tolerance = _number(e["tolerance"], _join(path, "tolerance"), what="a distance >= 0 in m", check=lambda v: v >= 0) if "tolerance" in e else None
+    result, file, notes = _load_data(e, path, "fem_field", base_dir)
+    if mode == "own":
+        if result.mesh is None:
+            _fail(_join(path, "reference_mesh"), f"the reference holds {sorted(result.cells)} cells, not linear tetrahedra the model can run on: "
+                  "give a 'specimen' (the model's own mesh) and the reference is interpolated onto it")
+        try:
+            sc = FEMField(result.mesh, result.displacement, prescribed=prescribed, model=model, observe=observe, reaction=reaction, displacement_sigma=ds, force_sigma=fs, options=options, name=name)
+        except DifftissueError as err:
+            _reraise(path, err)
+        return Experiment(name, "fem_field", model, sc, (file,), notes,
+                          coarsen_skip="the displacements are observed on the nodes of the given mesh: a coarser mesh has no such nodes")
+    specimen, files, coarse_mesh, skip = _fem_field_specimen(e, path, base_dir, result)
+    kw = dict(prescribed=prescribed, model=model, observe=observe, reaction=reaction, displacement_sigma=ds, force_sigma=fs, options=options, name=name, tolerance=tolerance)
+    try:
+        sc = FEMField(result, result.displacement, specimen=specimen, **kw)
+    except DifftissueError as err:
+        _reraise(path, err)
+    coarsen = None
+    if coarse_mesh is not None:
+        def coarsen():
+            m, info = coarse_mesh()
+            return FEMField(result, result.displacement, specimen=m, **kw), info
+    return Experiment(name, "fem_field", model, sc, (file, *files), notes, coarsen=coarsen, coarsen_skip=skip)
+
+
+def _fem_field_specimen(e, path, base_dir, result):
+    """The model's own mesh of an interpolated fem_field: ``(mesh, extra files, coarse builder,
+    skip reason)``. A block defaults to the reference's bounding box."""
+    p = _join(path, "specimen")
+    spec = _table(e["specimen"], p, ("shape", "size", "origin", "cells", "mesh", "length_unit", "reorient"))
+    if "mesh" in spec:
+        mesh, mfile = _mesh_file(spec, p, base_dir)
+        return mesh, (mfile,), None, _MESH_FILE_SKIP
+    _choice(spec.get("shape", "block"), _join(p, "shape"), ("block",))
+    unit = _unit_of(spec, p)
+    if "cells" not in spec:
+        _fail(_join(p, "cells"), "missing (required): the model's cells [nx, ny, nz] (the block spans the reference's bounding box unless size and origin are given)")
+    cells = _counts(spec["cells"], _join(p, "cells"))
+    lo, hi = result.points.min(axis=0), result.points.max(axis=0)
+    size = _lengths(spec["size"], _join(p, "size"), unit) if "size" in spec else tuple(float(v) for v in hi - lo)
+    if "origin" in spec:
+        o = spec["origin"]
+        if not isinstance(o, list) or len(o) != 3:
+            _fail(_join(p, "origin"), f"must be 3 coordinates in {unit[0]} (a list), got {_show(o)}")
+        origin = tuple(_number(v, _join(_join(p, "origin"), i), what=f"a coordinate in {unit[0]}") * unit[1] for i, v in enumerate(o))
+    else:
+        origin = tuple(float(v) for v in lo)
+    if min(size) <= 0:
+        _fail(_join(p, "size"), f"the reference is flat (bounding box {size} m): give size")
+    try:
+        mesh = block(size, cells, origin=origin)
+    except DifftissueError as err:
+        _reraise(p, err)
+    coarse_mesh, skip = _coarse_block(size, cells, origin=origin)
+    return mesh, (), coarse_mesh, skip
+
+
+# ============================================================================ incision
+_INCISION_QUANTITIES = ("surface_width", "max_width", "width_over_length")
+_LAYER_KEYS = ("name", "thickness", "cells", "grading", "fitted") + tuple(FIELDS)
+
+
+def _incision_data(e: Mapping, path: str, base_dir: Path, unit: tuple[str, float]):
+    """``data`` of an incision: ``{ quantity, value }``, ``{ quantity = "surface_width",
+    positions, widths }`` (inline, lengths in ``length_unit``) or ``{ format = "table", path }``
+    (CSV with header ``position,width``)."""
+    p = _join(path, "data")
+    d = e["data"]
+    if not isinstance(d, Mapping):
+        _fail(p, f"must be a table such as {{ quantity = \"max_width\", value = 0.8 }}, got {_show(d)}")
+    fmt = _choice(d.get("format", "inline"), _join(p, "format"), _DATA_FORMATS["incision"])
+    files: tuple[Path, ...] = ()
+    if fmt == "table":
+        t = _table(d, p, ("format", "path", "quantity"), ("path",))
+        q = _choice(t.get("quantity", "surface_width"), _join(p, "quantity"), ("surface_width",))
+        file = _resolve(base_dir, t["path"], _join(p, "path"))
+        try:
+            arr = np.genfromtxt(file, delimiter=",", names=True)
+        except (ValueError, OSError) as err:
+            _fail(_join(p, "path"), f"cannot read {file.name} as CSV with a header line 'position,width': {err}")
+        names = arr.dtype.names or ()
+        if "position" not in names or "width" not in names:
+            _fail(_join(p, "path"), f"{file.name} needs the columns 'position' and 'width' (in {unit[0]}), found {list(names)}")
+        pos, w = np.atleast_1d(arr["position"]) * unit[1], np.atleast_1d(arr["width"]) * unit[1]
+        if pos.size < 1 or not (np.all(np.isfinite(pos)) and np.all(np.isfinite(w))):
+            _fail(_join(p, "path"), f"{file.name}: positions and widths must be finite numbers")
+        return q, pos, w, (file,)
+    q = _choice(d.get("quantity"), _join(p, "quantity"), _INCISION_QUANTITIES) if "quantity" in d else _fail(_join(p, "quantity"), f"missing (required); one of {', '.join(_INCISION_QUANTITIES)}")
+    if q == "surface_width":
+        t = _table(d, p, ("format", "quantity", "positions", "widths"), ("positions", "widths"))
+        pos, w = t["positions"], t["widths"]
+        if not isinstance(pos, list) or not isinstance(w, list) or not pos or len(pos) != len(w):
+            _fail(_join(p, "widths"), f"positions and widths must be two lists of the same non-zero length (in {unit[0]})")
+        pos = np.array([_number(v, _join(_join(p, "positions"), i), what=f"a length in {unit[0]}") for i, v in enumerate(pos)]) * unit[1]
+        w = np.array([_number(v, _join(_join(p, "widths"), i), what=f"a width in {unit[0]}", check=lambda x: x >= 0, rule=f"a width >= 0 in {unit[0]}") for i, v in enumerate(w)]) * unit[1]
+        return q, pos, w, files
+    t = _table(d, p, ("format", "quantity", "value"), ("value",))
+    if q == "max_width":
+        v = _length(t["value"], _join(p, "value"), unit)
+    else:
+        v = _number(t["value"], _join(p, "value"), what="a positive ratio w/l", check=lambda x: x > 0)
+    return q, None, np.array([v]), files
+
+
+def _incision(e, path, name, base_dir, material) -> Experiment:
+    unit = _unit_of(e, path)
+    model = _model(e, path, "stable_neo_hookean")
+    quantity, positions, observed, files = _incision_data(e, path, base_dir, unit)
+    unit_y = "1" if quantity == "width_over_length" else "m"
+    sigma = _sigma(e.get("sigma", "rms"), _join(path, "sigma"), observed, unit_y)
+    # specimen: layers (the fitted ones take [material]) or a mesh file (every region fitted)
+    p = _join(path, "specimen")
+    if "specimen" not in e:
+        _fail(p, "missing (required): e.g. { size = [12, 12], cells = [12, 12], layers = [{ name = \"dermis\", thickness = 2, cells = 2, fitted = true }, ...] }")
+    spec = _table(e["specimen"], p, ("size", "cells", "layers", "refine", "refine_at", "core", "mesh", "length_unit", "reorient"))
+    files = list(files)
+    fitted = None
+    if "mesh" in spec:
+        for k in ("size", "cells", "layers", "refine", "refine_at", "core"):
+            if k in spec:
+                _fail(_join(p, k), "not used with 'mesh' (every region of a mesh file takes [material])")
+        mesh, mfile = _mesh_file(spec, p, base_dir)
+        files.append(mfile)
+        specimen = Specimen(mesh, (material,) * len(mesh.region_names))
+    else:
+        sunit = _unit_of(spec, p) if "length_unit" in spec else unit
+        for k in ("size", "layers"):
+            if k not in spec:
+                _fail(_join(p, k), "missing (required)")
+        size = _lengths(spec["size"], _join(p, "size"), sunit, n=2)
+        cells = _counts(spec.get("cells", [12, 12]), _join(p, "cells"), n=2)
+        lp = _join(p, "layers")
+        if not isinstance(spec["layers"], list) or not spec["layers"]:
+            _fail(lp, "must be a non-empty list of tables { name, thickness, cells, fitted | material fields }")
+        layers, fitted, grading = [], [], {}
+        for i, lay in enumerate(spec["layers"]):
+            q = _join(lp, i)
+            t = _table(lay, q, _LAYER_KEYS, ("name", "thickness"))
+            lname = _string(t["name"], _join(q, "name"))
+            thick = _length(t["thickness"], _join(q, "thickness"), sunit)
+            nc = _integer(t.get("cells", 1), _join(q, "cells"), minimum=1)
+            if "grading" in t:
+                grading[lname] = _positive(t["grading"], _join(q, "grading"))
+                if nc < 2:
+                    _fail(_join(q, "grading"), f"needs at least two cells through the layer (cells = {nc})")
+            is_fitted = _bool(t.get("fitted", False), _join(q, "fitted"))
+            fields = {k: t[k] for k in FIELDS if k in t}
+            if is_fitted:
+                if fields:
+                    _fail(_join(q, sorted(fields)[0]), "a fitted layer takes its material from [material]; remove the field or set fitted = false")
+                mat = material
+                fitted.append(lname)
+            else:
+                for k in ("youngs_modulus", "poisson_ratio"):
+                    if k not in t:
+                        _fail(_join(q, k), "missing (required for a layer that is not fitted)")
+                mat = Material(**_material_values(fields, q))
+            layers.append((lname, thick, mat, nc))
+        if not fitted:
+            _fail(lp, "no layer has fitted = true: the [material] must apply to at least one layer")
+        lateral = {}
+        if "refine" in spec:
+            lateral["refine"] = _length(spec["refine"], _join(p, "refine"), sunit)
+            if "refine_at" in spec:
+                at = spec["refine_at"]
+                if not isinstance(at, list) or len(at) != 2:
+                    _fail(_join(p, "refine_at"), f"must be a point [x, y] on the top surface in {sunit[0]}, got {_show(at)}")
+                lateral["refine_at"] = tuple(_number(v, _join(_join(p, "refine_at"), i), what=f"a coordinate in {sunit[0]}") * sunit[1] for i, v in enumerate(at))
+                if not all(0 <= a <= s for a, s in zip(lateral["refine_at"], size)):
+                    _fail(_join(p, "refine_at"), f"must lie on the top surface, within [0, {size[0] / sunit[1]:g}] x [0, {size[1] / sunit[1]:g}] {sunit[0]}")
+            if "core" in spec:
+                lateral["core"] = _lengths(spec["core"], _join(p, "core"), sunit, n=2)
+        else:
+            for k in ("refine_at", "core"):
+                if k in spec:
+                    _fail(_join(p, k), "needs refine (the lateral cell size at the refinement lines)")
+        try:
+            specimen = layered_skin(layers, size=size, resolution=cells, grading=grading or None, **lateral)
+        except DifftissueError as err:
+            _reraise(p, err)
+    # the cut
+    cp = _join(path, "cut")
+    if "cut" not in e:
+        _fail(cp, "missing (required): e.g. { path = [[3, 6], [9, 6]], depth = 2 } (lengths in length_unit)")
+    c = _table(e["cut"], cp, ("path", "depth", "through", "tilt_deg", "method"), ("path",))
+    pts = c["path"]
+    if not isinstance(pts, list) or len(pts) < 2 or not all(isinstance(q, list) and len(q) in (2, 3) for q in pts):
+        _fail(_join(cp, "path"), f"must be a list of >= 2 points [x, y] on the top surface in {unit[0]}, got {_show(pts)}")
+    pts = [[_number(v, _join(_join(cp, "path"), i), what=f"a coordinate in {unit[0]}") * unit[1] for v in q] for i, q in enumerate(pts)]
+    depth = _length(c["depth"], _join(cp, "depth"), unit) if "depth" in c else None
+    through = _bool(c.get("through", False), _join(cp, "through"))
+    tilt = math.radians(_number(c.get("tilt_deg", 0.0), _join(cp, "tilt_deg"), what="an angle in degrees"))
+    method = _choice(c.get("method", "snap"), _join(cp, "method"), ("snap", "remove"))
+    try:
+        scalpel = ScalpelPath(pts, depth=depth, through=through, tilt=tilt)
+    except DifftissueError as err:
+        _reraise(cp, err)
+    try:
+        cut = cut_specimen(specimen, scalpel, method=method)
+    except DifftissueError as err:
+        _reraise(cp, err)
+    bp = _join(path, "boundary")
+    b = _table(e.get("boundary", {}), bp, ("lateral", "base", "rollers"))
+    lateral = _choice(b.get("lateral", "held"), _join(bp, "lateral"), ("held", "roller", "free"))
+    base = _choice(b.get("base", "clamped"), _join(bp, "base"), ("clamped", "sliding"))
+    rollers = _rollers(b["rollers"], _join(bp, "rollers")) if "rollers" in b else ()
+    steps = _integer(e.get("scalpel_steps", 4), _join(path, "scalpel_steps"), minimum=1)
+    so = _solver_options(e, path)
+    options = IncisionOptions(scalpel_steps=steps, rtol=so.rtol, xtol=so.xtol, max_steps=so.max_steps, linear_solver=so.linear_solver, failure=so.failure)
+    if model == "springs_volume" and getattr(cut.mesh, "lattice", None) is None:
+        _fail(_join(path, "model"), "an imported mesh has no cube lattice: use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean'")
+    try:
+        sc = Incision(cut, model=model, quantity=quantity, positions=positions, observed=observed, sigma=sigma, fitted_regions=fitted, lateral=lateral, base=base, rollers=rollers, options=options, name=name)
+    except DifftissueError as err:
+        _reraise(path, err)
+    notes = (f"{path}: {cut.quality}",)
+    return Experiment(name, "incision", model, sc, tuple(files), notes,
+                      coarsen_skip="the cut is snapped to this mesh's nodes: a coarser mesh makes a different cut, so the change would not be the mesh's alone")

@@ -1,0 +1,337 @@
+"""The compile policy of a fit: :class:`SeparatelyCompiled` compiles a simulated scenario's
+``material -> prediction`` and its derivative once, on their own, and the fit calls them
+through :func:`jax.pure_callback`; equal scenarios share those compiled programs
+(:func:`compile_cache_info`, :func:`clear_compile_cache`).
+
+A program is keyed by what is compiled into it: the scenario's type and pytree structure (its
+static configuration: model, solver options, protocol settings), a hash of every array leaf
+by content (mesh, lattice, boundary data, the protocol's abscissa, ...) with its shape and
+dtype, objects that are not arrays by identity, the program's kind and argument shapes, and
+the JAX settings it is compiled under (64-bit mode, backend, default device). The measured
+data (``observed``, ``sigma``) are ARGUMENTS of the programs, not constants, so two
+experiments of the same specimen and protocol with different measurements share one program.
+Two scenarios that differ in anything compiled in get two programs.
+"""
+
+from __future__ import annotations
+
+import collections
+import hashlib
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..errors import ConfigError
+from ..materials import Material
+
+__all__ = ["SeparatelyCompiled", "compile_cache_info", "clear_compile_cache", "COMPILE_CACHE_SIZE"]
+
+#: Most compiled programs kept for sharing between equal scenarios (least recently used
+#: dropped first). A dropped program stays with the :class:`SeparatelyCompiled` objects that
+#: use it; only a new, equal scenario compiles it again.
+COMPILE_CACHE_SIZE = 16
+
+#: ``{key: compiled executable}``, most recently used last (see :func:`_program`).
+_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
+_STATS = {"hits": 0, "compilations": 0, "unshared": 0}
+
+#: Attributes of a scenario holding measured data: passed to the compiled programs as
+#: arguments (never compiled in), so they are not part of a program's key.
+DATA_ATTRIBUTES = ("observed", "sigma")
+
+
+def compile_cache_info() -> dict:
+    """Counters of the programs :class:`SeparatelyCompiled` compiled or shared in this process:
+    ``hits`` (a program taken from an equal scenario), ``compilations`` (programs compiled,
+    shared or not), ``unshared`` (of those, the ones without a key: a scenario with static
+    fields that cannot be hashed), ``size`` (programs kept now) and ``max_size``
+    (:data:`COMPILE_CACHE_SIZE`)."""
+    return {**_STATS, "size": len(_PROGRAMS), "max_size": COMPILE_CACHE_SIZE}
+
+
+def clear_compile_cache() -> None:
+    """Forget the shared programs and zero the counters of :func:`compile_cache_info` (the
+    :class:`SeparatelyCompiled` objects keep the programs they already use)."""
+    _PROGRAMS.clear()
+    for k in _STATS:
+        _STATS[k] = 0
+
+
+def scenario_structure(scenario) -> tuple[tuple | None, list, Any, tuple[int, ...]]:
+    """``(key, leaves, treedef, data)`` of a scenario as a pytree: ``leaves`` and ``treedef``
+    from :func:`jax.tree_util.tree_flatten`; ``data`` the indices of the leaves that are its
+    measured data (:data:`DATA_ATTRIBUTES`: arguments of the compiled programs); ``key`` what
+    the traced program depends on besides those (see the module docstring), or None when the
+    static configuration cannot be hashed (then the programs are not shared). A scenario that
+    is not a pytree is one leaf, keyed by identity."""
+    leaves, treedef = jax.tree_util.tree_flatten(scenario)
+    attrs = [getattr(scenario, a, None) for a in DATA_ATTRIBUTES]
+    data = tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf) and any(leaf is a for a in attrs))
+    try:
+        hash(treedef)
+    except TypeError:  # a static field that cannot be hashed
+        return None, leaves, treedef, data
+    h = hashlib.sha256()
+    objects = []
+    for i, leaf in enumerate(leaves):
+        if i in data:
+            a = np.asarray(leaf)
+            h.update(f"data{a.shape}{a.dtype}".encode())
+        elif eqx.is_array(leaf) or isinstance(leaf, np.generic):
+            a = np.ascontiguousarray(leaf)
+            h.update(f"{a.shape}{a.dtype}".encode())
+            h.update(a.tobytes())
+        elif leaf is None or isinstance(leaf, (bool, int, float, complex, str)):
+            h.update(repr((type(leaf).__name__, leaf)).encode())
+        else:  # an object that is not an array: by identity (the cached program keeps it alive)
+            objects.append(id(leaf))
+        h.update(b"|")
+    return (type(scenario), treedef, h.hexdigest(), tuple(objects)), leaves, treedef, data
+
+
+def _settings() -> tuple:
+    """The JAX settings a program is compiled under (part of its key)."""
+    return (bool(jax.config.jax_enable_x64), jax.default_backend(), str(jax.config.jax_default_device))
+
+
+def _program(jitted, specs, key):
+    """``jitted`` compiled ahead of time for the argument ``specs``; shared through
+    :data:`_PROGRAMS` under ``key`` (None: not shared)."""
+    if key is None:
+        _STATS["compilations"] += 1
+        _STATS["unshared"] += 1
+        return jitted.lower(*specs).compile()
+    key = (key, jax.tree_util.tree_map(lambda s: (s.shape, str(s.dtype)), specs), _settings())
+    program = _PROGRAMS.pop(key, None)
+    if program is None:
+        _STATS["compilations"] += 1
+        program = jitted.lower(*specs).compile()
+    else:
+        _STATS["hits"] += 1
+    _PROGRAMS[key] = program  # most recent last
+    while len(_PROGRAMS) > COMPILE_CACHE_SIZE:
+        _PROGRAMS.popitem(last=False)
+    return program
+
+
+def _compiled_per_shape(fn, key=None, data=()):
+    """``fn(data, *args)`` compiled ahead of time for the shapes of the float64 ``args`` it is
+    called with, once per shape; called as ``call(*args)``. ``key``: what the program depends
+    on besides its arguments (:func:`scenario_structure` and the program's kind), so that an
+    equal scenario reuses the program; None: compiled for this function alone.
+
+    A ``jax.jit`` function called both inside a callback (a fit's compiled step calls the
+    scenario through :func:`jax.pure_callback`) and outside it is compiled twice: JAX keys its
+    cache on that context. The ahead-of-time executable is one compilation for both."""
+    jitted = jax.jit(fn)
+    compiled: dict[tuple, Any] = {}
+    data = tuple(jnp.asarray(d) for d in data)
+    data_specs = tuple(jax.ShapeDtypeStruct(d.shape, d.dtype) for d in data)
+
+    def call(*args):
+        shapes = tuple(np.shape(a) for a in args)
+        if shapes not in compiled:
+            specs = (data_specs, *(jax.ShapeDtypeStruct(sh, jnp.float64) for sh in shapes))
+            compiled[shapes] = _program(jitted, specs, key)
+        return compiled[shapes](data, *args)
+
+    return call
+
+
+_MATERIAL_LEAVES = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
+
+
+class SeparatelyCompiled:
+    """A scenario whose prediction and derivative are compiled once each, on their own.
+
+    :func:`difftissue.fit.fit` traces the scenario's ``predict`` into several jitted functions
+    (the batched loss, the optimiser step with its Jacobian, the final Jacobian, the final
+    prediction). For a simulated scenario (a scan of static solves with implicit gradients)
+    each of these XLA compilations takes seconds to tens of seconds, which dominates a small
+    fit. This wrapper compiles ``material -> prediction`` and its Jacobian-vector product
+    (``mode="forward"``: Levenberg--Marquardt / Gauss--Newton with forward Jacobians) or
+    vector-Jacobian product (``mode="reverse"``: Adam, L-BFGS, ``jac = "bwd"``) once, and the
+    fit's compiled code calls them through :func:`jax.pure_callback` (batched calls run one
+    after the other). The numbers are the same; only the compilation is shared. The material
+    must have scalar fields.
+
+    In forward mode one call gives the prediction and all the tangents of a Jacobian (one
+    model solve per ``jax.jacfwd``), so it supports ``jax.jvp`` and ``jax.jacfwd`` (what the
+    fit's forward Jacobians use) but not ``jax.linearize`` or reverse mode: use
+    ``mode="reverse"`` for those.
+
+    An evaluation at an invalid material (E <= 0, nu outside (-1, 0.5), non-finite values) or
+    one whose static solve fails returns NaN instead of raising, so that Levenberg--Marquardt
+    rejects that trial point (shrinking its trust region) rather than the fit aborting; the
+    failures' messages are kept in :attr:`failures`.
+    """
+
+    def __init__(self, scenario, *, mode: str = "forward", n_tangents: int = 1):
+        """
+        Args:
+            scenario: a scenario with ``predict(material)`` and the data attributes.
+            mode: ``"forward"`` or ``"reverse"`` (see the class docstring).
+            n_tangents: forward mode: the number of tangents a Jacobian call pushes through
+                (the number of fitted parameters); primal-only calls run the same program with
+                that many zero tangents, so one program serves both.
+        """
+        if mode not in ("forward", "reverse"):
+            raise ConfigError(f"mode must be 'forward' or 'reverse', got {mode!r}")
+        self.inner = scenario
+        self.mode = mode
+        #: messages of the model evaluations that failed (returned NaN) during fits
+        self.failures: list[str] = []
+        #: model solves run so far: ``"value"`` (prediction only) and ``"value_and_tangents"``
+        #: (prediction and the tangents of a Jacobian, forward mode)
+        self.calls = {"value": 0, "value_and_tangents": 0}
+        for k in ("name", "observed", "sigma", "abscissa", "x_label", "y_label"):
+            setattr(self, k, getattr(scenario, k))
+        n = int(np.asarray(scenario.observed).size)
+        n_leaves = len(_MATERIAL_LEAVES)
+
+        # The measured data are arguments of the compiled programs (``data``), everything else
+        # of the scenario is compiled in and keys the programs shared with equal scenarios.
+        key, leaves, treedef, data_leaves = scenario_structure(scenario)
+        data = tuple(leaves[i] for i in data_leaves)
+
+        def f(data, v):
+            if data_leaves:
+                rebuilt = list(leaves)
+                for i, d in zip(data_leaves, data):
+                    rebuilt[i] = d
+                sc = jax.tree_util.tree_unflatten(treedef, rebuilt)
+            else:
+                sc = scenario
+            return sc.predict(Material(*(v[i] for i in range(n_leaves))))
+
+        def program_key(kind):
+            return None if key is None else (kind, key)
+
+        out = jax.ShapeDtypeStruct((n,), jnp.float64)
+        vec = jax.ShapeDtypeStruct((n_leaves,), jnp.float64)
+
+        def valid(v) -> bool:
+            v = np.asarray(v, dtype=float)
+            return bool(np.all(np.isfinite(v)) and v[0] > 0 and -1.0 < v[1] < 0.5 and v[3] > 0 and v[4] > 0)
+
+        def guarded(fn, v, *args, shape=(n,)):
+            # An invalid material (optimistix evaluates the Jacobian of a discarded branch at an
+            # all-zero placeholder) or a failed solve gives NaN instead of an exception, so the
+            # optimiser rejects that trial point instead of the whole fit aborting.
+            if not valid(v):
+                return None if shape is None else np.full(shape, np.nan)
+            try:
+                return fn(jnp.asarray(v, dtype=jnp.float64), *(jnp.asarray(a, dtype=jnp.float64) for a in args))
+            except Exception as e:  # a static solve that failed to converge, an inverted element, ...
+                self.failures.append(" ".join(str(e).split())[-300:])
+                return None if shape is None else np.full(shape, np.nan)
+
+        if mode == "forward":
+            # ONE compiled program gives the prediction and its derivatives along a batch of
+            # tangents: the model is solved once, the tangents (one implicit linear solve each
+            # per load step) are batched. A primal-only call runs it with zero tangents (their
+            # linear solves stop at once), so nothing is compiled twice.
+            # Compiled ahead of time per tangent count (_compiled_per_shape).
+            both = _compiled_per_shape(jax.vmap(lambda d, v, t: jax.jvp(lambda vv: f(d, vv), (v,), (t,)), in_axes=(None, None, 0), out_axes=(None, 0)),
+                                      program_key("value_and_tangents"), data)
+            n_zero = max(int(n_tangents), 1)
+
+            def run(v, T):
+                y, JT = both(v, T)
+                return np.asarray(y, dtype=np.float64), np.asarray(JT, dtype=np.float64)
+
+            def host_f(v):
+                self.calls["value"] += 1
+                return guarded(lambda vv: run(vv, np.zeros((n_zero, n_leaves)))[0], v)
+
+            def host_tangents(v, T):
+                # One model solve, all the tangents of a Jacobian.
+                self.calls["value_and_tangents"] += 1
+                v, T = np.asarray(v, dtype=float), np.asarray(T, dtype=float)
+                res = guarded(lambda vv, tt: run(vv, tt), v, T, shape=None)
+                return res if res is not None else (np.full(n, np.nan), np.full((T.shape[0], n), np.nan))
+
+            def host_rows(V, T):
+                # Several materials (the starts of a multi-start fit): one call per material.
+                V, T = np.asarray(V, dtype=float), np.asarray(T, dtype=float)
+                ys, jts = np.empty((V.shape[0], n)), np.empty((V.shape[0], n))
+                groups: dict[bytes, list[int]] = {}
+                for i, row in enumerate(V):
+                    groups.setdefault(row.tobytes(), []).append(i)
+                for rows in groups.values():
+                    y, jt = host_tangents(V[rows[0]], T[rows])
+                    ys[rows], jts[rows] = y, jt
+                return ys, jts
+
+            @jax.custom_batching.custom_vmap
+            def value_and_tangent(v, t):
+                y, jt = jax.pure_callback(host_tangents, (out, jax.ShapeDtypeStruct((1, n), jnp.float64)), v, t[None], vmap_method="sequential")
+                return y, jt[0]
+
+            @value_and_tangent.def_vmap
+            def _value_and_tangents(axis_size, in_batched, v, t):
+                v_batched, t_batched = in_batched
+                T = t if t_batched else jnp.broadcast_to(t, (axis_size, n_leaves))
+                if not v_batched:  # the Jacobian's tangents at one material: the prediction is not batched
+                    y, JT = jax.pure_callback(host_tangents, (out, jax.ShapeDtypeStruct((axis_size, n), jnp.float64)), v, T, vmap_method="sequential")
+                    return (y, JT), (False, True)
+                rows = jax.ShapeDtypeStruct((axis_size, n), jnp.float64)
+                Y, JT = jax.pure_callback(host_rows, (rows, rows), v, T, vmap_method="sequential")
+                return (Y, JT), (True, True)
+
+            self._host_f = host_f
+
+            def call_f(v):
+                return jax.pure_callback(host_f, out, v, vmap_method="sequential")
+
+            @jax.custom_jvp
+            def call(v):
+                return call_f(v)
+
+            @call.defjvp
+            def _call_jvp(primals, tangents):
+                # The prediction comes with its tangents from the same call (one model solve per
+                # Jacobian: jax.jacfwd's tangents arrive batched, see _value_and_tangents).
+                (v,), (t,) = primals, tangents
+                return value_and_tangent(v, t)
+
+        else:
+            fwd = _compiled_per_shape(f, program_key("value"), data)
+            vjp = _compiled_per_shape(lambda d, v, ct: jax.vjp(lambda vv: f(d, vv), v)[1](ct)[0], program_key("vector_jacobian"), data)
+
+            def host_f(v):
+                return np.asarray(guarded(fwd, v), dtype=np.float64)
+
+            self._host_f = host_f
+
+            def call_f(v):
+                return jax.pure_callback(host_f, out, v, vmap_method="sequential")
+
+            def host_vjp(v, ct):
+                out = np.asarray(guarded(vjp, v, ct), dtype=np.float64)
+                return out if out.shape == (n_leaves,) else np.full(n_leaves, np.nan)
+
+            @jax.custom_vjp
+            def call(v):
+                return call_f(v)
+
+            def _fwd(v):
+                return call_f(v), v
+
+            def _bwd(v, ct):
+                return (jax.pure_callback(host_vjp, vec, v, ct, vmap_method="sequential"),)
+
+            call.defvjp(_fwd, _bwd)
+        self._call = call
+
+    def evaluate(self, material) -> np.ndarray:
+        """The prediction at ``material`` on the host, through the same compiled function the
+        fit calls (no extra compilation); NaN where the evaluation fails."""
+        return self._host_f(np.array([float(getattr(material, k)) for k in _MATERIAL_LEAVES]))
+
+    def predict(self, material):
+        v = jnp.stack([jnp.asarray(getattr(material, k), dtype=jnp.float64).reshape(()) for k in _MATERIAL_LEAVES])
+        return self._call(v)
