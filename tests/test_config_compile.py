@@ -1,0 +1,215 @@
+"""The compile cache of :class:`difftissue.config.SeparatelyCompiled` (issue 18): equal
+scenarios built twice in one process share one compiled program; scenarios that differ in
+anything compiled into the program (mesh, protocol, model) get their own, with the numbers of a
+fresh build; measured data are arguments of the programs, not constants.
+
+Compilations are counted two ways: XLA backend compilations reported by
+``jax.monitoring`` ('/jax/core/compile/backend_compile_duration') and the cache's own
+counters (:func:`difftissue.config.compile_cache_info`)."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from difftissue import Material
+from difftissue.config import SeparatelyCompiled, clear_compile_cache, compile_cache_info, parse_config
+from difftissue.config.compile import scenario_structure
+
+jax.config.update("jax_enable_x64", True)
+
+_BACKEND_COMPILES = {"n": 0}
+
+
+def _count(event, duration, **kw):
+    if event == "/jax/core/compile/backend_compile_duration":
+        _BACKEND_COMPILES["n"] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_count)
+
+
+class _Compiles:
+    """XLA backend compilations and cache counters between ``__enter__`` and ``__exit__``."""
+
+    def __enter__(self):
+        self.n0, self.info0 = _BACKEND_COMPILES["n"], compile_cache_info()
+        return self
+
+    def __exit__(self, *exc):
+        self.backend = _BACKEND_COMPILES["n"] - self.n0
+        info = compile_cache_info()
+        self.compiled = info["compilations"] - self.info0["compilations"]
+        self.hits = info["hits"] - self.info0["hits"]
+
+
+STRAINS = [0.05, 0.1, 0.15, 0.2]
+MATERIAL = Material(2.0e4, 0.45, cubic_coefficient=0.5)
+
+
+def _config(tmp_path, *, scale=1.0, size=0.01, strains=STRAINS, model="springs_volume", name="cube", platens="frictionless"):
+    """A one-cube compression config; ``scale`` multiplies the measured stresses (other data,
+    same specimen and protocol)."""
+    stress = [scale * 2.0e4 * e for e in strains]
+    csv = tmp_path / f"curve_{scale}_{len(strains)}_{strains[-1]}.csv"
+    csv.write_text("strain,stress\n" + "".join(f"{e!r},{s!r}\n" for e, s in zip(strains, stress)))
+    raw = {
+        "material": {"youngs_modulus": 2.0e4, "poisson_ratio": 0.45, "cubic_coefficient": 0.0},
+        "fit": {"parameters": ["youngs_modulus", "cubic_coefficient"], "bounds": {"cubic_coefficient": [-3.0, 5.0]}, "start": "material"},
+        "experiment": [{
+            "name": name, "scenario": "compression", "model": model, "platens": platens, "points": "all", "sigma": {"relative": 0.01},
+            "data": {"format": "table", "path": csv.name,
+                     "columns": {"strain": {"name": "strain", "unit": "-"}, "stress": {"name": "stress", "unit": "Pa"}}},
+            "specimen": {"size": [size] * 3, "cells": [1, 1, 1]},
+        }],
+    }
+    return parse_config(raw, base_dir=tmp_path)
+
+
+def _wrapped(cfg):
+    (sc,) = cfg.fit_scenarios()
+    assert isinstance(sc, SeparatelyCompiled) and sc.mode == "forward"
+    return sc
+
+
+def _value_and_tangents(sc):
+    """The prediction (host call, counted by :class:`_Compiles` around it) and the Jacobian in
+    E and b (``jax.jacfwd`` through the same compiled program, one model solve)."""
+    with _Compiles() as c:
+        y = np.asarray(sc.evaluate(MATERIAL))
+    jac = jax.jacfwd(lambda E, b: sc.predict(Material(E, 0.45, cubic_coefficient=b)), argnums=(0, 1))(2.0e4, 0.5)
+    return y, np.stack([np.asarray(j) for j in jac]), c
+
+
+@pytest.fixture(scope="module")
+def first(tmp_path_factory):
+    """The reference program: compiled once for this module (a clean cache first)."""
+    clear_compile_cache()
+    sc = _wrapped(_config(tmp_path_factory.mktemp("first")))
+    y, jac, c = _value_and_tangents(sc)
+    assert c.compiled == 1 and c.hits == 0 and c.backend >= 1
+    return sc, (y, jac)
+
+
+def test_an_equal_config_built_again_reuses_the_compiled_program(first, tmp_path):
+    sc1, (y1, jt1) = first
+    sc2 = _wrapped(_config(tmp_path))
+    assert sc2 is not sc1 and sc2.inner is not sc1.inner
+    y2, jt2, c = _value_and_tangents(sc2)
+    assert c.backend == 0 and c.compiled == 0 and c.hits == 1, vars(c)
+    np.testing.assert_array_equal(y2, y1)
+    np.testing.assert_array_equal(jt2, jt1)
+    assert sc2.calls == sc1.calls == {"value": 1, "value_and_tangents": 1}  # each wrapper counts its own solves
+
+
+def test_other_measurements_of_the_same_specimen_and_protocol_share_the_program(first, tmp_path):
+    """The measured stresses (and sigma) are arguments: 3x other data, same program, same
+    predictions; each wrapper keeps its own observed data."""
+    sc1, (y1, jt1) = first
+    sc3 = _wrapped(_config(tmp_path, scale=3.0))
+    np.testing.assert_allclose(sc3.observed, 3.0 * np.asarray(sc1.observed), rtol=1e-12)
+    y3, jt3, c = _value_and_tangents(sc3)
+    assert c.backend == 0 and c.compiled == 0 and c.hits == 1, vars(c)
+    np.testing.assert_array_equal(y3, y1)
+    np.testing.assert_array_equal(jt3, jt1)
+
+
+@pytest.mark.parametrize("change", [
+    {"size": 0.02},                          # another concrete mesh, same shapes and connectivity (same stresses)
+    {"strains": [0.05, 0.1, 0.15, 0.25]},    # another protocol, same number of steps
+    {"platens": "bonded"},                   # another static configuration (and boundary data)
+])
+def test_a_scenario_that_differs_in_what_is_compiled_in_gets_its_own_program(first, tmp_path, change):
+    """Two compilations, and the second program gives the numbers of a fresh build (cache
+    cleared) and of the scenario's own jitted predict."""
+    sc1, (y1, jt1) = first
+    sc = _wrapped(_config(tmp_path, **change))
+    assert scenario_structure(sc.inner)[0] != scenario_structure(sc1.inner)[0]
+    y, jt, c = _value_and_tangents(sc)
+    assert c.compiled == 1 and c.hits == 0 and c.backend >= 1, vars(c)
+    if "size" not in change:  # frictionless platens: a cube's stress does not depend on its size
+        assert not np.allclose(y, y1, rtol=1e-6)
+    direct = np.asarray(sc.inner.predict(MATERIAL))
+    np.testing.assert_allclose(y, direct, rtol=1e-10, atol=1e-12 * np.max(np.abs(direct)))
+    clear_compile_cache()  # (the tests above hold their programs; none below needs the cache)
+    fresh = _wrapped(_config(tmp_path, **change))
+    yf, jtf, c2 = _value_and_tangents(fresh)
+    assert c2.compiled == 1 and c2.hits == 0
+    np.testing.assert_array_equal(y, yf)
+    np.testing.assert_array_equal(jt, jtf)
+
+
+def test_the_key_holds_what_is_compiled_in_and_not_the_measured_data(tmp_path):
+    """No compilation here: keys of built scenarios."""
+    key = lambda cfg: scenario_structure(cfg.experiments[0].scenario)[0]  # noqa: E731
+    base = key(_config(tmp_path))
+    assert base is not None and base == key(_config(tmp_path))
+    assert base == key(_config(tmp_path, scale=2.0))      # measured data: arguments
+    assert base != key(_config(tmp_path, name="other"))   # the name is a static field: kept (conservative)
+    assert base != key(_config(tmp_path, size=0.011))
+    assert base != key(_config(tmp_path, strains=[0.05, 0.1, 0.15, 0.2001]))
+    assert base != key(_config(tmp_path, strains=[0.05, 0.1, 0.15]))
+    assert base != key(_config(tmp_path, model="fem_linear"))
+    assert base != key(_config(tmp_path, platens="bonded"))
+
+
+class _ScaledData(eqx.Module):
+    """A scenario whose prediction READS its observed data (``E * observed + b``): a shared
+    program must still give each scenario its own numbers."""
+
+    name: str = eqx.field(static=True)
+    observed: np.ndarray
+    sigma: np.ndarray
+    abscissa: np.ndarray
+    x_label: str = eqx.field(static=True, default="x [-]")
+    y_label: str = eqx.field(static=True, default="y [-]")
+
+    def predict(self, material):
+        return material.youngs_modulus * jnp.asarray(self.observed) + material.cubic_coefficient
+
+
+class _Opaque:
+    """A scenario that is not a pytree: keyed by identity (never shared)."""
+
+    name, x_label, y_label = "opaque", "x [-]", "y [-]"
+
+    def __init__(self, observed):
+        self.observed = np.asarray(observed, dtype=float)
+        self.sigma = np.ones_like(self.observed)
+        self.abscissa = np.arange(self.observed.size, dtype=float)
+
+    def predict(self, material):
+        return material.youngs_modulus * jnp.asarray(self.observed)
+
+
+@pytest.mark.parametrize("mode", ["forward", "reverse"])
+def test_measured_data_are_arguments_of_the_shared_program(mode):
+    a = _ScaledData("s", np.array([1.0, 2.0, 3.0]), np.ones(3), np.arange(3.0))
+    b = _ScaledData("s", np.array([5.0, -1.0, 0.5]), np.ones(3), np.arange(3.0))
+    m = Material(2.0, 0.3, cubic_coefficient=0.25)
+    wa, wb = SeparatelyCompiled(a, mode=mode, n_tangents=1), SeparatelyCompiled(b, mode=mode, n_tangents=1)
+    with _Compiles() as ca:
+        ya = wa.evaluate(m)
+    with _Compiles() as cb:
+        yb = wb.evaluate(m)
+    assert ca.compiled == 1 and cb.compiled == 0 and cb.hits == 1 and cb.backend == 0
+    np.testing.assert_allclose(ya, 2.0 * a.observed + 0.25, rtol=1e-15)
+    np.testing.assert_allclose(yb, 2.0 * b.observed + 0.25, rtol=1e-15)
+    # the derivative through the shared program: d/dE = observed
+    if mode == "forward":
+        _, jb = jax.jvp(lambda E: wb.predict(Material(E, 0.3, cubic_coefficient=0.25)), (2.0,), (1.0,))
+    else:
+        _, pullback = jax.vjp(lambda E: wb.predict(Material(E, 0.3, cubic_coefficient=0.25)), 2.0)
+        jb = np.array([float(pullback(jnp.eye(3)[i])[0]) for i in range(3)])
+    np.testing.assert_allclose(np.asarray(jb), b.observed, rtol=1e-15)
+
+
+def test_a_scenario_that_is_not_a_pytree_is_not_shared():
+    m = Material(2.0, 0.3)
+    a, b = _Opaque([1.0, 2.0]), _Opaque([1.0, 2.0])
+    assert scenario_structure(a)[0] != scenario_structure(b)[0]  # by identity
+    with _Compiles() as c:
+        ya, yb = SeparatelyCompiled(a).evaluate(m), SeparatelyCompiled(b).evaluate(m)
+    assert c.compiled == 2 and c.hits == 0
+    np.testing.assert_array_equal(ya, yb)
