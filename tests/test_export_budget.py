@@ -1,5 +1,5 @@
-"""pypbd and XPBD exports reproduce the fitted experiment at their written budget (issue 16;
-docs/export.md "Budget recalibration").
+"""pypbd and XPBD exports reproduce the fitted experiment at their written budget (docs/export.md
+"Budget recalibration"); the pypbd displacement field is measured, stated and, with a field target, met or refused.
 
 Each check writes the file with the exporter, runs the *file* at the budget it states (pypbd in
 a fresh process: ``run_pbd_budget``; the XPBD JSON in difftissue's own XPBD solver, standard
@@ -25,6 +25,7 @@ from difftissue.export.budget import MAX_BUDGET_ERROR, xpbd_budget_reactions
 from difftissue.export.specimens import IndentationSpecimen, indentation_sets
 from difftissue.mesh import block
 from difftissue.models import make_model
+from difftissue.export.pypbd import write_pbd
 from difftissue.export.pypbd_runner import read_pbd_scene
 from difftissue.solvers.static import solve_static
 
@@ -97,10 +98,18 @@ def test_pypbd_block_reproduces_the_card_at_the_default_budget(tmp_path):
     assert all(run["converged"]) and run["setting"] == [pytest.approx(1 / 60), 1, 10]
     err = np.asarray(run["reactions"]) / ref - 1.0
     du = _field_error(run, mesh, u_ref)
-    # measured for docs/export.md (not asserted: 0.29 at the default budget, the recalibration matches the force, not the field)
-    print(f"\npypbd block at its budget: reaction errors {err}, max|du|/max|u| {du:.3g}")
+    print(f"\npypbd block at its budget: reaction errors {err}, max|du|/max|u| {du:.4g}, converged limit "
+          f"{rec['field_error_converged']:.4g}, weight {rec['weight_field_share']:.4g}")
     assert np.max(np.abs(err)) <= MAX_BUDGET_ERROR, err  # measured: see docs/export.md
     assert np.max(np.abs(np.asarray(rec["signed_error_before"]))) > 0.1  # the card's own values are far off here
+    # the field is NOT within 2 % and the file says so: the recorded error is the file's (re-run here), measured 0.2919;
+    # 0.1668 of the card's springs_volume field is the pypbd lattice itself (per-tet volume constraints; the converged
+    # limit of every budget, docs/dev/pypbd-fields.md); the weight pypbd adds moves the particles by 0.0305 of max |u|
+    assert du == pytest.approx(rec["field_error"], rel=1e-6)
+    assert du == pytest.approx(0.2919, abs=0.02)
+    assert rec["field_error_converged"] == pytest.approx(0.1668, abs=0.005)
+    assert rec["weight_field_share"] == pytest.approx(0.0305, rel=0.1)
+    assert rec["field_tolerance"] is None and any(n.startswith("DISPLACEMENT FIELD") and "29.2 %" in n for n in scene["notes"])
 
 
 def test_pypbd_flat_punch_reproduces_the_card_at_the_default_budget(tmp_path):
@@ -121,9 +130,49 @@ def test_pypbd_flat_punch_reproduces_the_card_at_the_default_budget(tmp_path):
     assert all(run["converged"])
     err = np.asarray(run["reactions"]) / ref - 1.0
     du = _field_error(run, mesh, u_ref)
-    # measured for docs/export.md (not asserted: 0.66 at the default budget, the recalibration matches the force, not the field)
-    print(f"\npypbd flat punch at its budget: reaction errors {err}, max|du|/max|u| {du:.3g}")
+    print(f"\npypbd flat punch at its budget: reaction errors {err}, max|du|/max|u| {du:.4g}, converged limit "
+          f"{rec['field_error_converged']:.4g}, weight {rec['weight_field_share']:.4g}")
     assert np.max(np.abs(err)) <= MAX_BUDGET_ERROR, err
+    # field: measured 0.6635 at this budget, 0.3581 of it the lattice (per-tet vs the card's per-cube volume term under a
+    # bonded punch on two cell layers); the punch specimen's own weight moves it by 0.239 of max |u| in a running pypbd scene
+    assert du == pytest.approx(rec["field_error"], rel=1e-6)
+    assert du == pytest.approx(0.6635, abs=0.03)
+    assert rec["field_error_converged"] == pytest.approx(0.3581, abs=0.01)
+    assert rec["weight_field_share"] == pytest.approx(0.239, rel=0.1)
+
+
+def test_pypbd_field_target_is_met_by_a_chosen_budget_or_refused(tmp_path):
+    """``field_tolerance``: the displacement field becomes a target too. A fem_linear card (nu = 0.42) on the 10 mm cube:
+    the pypbd lattice's converged limit is 2.11 % off the card's field, so a 3 % target is reachable: the exporter
+    tries the default budget (26.8 %), 1 ... 16 substeps, and CHOOSES 32 substeps (measured 1.96 %; the reactions within
+    2 %); the file re-run in a fresh process gives that field. A 2 % target on the springs_volume card (lattice 16.7 %)
+    is refused without running a budget, and written with the miss stated under approximate=True."""
+    pytest.importorskip("pypbd", reason="pypbd (PyPI) has no wheel for this platform/Python; the check needs it")
+    card = MaterialCard(model="fem_linear", parameters={"youngs_modulus": {"value": E, "unit": "Pa"},
+                                                        "poisson_ratio": {"value": 0.42, "unit": "1"}}, name="skin")
+    mesh = block((0.01,) * 3, (3, 3, 3))
+    path = write_pbd(card, tmp_path / "field.json", mesh=mesh, displacement=-1e-3, field_tolerance=0.03)
+    scene = read_pbd_scene(path)
+    rec = scene["budget_calibration"]
+    assert scene["setting"] == {"dt": pytest.approx(1 / 60), "substeps": 32, "iterations": 10} and rec["budget"].startswith("CHOSEN")
+    assert [b[1:] for b in rec["budgets_tried"]] == [[1, 10], [1, 20], [2, 10], [4, 10], [8, 10], [16, 10], [32, 10]]
+    assert rec["field_within_tolerance"] and rec["field_error_converged"] == pytest.approx(0.0211, abs=0.002)
+    base, top = _block_sets(mesh)
+    ref, u_ref = _static(card, mesh, base, top, (0.0, 0.0, -1e-3), rec["load_fractions"], field=True)
+    run = _run_pbd_file(tmp_path, path)
+    du = _field_error(run, mesh, u_ref)
+    print(f"\npypbd field target 3 %: {scene['setting']}, max|du|/max|u| {du:.4g}, reactions {np.asarray(run['reactions']) / ref - 1}")
+    assert du <= 0.03 and du == pytest.approx(0.0196, abs=0.003)
+    assert np.max(np.abs(np.asarray(run["reactions"]) / ref - 1.0)) <= MAX_BUDGET_ERROR
+    with pytest.raises(ExportError, match=r"cannot be brought within 2 % .* differs from it by 16.7 %"):
+        write_pbd(_card(), tmp_path / "no.json", mesh=mesh, displacement=-1e-3, field_tolerance=0.02)
+    sc = read_pbd_scene(write_pbd(_card(), tmp_path / "approx.json", mesh=mesh, displacement=-1e-3, field_tolerance=0.02,
+                                  approximate=True))
+    r2 = sc["budget_calibration"]
+    assert r2["field_tolerance"] == 0.02 and r2["field_within_tolerance"] is False and r2["within_tolerance"]
+    assert any(n.startswith("APPROXIMATION: the displacement field cannot") for n in sc["notes"])
+    with pytest.raises(ExportError, match="material alone"):
+        write_pbd(_card(), tmp_path / "m.json", field_tolerance=0.02)
 
 
 def test_xpbd_block_reproduces_the_card_at_its_budget_and_refuses_a_saturated_one(tmp_path):

@@ -336,5 +336,10 @@ def test_bonded_compression_to_pypbd_reproduces_the_fitted_curve_at_its_budget(t
     stress_pbd = np.asarray(run["R"]) / scene["fitted_specimen"]["protocol"]["area"]
     fitted = np.abs(np.asarray(sc.predict(card.material())))  # the fitted curve: engineering stress [Pa]
     err = stress_pbd / fitted - 1.0
-    print("pypbd fitted bonded compression:", scene["setting"], rec["budgets_tried"], "before", rec["signed_error_before"], "after", err.tolist(), "factor", rec["factor"])
+    print("pypbd fitted bonded compression:", scene["setting"], rec["budgets_tried"], "before", rec["signed_error_before"], "after", err.tolist(),
+          "factor", rec["factor"], "field", rec["field_error"], "converged limit", rec["field_error_converged"], "weight", rec["weight_field_share"])
     assert np.max(np.abs(err)) <= 0.02, err  # measured: see docs/export.md
+    # the field is stated, not a target here: measured 0.143 at the chosen 8 substeps, 0.046 of the fem_linear card's field
+    # being the pypbd lattice's converged limit (docs/export.md, "Displacement column")
+    assert rec["field_tolerance"] is None and rec["field_error"] == pytest.approx(0.143, abs=0.02)
+    assert rec["field_error_converged"] == pytest.approx(0.0463, abs=0.005)

@@ -20,10 +20,10 @@ from ..models import SpringVolumeModel
 from ..scenarios import recover_lattice
 from ._common import finite, write_text
 from .approximations import approximation_notes
-from .budget import card_reference_reactions, load_fractions, pbd_budget_calibration
+from .budget import card_reference_field, card_reference_reactions, field_error, load_fractions, pbd_budget_calibration
 from .card import header_lines
 from .fitted import FittedSpecimen
-from .pypbd_runner import PYPBD_GRAVITY, SCENE_FORMAT, signed_tet_volumes
+from .pypbd_runner import PYPBD_GRAVITY, SCENE_FORMAT, pbd_reference_model, signed_tet_volumes
 from .recalibration import recalibration_fractions
 from .specimens import block_sets, default_displacement, indentation_sets
 
@@ -46,7 +46,7 @@ DEFAULT_BUDGET = (1.0 / 60.0, 1, 10)
 
 def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = None, substeps: int | None = None,
               iterations: int | None = None, approximate: bool = False, displacement: float | None = None, indentation=None,
-              calibrate: bool = True, load_fractions=None) -> dict:
+              calibrate: bool = True, load_fractions=None, field_tolerance: float | None = None) -> dict:
     """A pypbd scene for ``card`` (a :class:`~difftissue.export.MaterialCard`) as a JSON-ready dict.
 
     ``constraints="xpbd"`` (default): difftissue's spring lattice as XPBD distance constraints
@@ -83,6 +83,17 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = 
     handling is rigid-body / distance-field collision with position-based restitution and
     friction, not a static frictionless contact that :func:`run_pbd_scene` could drive to
     equilibrium).
+
+    With a specimen (``constraints="xpbd"``) the stiffnesses are recalibrated for the budget on
+    its reactions (:func:`~difftissue.export.budget.pbd_budget_calibration`), and the displacement
+    field pypbd comes to rest in at the last load state is measured against the card's model
+    (``budget_calibration.field_error``, ``max |du| / max |u|``), with the part of it that no
+    budget removes (``field_error_converged``: the scene energy's exact minimum against the card's
+    model) and the weight's share (``weight_field_share``: pypbd applies gravity). ``field_tolerance``
+    (e.g. 0.02) makes the field a target too: a budget is accepted only when the field error is
+    within it as well (an unpinned budget is searched for, a pinned one refused with a suggested
+    budget), and the export is refused (written with the miss noted under ``approximate``) when
+    the converged limit already exceeds it.
     """
     pinned = dt is not None or substeps is not None or iterations is not None
     dt = DEFAULT_BUDGET[0] if dt is None else dt
@@ -156,6 +167,8 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = 
         "card_provenance": card.provenance,
     }
     if mesh is None:
+        if field_tolerance is not None:
+            raise ExportError("field_tolerance: the scene holds the material alone (no specimen), so there is no field to measure")
         if constraints == "xpbd":
             scene["lattice_rules"] = {
                 "distance_stiffness_per_cell": {"cube_edge": mu / 4.0, "face_diagonal": mu / 2.0,
@@ -215,7 +228,9 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = 
         if load_fractions is None:
             load_fractions = _default_fractions(indentation)
         scene = _calibrate_budget(scene, card, mesh, base, top, np.asarray(dvec, dtype=float), load_fractions,
-                                  pinned=pinned, approximate=approximate, calibrate=calibrate)
+                                  pinned=pinned, approximate=approximate, calibrate=calibrate, field_tolerance=field_tolerance)
+    elif field_tolerance is not None:
+        raise ExportError("field_tolerance: a PBD FEM scene is not calibrated for its budget, so its field is not measured")
     return scene
 
 
@@ -225,10 +240,12 @@ def _default_fractions(indentation) -> list[float]:
     return load_fractions(indentation.steps if indentation is not None else 4)
 
 
-def _calibrate_budget(scene, card, mesh, base, moved, dvec, fractions, *, pinned, approximate, calibrate):
+def _calibrate_budget(scene, card, mesh, base, moved, dvec, fractions, *, pinned, approximate, calibrate, field_tolerance):
     """Recalibrate ``scene``'s stiffnesses at its budget on its specimen (:mod:`difftissue.export.budget`)."""
     st = scene["setting"]
     if not calibrate:
+        if field_tolerance is not None:
+            raise ExportError("field_tolerance needs the budget calibration (calibrate=True): the field is measured by it")
         scene["notes"].append(f"NOT calibrated for the budget (calibrate=False): the stiffnesses are the card's converged-limit "
                               f"values; at dt = {st['dt']:.6g} s, {st['iterations']} iterations pypbd's rest state differs from the "
                               "card's fitted response (run_pbd_budget measures it)")
@@ -249,8 +266,17 @@ def _calibrate_budget(scene, card, mesh, base, moved, dvec, fractions, *, pinned
                               "(the error at the budget unmeasured)") from None
         scene["notes"].append(f"APPROXIMATION: not calibrated for the budget: {e}")
         return scene
+    # the displacement field at the last load state: the card's model, the scene energy's exact minimum (what every budget
+    # converges to; the pypbd lattice is not the card's model), and the card's model carrying the particles' weights
+    u_card = card_reference_field(card, mesh, fixed, presc, fractions[-1])
+    mat = card.material().replace(pre_stretch=1.0, cubic_coefficient=0.0)  # what the scene holds (dropped terms noted)
+    u_lattice = card_reference_field(card, mesh, fixed, presc, fractions[-1], model=pbd_reference_model(mesh), material=mat)
+    weight = np.asarray(scene["particles"]["masses"], dtype=float)[:, None] * np.asarray(scene["gravity"], dtype=float)[None, :]
+    u_weight = card_reference_field(card, mesh, fixed, presc, fractions[-1], force=weight)
+    lattice_error, weight_share = field_error(u_lattice, u_card), field_error(u_weight, u_card)
     try:
-        scene, rec = pbd_budget_calibration(scene, ref, fractions, pinned=pinned, approximate=approximate)
+        scene, rec = pbd_budget_calibration(scene, ref, fractions, pinned=pinned, approximate=approximate, reference_field=u_card,
+                                            lattice_field_error=lattice_error, field_tolerance=field_tolerance)
     except ExportError as e:
         if approximate and "not installed" in str(e):
             scene["notes"].append("APPROXIMATION: not calibrated for the budget (pypbd not installed here): the stiffnesses are the "
@@ -267,17 +293,29 @@ def _calibrate_budget(scene, card, mesh, base, moved, dvec, fractions, *, pinned
         f"state on this specimen (load fractions {[round(f, 4) for f in fractions]}) reproduces the card's {card.model} reactions "
         f"{fmt(rec['signed_error_after'])} (the card's values would give {fmt(rec['signed_error_before'])}); valid for this "
         "budget, mesh and loading only; gravity not included (pypbd applies it: the specimen's weight adds to the load)")
+    rec["weight_field_share"] = weight_share
+    target = ("no field target given" if rec["field_tolerance"] is None else
+              f"field target {100 * rec['field_tolerance']:g} % " + ("met" if rec["field_within_tolerance"] else "NOT met"))
+    scene["notes"].append(
+        f"DISPLACEMENT FIELD at the last load state: max |u_pypbd - u_card| / max |u_card| = {100 * rec['field_error']:.3g} % at this "
+        f"budget ({target}); {100 * lattice_error:.3g} % of it is the pypbd lattice itself (XPBD distance constraints and a volume "
+        f"constraint per tet, not the card's {card.model}: the scene energy's exact minimum, which more substeps or iterations "
+        f"approach, differs from the card's model by that much); the reactions, not the field, are what the budget was "
+        f"recalibrated on. Gravity: pypbd applies (0, -9.81, 0) m/s^2 and cannot switch it off; the specimen's weight moves the "
+        f"particles by up to {100 * weight_share:.3g} % of max |u_card| more (the card's model with the lumped weights)")
+    if "field_note" in rec:
+        scene["notes"].append("APPROXIMATION: " + rec["field_note"])
     return scene
 
 
 def write_pbd(card, path, *, mesh=None, constraints: str = "xpbd", dt: float | None = None, substeps: int | None = None,
               iterations: int | None = None, approximate: bool = False, displacement: float | None = None, force: bool = False,
-              indentation=None, calibrate: bool = True, load_fractions=None) -> Path:
+              indentation=None, calibrate: bool = True, load_fractions=None, field_tolerance: float | None = None) -> Path:
     """Write :func:`pbd_scene` as JSON (``"format": "difftissue-pbd/1"``); load it with
     :func:`read_pbd_scene` and :func:`pbd_simulation_from_scene`."""
     scene = pbd_scene(card, mesh, constraints=constraints, dt=dt, substeps=substeps, iterations=iterations,
                       approximate=approximate, displacement=displacement, indentation=indentation, calibrate=calibrate,
-                      load_fractions=load_fractions)
+                      load_fractions=load_fractions, field_tolerance=field_tolerance)
     return write_text(path, json.dumps(scene, indent=1, allow_nan=False) + "\n", force)
 
 
@@ -285,7 +323,8 @@ _PBD_WHY = ("a pypbd scene holds fixed particles and one moved set (a particle i
             "prescribed displacements, region materials or a pre-stretch")
 
 
-def write_fitted_pbd(card, path, spec: FittedSpecimen, *, approximate: bool, force: bool, dt, iterations, substeps) -> Path:
+def write_fitted_pbd(card, path, spec: FittedSpecimen, *, approximate: bool, force: bool, dt, iterations, substeps,
+                     field_tolerance: float | None = None) -> Path:
     """pypbd scene of a fitted compression with bonded platens on a block (the only fitted experiment
     a pypbd scene can hold), recalibrated for its budget on the protocol's strains
     (:func:`difftissue.export.pypbd.pbd_scene`, :mod:`difftissue.export.budget`)."""
@@ -314,7 +353,7 @@ def write_fitted_pbd(card, path, spec: FittedSpecimen, *, approximate: bool, for
     if len(fr) > 4:
         fr = recalibration_fractions(spec)
     scene = pbd_scene(card, mesh, dt=dt, iterations=iterations, substeps=substeps, approximate=approximate,
-                      displacement=float(spec.protocol["top_displacement"]), load_fractions=fr)
+                      displacement=float(spec.protocol["top_displacement"]), load_fractions=fr, field_tolerance=field_tolerance)
     scene["header"] = scene["header"] + spec.describe()
     scene["fitted_specimen"] = {"scenario": spec.scenario, "experiment": spec.experiment, "protocol": dict(spec.protocol),
                                 "note": "the protocol's strains are the load fractions of budget_calibration (nominal strain = "
