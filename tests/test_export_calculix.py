@@ -12,7 +12,8 @@ only a displacement print) and compares with difftissue's own solution of the sa
 * (d) the neo-Hookean variant of (b) (frictionless, 10 %) and of (a).
 
 * (e) sphere and cone indentation (a meshed rigid indenter in node-to-surface penalty contact),
-  linear, against difftissue's penalty contact with the analytic indenter (2 %).
+  linear and neo-Hookean, against difftissue's penalty contact with the analytic indenter at
+  each depth step (2 %).
 
 Linear: same P1 tetrahedra and energy, so the reaction and the displacement field agree to
 CalculiX's 7 printed digits (tolerance 1e-6 relative). Neo-Hookean: CalculiX's ``NEO HOOKE`` is
