@@ -81,9 +81,10 @@ def with_displacement_probe(text: str) -> str:
     return "\n".join(out) + "\n"
 
 
-def parse_dat(text: str, n_nodes: int) -> tuple[dict, np.ndarray, float]:
+def parse_dat(text: str, n_nodes: int, time: float | None = None) -> tuple[dict, np.ndarray, float]:
     """Summed reactions per set, the probe's displacements and their time, from the last time
-    that a ``.dat`` prints (a nonlinear step prints every increment)."""
+    that a ``.dat`` prints (a nonlinear step prints every increment), or from the printed time
+    nearest ``time``."""
     blocks: dict = {}
     cur = None
     for ln in text.splitlines():
@@ -95,7 +96,7 @@ def parse_dat(text: str, n_nodes: int) -> tuple[dict, np.ndarray, float]:
         vals = ln.split()
         if cur is not None and vals:
             blocks[cur].append([float(v) for v in vals])
-    t_end = max(k[2] for k in blocks)
+    t_end = max(k[2] for k in blocks) if time is None else min({k[2] for k in blocks}, key=lambda t: abs(t - time))
     totals = {k[1]: np.array(v[0]) for k, v in blocks.items() if k[0] == "F" and k[2] == t_end}
     rows = np.array(blocks[("U", PROBE, t_end)])
     u = np.full((n_nodes, 3), np.nan)

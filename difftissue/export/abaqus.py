@@ -244,7 +244,8 @@ def write_abaqus(card: MaterialCard, path, *, mesh=None, law: str | None = None,
 
 
 #: Increments per top cell size of the cone's depth in the Abaqus / CalculiX deck (the tip moves
-#: at most h / this per increment; measured: h / 20 loses the node under the tip, h / 40 does not).
+#: at most h / this per increment; measured: h / 20 loses the node under the tip, h / 40 does not),
+#: rounded up to a multiple of the protocol's steps.
 CONE_INCREMENTS_PER_CELL = 50.0
 
 
@@ -389,13 +390,15 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
     n_inc = spec.steps
     axis_top = np.flatnonzero(np.hypot(pts[s["top"], 0], pts[s["top"], 1]) <= 1e-9 * H) if spec.indenter == "cone" else []
     if spec.indenter == "cone":
-        # the node-to-surface pairing loses the node under the sharp tip when the tip moves more than ~h/40 per increment
-        n_inc = max(n_inc, int(math.ceil(CONE_INCREMENTS_PER_CELL * spec.depth / s["h"])))
+        # the node-to-surface pairing loses the node under the sharp tip when the tip moves more than ~h/40 per increment;
+        # a multiple of the protocol's steps, so that every depth of the protocol ends an increment (printed to the .dat)
+        per_step = int(math.ceil(CONE_INCREMENTS_PER_CELL * spec.depth / s["h"] / spec.steps))
+        n_inc = spec.steps * max(1, per_step)
         lines.append(_abaqus_comment(
-            f"cone: {n_inc} increments (the tip moves at most h / {CONE_INCREMENTS_PER_CELL:g} per increment: with larger ones CalculiX's "
-            "node-to-surface search loses the node under the sharp tip)" + ("; the top node on the axis is held in x and y (the "
-            "axisymmetric solution: under a frictionless sharp tip it is in unstable equilibrium, and a faceted tip pushes it off "
-            "the axis)" if len(axis_top) else "")))
+            f"cone: {n_inc} increments, {n_inc // spec.steps} per depth step (the tip moves at most h / {CONE_INCREMENTS_PER_CELL:g} per "
+            "increment: with larger ones CalculiX's node-to-surface search loses the node under the sharp tip)" + ("; the top node on "
+            "the axis is held in x and y, as in difftissue's Indentation (the axisymmetric solution: under a frictionless sharp tip it "
+            "is in unstable equilibrium, and without the hold it slides off the axis down one flank)" if len(axis_top) else "")))
         if len(axis_top):
             lines += ["*NSET, NSET=AXIS_TOP", str(int(s["top"][axis_top[0]]) + 1)]
     inc = abaqus_number(1.0 / n_inc)
