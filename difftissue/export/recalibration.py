@@ -472,17 +472,21 @@ def recalibrated_ogden_card(card, spec: FittedSpecimen, *, why: str):
     keyword = "*HYPERELASTIC, OGDEN, N=2"
     fmt = lambda a: ", ".join(f"{100 * v:+.3g} %" for v in np.ravel(a))  # noqa: E731
     notes = [f"RECALIBRATED for Abaqus / CalculiX {keyword} (two-term Ogden; one modulus cannot follow the card's {own} curve"
-             + (f" with cubic_coefficient b = {card.cubic_coefficient:g}" if card.cubic_coefficient else "") + f"): {why}",
-             f"U = sum_i 2 mu_i / alpha_i^2 (l1b^alpha_i + l2b^alpha_i + l3b^alpha_i - 3) + (J - 1)^2 / D1 + (J - 1)^4 / D2: "
+             + (f" with cubic_coefficient b = {card.cubic_coefficient:g}" if card.cubic_coefficient else "") + "): "
              f"mu1 = {mu[0]:.10g} Pa, alpha1 = {alpha[0]:.10g}, mu2 = {mu[1]:.10g} Pa, alpha2 = {alpha[1]:.10g}, "
-             f"D1 = {d[0]:.10g} 1/Pa, D2 = {d[1]:.10g} 1/Pa",
+             f"D1 = {d[0]:.10g} 1/Pa, D2 = {d[1]:.10g} 1/Pa; valid for homogeneous uniaxial compression from 0 to {100 * e[-1]:.4g} % "
+             f"nominal strain; residual against {own} at {e.size} fitted strains at most {100 * worst:.3g} %; Drucker-stable along "
+             "the fitted compression",
+             f"why: {why}",
+             "energy: U = sum_i 2 mu_i / alpha_i^2 (l1b^alpha_i + l2b^alpha_i + l3b^alpha_i - 3) + (J - 1)^2 / D1 + (J - 1)^4 / D2, "
+             "lkb = J^(-1/3) lk",
              f"small strain: mu0 = mu1 + mu2 = {mu0:.10g} Pa, K0 = 2 / D1 = {2 * inv_d[0]:.10g} Pa, i.e. E = {E0:.10g} Pa and the card's "
              f"nu = {nu:.10g} (the card's E = {card.youngs_modulus:.10g} Pa, {own}); D2 = {OGDEN_D2_FACTOR:g} D1: negligible, written "
              "because CalculiX replaces a zero D2 by a stiff default",
-             f"valid for homogeneous uniaxial compression from 0 to {100 * e[-1]:.4g} % nominal strain (the fitted protocol of "
-             f"{spec.scenario!r}; outside it the law is extrapolated)",
+             f"range of validity: homogeneous uniaxial compression from 0 to {100 * e[-1]:.4g} % nominal strain (the fitted protocol of "
+             f"{spec.scenario!r}); outside it the law is extrapolated",
              f"fitted by least squares of the relative nominal stress to {own} at the card's values at {e.size} protocol strains "
-             f"({100 * e[0]:.3g} to {100 * e[-1]:.3g} %), solved in difftissue: residual {fmt(err)} (max {100 * worst:.3g} %)",
+             f"({100 * e[0]:.3g} to {100 * e[-1]:.3g} %), solved in difftissue: residual {fmt(err)}",
              f"Drucker-stable (d tau : d eps > 0) along the fitted compression (81 states to {100 * e[-1]:.4g} %); "
              + _ogden_stability_note(mu, alpha, nu, float(e[-1]))]
     params = {k: dict(v) for k, v in card.parameters.items()}
