@@ -3,7 +3,8 @@ and the fitted specimen, in the dialect CalculiX 2.20 also runs (docs/export.md)
 
 Every number goes through :func:`abaqus_number` (CalculiX reads 20 characters of a field),
 every label through :func:`abaqus_name`. Conversions: :func:`abaqus_material` (``*ELASTIC`` /
-``*HYPERELASTIC, NEO HOOKE``). Decks: :func:`abaqus_model`, :func:`abaqus_indentation_model`,
+``*HYPERELASTIC, NEO HOOKE``, or ``*HYPERELASTIC, OGDEN, N=2`` for a card recalibrated to a two-term
+Ogden law, :func:`~difftissue.export.recalibration.recalibrated_ogden_card`). Decks: :func:`abaqus_model`, :func:`abaqus_indentation_model`,
 :func:`abaqus_fitted_model`; :func:`write_abaqus` writes one.
 """
 
@@ -95,6 +96,25 @@ def _abaqus_comment(text: str) -> str:
     return "** " + " ".join(str(text).split())
 
 
+def _hyperelastic(card: MaterialCard):
+    """The two-term Ogden law a recalibrated card carries
+    (``provenance["recalibration"]["hyperelastic"]``), or None."""
+    rec = (card.provenance or {}).get("recalibration")
+    hyper = rec.get("hyperelastic") if isinstance(rec, dict) else None
+    return hyper if isinstance(hyper, dict) and hyper.get("law") == "ogden" else None
+
+
+def _abaqus_law(card: MaterialCard, law: str | None) -> str:
+    """The law written: ``"ogden"`` for a card recalibrated to it (``law`` None or
+    ``"neo_hookean"``; ``"linear"`` is refused), else :func:`resolve_law`."""
+    if _hyperelastic(card) is None:
+        return resolve_law(card, law)
+    if law not in (None, "neo_hookean", "ogden"):
+        raise ExportError(f"law = {law!r}: the card was recalibrated to a two-term Ogden law (finite strain); export the original "
+                          "card for that law")
+    return "ogden"
+
+
 def abaqus_material(card: MaterialCard, *, law: str | None = None, approximate: bool = False) -> list[str]:
     """Abaqus keyword lines of the material.
 
@@ -104,18 +124,26 @@ def abaqus_material(card: MaterialCard, *, law: str | None = None, approximate: 
       modulus ``K0 = 2 / D1``), ``mu = E / (2 (1 + nu))``, ``K = E / (3 (1 - 2 nu))``. Abaqus's
       energy ``C10 (I1bar - 3) + (J - 1)^2 / D1`` differs from FEBio's at finite strain but has
       the same small-strain response (E, nu).
+    * a card recalibrated to a two-term Ogden law
+      (:func:`~difftissue.export.recalibration.recalibrated_ogden_card`): ``*HYPERELASTIC, OGDEN,
+      N=2`` with the data line ``mu1, alpha1, mu2, alpha2, D1, D2`` (mu_i [Pa], D_i [1/Pa]; the
+      same keyword and energy in Abaqus and CalculiX 2.20).
     * ``*DENSITY`` with the density.
 
     Inverse (tested): ``mu = 2 C10``, ``K = 2 / D1``, ``E = 9 K mu / (3 K + mu)``,
     ``nu = (3 K - 2 mu) / (2 (3 K + mu))``.
     """
-    law = resolve_law(card, law)
+    law = _abaqus_law(card, law)
     notes = approximation_notes(card, "Abaqus " + law, approximate=approximate)
     lines = [_abaqus_comment(s) for s in header_lines(card, "Abaqus", law) + notes]
     if card.name != abaqus_name(card.name):
         lines.append(_abaqus_comment(f"material name sanitised from {card.name!r}"))
     lines.append(f"*MATERIAL, NAME={abaqus_name(card.name)}")
-    if law == "linear":
+    if law == "ogden":
+        h = _hyperelastic(card)
+        data = [v for pair in zip(h["mu"], h["alpha"]) for v in pair] + list(h["d"])
+        lines += [f"*HYPERELASTIC, OGDEN, N={len(h['mu'])}", ", ".join(abaqus_number(v) for v in data)]
+    elif law == "linear":
         lines += ["*ELASTIC", f"{abaqus_number(card.youngs_modulus)}, {abaqus_number(card.poisson_ratio)}"]
     else:
         c10 = card.shear_modulus / 2.0
@@ -453,7 +481,7 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
     value``), ramped over the step (the default amplitude of a ``*STATIC`` step), with initial and
     largest increment ``1 /`` :func:`load_steps` of the step. An incision is refused: a pre-stretched one because Abaqus has no
     prestrain gradient here, and without it the cut does not open; one without pre-stretch because it carries no load."""
-    law = resolve_law(card, law)
+    law = _abaqus_law(card, law)
     element = abaqus_element(element)
     cards = spec.region_cards(card)
     _refuse_pre_stretch(cards, "Abaqus")
@@ -500,7 +528,7 @@ def abaqus_fitted_model(card, spec: FittedSpecimen, *, law: str | None = None, a
             lines += abaqus_material(cards[r], law=law, approximate=approximate)
             done.add(mname)
     inc = abaqus_number(1.0 / load_steps(spec))
-    lines += [f"*STEP, NLGEOM={'YES' if law == 'neo_hookean' else 'NO'}", "*STATIC", f"{inc}, 1.0, 1e-05, {inc}", "*BOUNDARY"]
+    lines += [f"*STEP, NLGEOM={'NO' if law == 'linear' else 'YES'}", "*STATIC", f"{inc}, 1.0, 1e-05, {inc}", "*BOUNDARY"]
     for c, (zero, nz) in zip("XYZ", sets):
         if zero.size:
             d = "XYZ".index(c) + 1

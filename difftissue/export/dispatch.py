@@ -93,7 +93,7 @@ def write_fitted(card: MaterialCard, to: str, path, spec: FittedSpecimen, *, law
     if to in ("febio", "sofa", "abaqus"):
         lw = resolve_law(card, law)
         if model_mismatch(card, lw) and not (approximate and (spec.experiment == "incision" or spec.reaction is None)):
-            card = recalibrated_card(card, spec, lw, approximate=approximate)
+            card = recalibrated_card(card, spec, lw, approximate=approximate, hyperelastic=to == "abaqus")
     if to == "febio":
         return write_text(path, xml_text(febio_fitted_model(card, spec, law=law, approximate=approximate)), force)
     if to == "sofa":
