@@ -5,8 +5,10 @@ solve, and the state it settles to is softer than the model's static equilibrium
 ``docs/xpbd.md``). :func:`calibrate_for_budget` finds the *effective* material that makes
 the budgeted XPBD solve reproduce a reference static response (the same model solved to
 convergence with :func:`~difftissue.solvers.solve_static`, or a ``fem_linear`` model) at the
-true material, by a few Gauss--Newton steps on the observable mismatch with the gradient
-taken through the unrolled XPBD loop (forward mode, ``jax.jacfwd``). The result records
+true material, by least squares on the relative observable mismatch with the Jacobian
+taken through the unrolled XPBD loop (forward mode): the fit engine's Levenberg--Marquardt
+(:func:`difftissue.fit.residuals.least_squares`, the engine of :func:`difftissue.fit.fit`),
+which also gives the Gauss--Newton covariance of the calibrated fields. The result records
 the setting (dt, substeps, iterations, method) it is valid for: an effective material is
 only meaningful for that setting, that mesh resolution and similar loading.
 """
@@ -14,6 +16,7 @@ only meaningful for that setting, that mesh resolution and similar loading.
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 from typing import Callable
 
@@ -23,7 +26,8 @@ import numpy as np
 
 from .boundary import BoundaryConditions
 from .errors import ConfigError, ConvergenceError, DifftissueWarning, ModelError
-from .materials import Material
+from .fit.residuals import ResidualProblem, least_squares
+from .materials import Identity, Log, Material, ScaledLogit
 from .models import MODELS, ElasticModel, make_model
 from .solvers.static import solve_static
 from .solvers.xpbd import XPBDSettings, xpbd_quasi_static
@@ -35,21 +39,14 @@ FITTABLE_FIELDS = ("youngs_modulus", "poisson_ratio", "cubic_coefficient")
 _NU_LO, _NU_HI = 0.0, 0.4999
 
 
-def _to_u(field, v):
-    if field == "youngs_modulus":
-        return jnp.log(v)
-    if field == "poisson_ratio":
-        t = (v - _NU_LO) / (_NU_HI - _NU_LO)
-        return jnp.log(t) - jnp.log1p(-t)
-    return jnp.asarray(v, dtype=float)
-
-
-def _from_u(field, u):
-    if field == "youngs_modulus":
-        return jnp.exp(u)
-    if field == "poisson_ratio":
-        return _NU_LO + (_NU_HI - _NU_LO) * jax.nn.sigmoid(u)
-    return u
+#: The unconstrained variable of each field in the optimiser (a function of the true material,
+#: which sets the scale): log E (scaled by the true E), nu in (0, 0.4999) by a scaled logit, the
+#: cubic coefficient as it is.
+_TRANSFORMS = {
+    "youngs_modulus": lambda m: Log(scale=float(m.youngs_modulus)),
+    "poisson_ratio": lambda m: ScaledLogit(_NU_LO, _NU_HI),
+    "cubic_coefficient": lambda m: Identity(),
+}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -68,8 +65,18 @@ class BudgetCalibration:
         naive: the observable of the budgeted XPBD solve at the true material.
         calibrated: the observable of the budgeted XPBD solve at the calibrated material.
         naive_error, calibrated_error: relative errors ``|obs - ref| / |ref|`` (2-norm).
-        steps: Gauss--Newton steps taken.
+        steps: optimiser steps taken (Levenberg--Marquardt trial steps after the start's
+            evaluation; 0 when the naive error already met ``rtol``).
         converged: ``calibrated_error <= rtol``.
+        jacobian: ``(n, p)`` derivative of the relative mismatch ``(obs - ref) / |ref|`` [-]
+            with respect to the calibrated fields (SI) at the calibrated material.
+        covariance: ``(p, p)`` Gauss--Newton covariance ``s^2 (J^T J)^-1`` of the calibrated
+            fields (SI units squared), ``s^2 = |mismatch|^2 / (n - p)``: how well the
+            observables pin the effective fields down given the mismatch left. NaN when there
+            are no more observables than fields (``dof = 0``, e.g. the scalar ``"reaction"``
+            with one field): the calibration then matches exactly and has no scatter to go by.
+        standard_errors: ``{field: sqrt(covariance_ii)}`` (SI; NaN when ``dof = 0``).
+        dof: observables minus calibrated fields.
     """
 
     material: Material
@@ -85,6 +92,10 @@ class BudgetCalibration:
     calibrated_error: float
     steps: int
     converged: bool
+    jacobian: np.ndarray | None = None
+    covariance: np.ndarray | None = None
+    standard_errors: dict = dataclasses.field(default_factory=dict)
+    dof: int = 0
 
     def ratio(self, field: str = "youngs_modulus") -> float:
         """Calibrated / true value of ``field``."""
@@ -147,14 +158,16 @@ def calibrate_for_budget(
         reference: ``None`` (the static solve of the same model kind), a model kind string
             (e.g. ``"fem_linear"``) or an :class:`~difftissue.models.ElasticModel`.
         fit_fields: fields of ``material`` to calibrate (subset of :data:`FITTABLE_FIELDS`).
-            Gauss--Newton with a minimum-norm step when there are more fields than observables.
+            Levenberg--Marquardt (damped Gauss--Newton) also when there are more fields than
+            observables.
         observable: ``"reaction"`` (total reaction force on the nodes with a non-zero
             prescribed displacement, projected on the direction of their summed prescribed
             displacement: a scalar) or a function ``f(displacement) -> array``.
-        max_steps: Gauss--Newton steps allowed.
+        max_steps: optimiser steps allowed (after the evaluation of the true material).
         rtol: stop when the relative error is at most this.
         tol, max_frames: convergence tolerance and frame limit of the quasi-static XPBD solve.
-        max_log_step: largest step per iteration in the unconstrained variables (log E).
+        max_log_step: not used any more (the trust region of Levenberg--Marquardt limits
+            the steps); kept so that calls that pass it still run. Must be > 0.
 
     Raises:
         ConfigError: unknown field / observable, bad settings or step counts.
@@ -198,6 +211,8 @@ def calibrate_for_budget(
         raise ConfigError(f"max_steps must be an integer >= 0, got {max_steps!r}")
     if not rtol > 0:
         raise ConfigError(f"rtol must be > 0, got {rtol!r}")
+    if not max_log_step > 0:
+        raise ConfigError(f"max_log_step must be > 0, got {max_log_step!r}")
 
     model = make_model(mesh, model_kind)
     if reference is None:
@@ -232,52 +247,45 @@ def calibrate_for_budget(
         raise ConfigError("the reference observable is zero or not finite: nothing to calibrate against")
 
     # ------------------------------------------------------------------ budgeted XPBD
-    def residual(u):
-        m = _replace(material, fit_fields, u)
+    def observe(values):
+        """Budgeted observable at the fitted fields' ``values`` and whether XPBD came to rest."""
+        m = _with_values(material, fit_fields, values)
         sol = xpbd_quasi_static(model, m, bc, settings=settings, tol=tol, max_steps=max_frames, throw=False)
-        y = obs(sol.displacement, sol.reaction)
-        r = (y - y_ref) / ref_norm
-        return r, (y, sol.converged)
+        return obs(sol.displacement, sol.reaction), sol.converged
 
-    jac = jax.jit(jax.jacfwd(residual, has_aux=True))
-    res_only = jax.jit(residual)
+    def residual_fn(values, data):
+        # (y - y_ref) / (|y_ref| rtol): the relative mismatch in units of the target, so that the
+        # Jacobian dominates Levenberg--Marquardt's initial damping (unit in u) and the first
+        # steps are nearly Gauss--Newton steps (the minimiser and the covariance do not depend
+        # on this scale). A frame limit reached gives NaN, which the optimiser rejects.
+        y, ok = observe(values)
+        r = (y - data["reference"]) / data["norm"]
+        return jnp.where(ok, r, jnp.nan), y
 
-    def evaluate(u):
-        r, (y, ok) = res_only(u)
+    observe_jit = jax.jit(observe)
+
+    def evaluate(values):
+        y, ok = observe_jit(jnp.asarray(values))
         if not bool(ok):
             raise ConvergenceError(
                 f"the budgeted XPBD solve did not come to rest within {max_frames} frames "
                 f"(model {model_kind}, iterations {settings.iterations}, method {settings.method}); "
                 "raise max_frames or use another setting"
             )
-        return r, y
+        return y, float(jnp.linalg.norm((y - y_ref) / ref_norm))
 
-    u = jnp.stack([_to_u(f, jnp.asarray(getattr(material, f), dtype=float)) for f in fit_fields])
-    r, y = evaluate(u)
-    y_naive = y
-    err = float(jnp.linalg.norm(r))
-    naive_err = err
-    steps = 0
-    while err > rtol and steps < max_steps:
-        J, _ = jac(u)
-        J = jnp.atleast_2d(J.reshape(r.shape[0], u.shape[0]))
-        du = -jnp.linalg.lstsq(J, r)[0]
-        big = float(jnp.max(jnp.abs(du)))
-        if not np.isfinite(big) or big == 0.0:
-            break
-        if big > max_log_step:
-            du = du * (max_log_step / big)
-        # backtracking: accept the first step that lowers the error
-        for _ in range(6):
-            r_new, y_new = evaluate(u + du)
-            err_new = float(jnp.linalg.norm(r_new))
-            if err_new < err:
-                break
-            du = du / 2
-        steps += 1
-        if not err_new < err:
-            break
-        u, r, y, err = u + du, r_new, y_new, err_new
+    start = np.array([float(getattr(material, f)) for f in fit_fields])
+    y_naive, naive_err = evaluate(start)
+    problem = ResidualProblem(residual_fn, fit_fields, [_TRANSFORMS[f](material) for f in fit_fields], int(y_ref.shape[0]),
+                              data={"reference": np.asarray(y_ref), "norm": np.asarray(ref_norm * rtol)})
+    # The engine's first step evaluates the start (residual and Jacobian); max_steps optimiser
+    # steps follow, until the relative error reaches rtol (the loss is (err / rtol)^2 / 2). With
+    # max_steps = 0 or a naive error within rtol, the result holds the start's statistics.
+    fit = least_squares(problem, start, method="levenberg_marquardt", max_steps=max_steps + 1,
+                        stop=lambda loss: math.sqrt(2.0 * loss) <= 1.0)
+    values = np.array([fit.values[f] for f in fit_fields])
+    steps = max(fit.steps - 1, 0)
+    y, err = evaluate(values)
 
     if err > rtol:
         warnings.warn(
@@ -288,7 +296,7 @@ def calibrate_for_budget(
             stacklevel=2,
         )
     return BudgetCalibration(
-        material=_replace(material, fit_fields, u),
+        material=_with_values(material, fit_fields, values),
         true_material=material,
         fit_fields=fit_fields,
         setting={
@@ -306,11 +314,16 @@ def calibrate_for_budget(
         calibrated_error=err,
         steps=steps,
         converged=err <= rtol,
+        jacobian=np.asarray(fit.jacobian) * rtol,
+        covariance=np.asarray(fit.covariance),
+        standard_errors=dict(fit.standard_errors),
+        dof=fit.dof,
     )
 
 
-def _replace(material: Material, fields, u) -> Material:
+def _with_values(material: Material, fields, values) -> Material:
+    """``material`` with ``fields`` set to ``values`` (physical, SI)."""
     kw = {name: getattr(material, name) for name in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
     for i, f in enumerate(fields):
-        kw[f] = _from_u(f, u[i])
+        kw[f] = values[i]
     return Material(**kw)

@@ -88,7 +88,13 @@ _KUHN_TETS = np.array([[0, 1 << p[0], (1 << p[0]) | (1 << p[1]), 7] for p in ite
 
 # ---------------------------------------------------------------- geometry kernels
 def signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
-    """Signed volume ``(x1 - x0) . ((x2 - x0) x (x3 - x0)) / 6`` of each tet [m^3]."""
+    """Signed volume ``(x1 - x0) . ((x2 - x0) x (x3 - x0)) / 6`` of each tet [m^3].
+
+    THE host-side (NumPy) signed tet volume: meshes, cutting, exporters and external-solver
+    runners call this; traced code calls :func:`difftissue.energies.volume.tet_signed_volume`
+    (the same formula in JAX; they agree to 3e-16 of the largest volume, tested). It lives
+    here, not in ``energies``, because the data loaders may import the mesh but not physics.
+    """
     p = np.asarray(points, dtype=float)
     t = np.asarray(tets)
     x0 = p[t[:, 0]]

@@ -49,7 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import DifftissueError, FitError
-from .materials import _is_concrete
+from .fit.residuals import ResidualProblem, least_squares
+from .materials import Log, ScaledLogit, _is_concrete
 
 __all__ = [
     "SurrogateError",
@@ -217,8 +218,15 @@ class SurrogateFit(NamedTuple):
         residuals: model minus data [m], all profiles concatenated.
         rms: root-mean-square residual [m]; relative_rms: ``rms / rms(widths)``.
         fitted: names of the fitted parameters.
-        cost_evaluations: function evaluations of the least-squares solver.
-        message: the solver's message.
+        cost_evaluations: steps of the fit engine, each one evaluation of the widths and
+            their Jacobian (the first at the start).
+        message: why the fit stopped.
+        standard_errors: ``{name: standard error}`` of the fitted parameters (names as in
+            ``fitted``; dimensionless like ``c`` and ``alpha``): Gauss--Newton
+            ``sqrt(diag(s^2 (J^T J)^-1))``, ``s^2`` the residual variance ``SSE / (n - p)``
+            (NaN when there are no more widths than fitted parameters).
+        covariance, correlation: ``(p, p)`` in the order of ``fitted``.
+        dof: ``n - p`` (widths minus fitted parameters).
     """
 
     alpha: np.ndarray
@@ -231,6 +239,10 @@ class SurrogateFit(NamedTuple):
     fitted: tuple[str, ...]
     cost_evaluations: int
     message: str
+    standard_errors: dict = {}
+    covariance: np.ndarray | None = None
+    correlation: np.ndarray | None = None
+    dof: int = 0
 
 
 def _as_profiles(depths, widths, cut_depth):
@@ -276,8 +288,10 @@ def fit_surrogate(
     - ``c`` given: one ``alpha`` per profile is fitted.
 
     Parameters are fitted through ``c = exp(u)`` and ``alpha = sigmoid(v)``, so they stay in
-    range; the Jacobian is exact (``jax.jacfwd``); the solver is SciPy's Levenberg-Marquardt
-    (``scipy.optimize.least_squares(method="lm")``).
+    range; the Jacobian is exact (``jax.jacfwd``); the solver is the fit engine's optimistix
+    Levenberg-Marquardt (:func:`difftissue.fit.residuals.least_squares`, the engine of
+    :func:`difftissue.fit.fit`), which also gives the Gauss-Newton standard errors and
+    covariance of the fitted parameters (``s^2 (J^T J)^-1``).
 
     Args:
         depths_of_nodes: node depths ``h`` [m] of one profile, or a list of profiles.
@@ -293,7 +307,6 @@ def fit_surrogate(
             of ``alpha``, ``c`` fixed.
         FitError: the least-squares solver failed.
     """
-    from scipy.optimize import least_squares
 
     depths, ws, d, _ = _as_profiles(depths_of_nodes, widths, cut_depth)
     K = len(depths)
@@ -311,50 +324,41 @@ def fit_surrogate(
     _concrete("w_max", w_max, lambda v: v > 0, "must be > 0 m (inf for no cap)")
     if smoothing is not None:
         _concrete("smoothing", smoothing, lambda v: v > 0, "must be > 0")
-    h_all = jnp.asarray(np.concatenate(depths))
+    h_all = np.concatenate(depths)
     w_all = np.concatenate(ws)
-    d_all = jnp.asarray(np.concatenate([np.full(h.size, dk) for h, dk in zip(depths, d)]))
+    d_all = np.concatenate([np.full(h.size, dk) for h, dk in zip(depths, d)])
     prof = np.concatenate([np.full(h.size, k) for k, h in enumerate(depths)])
     scale = float(np.sqrt(np.mean(w_all**2))) or 1.0
-    fitted = ("c",) if alpha is not None else tuple(f"alpha[{k}]" for k in range(K))
-
-    def unpack(u):
-        if alpha is not None:
-            return jnp.asarray(alpha_fixed), jnp.exp(u[0])
-        return jax.nn.sigmoid(u), jnp.asarray(float(c))
-
-    def model(u):
-        a, cc = unpack(u)
-        raw = cc * (d_all - h_all) / (1.0 - a[prof])
-        if smoothing is None:
-            return jnp.minimum(raw, w_max)
-        return -smoothing * jnp.logaddexp(-raw / smoothing, -w_max / smoothing)
-
-    def residual(u):
-        return (model(u) - jnp.asarray(w_all)) / scale
-
-    res_fn = residual  # a handful of small arrays: eager evaluation beats compiling per call
-    jac_fn = jax.jacfwd(residual)
-    if alpha is not None:
+    fit_c = alpha is not None
+    fitted = ("c",) if fit_c else tuple(f"alpha[{k}]" for k in range(K))
+    if fit_c:
         if initial_c is None:
             below = (d_all - h_all) > 0
-            q = np.median(w_all[np.asarray(below)] / np.asarray((d_all - h_all)[below])) if np.any(below) else 1.0
+            q = np.median(w_all[below] / (d_all - h_all)[below]) if np.any(below) else 1.0
             initial_c = float(q * np.mean(1.0 - alpha_fixed))
         if not initial_c > 0:
             raise FitError(f"initial c must be > 0, got {initial_c}")
-        u0 = np.array([math.log(initial_c)])
+        start = np.array([float(initial_c)])
+        fixed = alpha_fixed
+        transforms = (Log(),)  # c = exp(u) > 0
     else:
         a0 = min(max(float(initial_alpha), 1e-6), 1 - 1e-6)
-        u0 = np.full(K, math.log(a0) - math.log1p(-a0))
-    sol = least_squares(lambda u: np.asarray(res_fn(jnp.asarray(u))), u0, jac=lambda u: np.asarray(jac_fn(jnp.asarray(u))), method="lm", xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    if sol.status <= 0:
-        raise FitError(f"surrogate fit failed: {sol.message}")
-    a, cc = unpack(jnp.asarray(sol.x))
-    a, cc = np.asarray(a, dtype=float), float(cc)
-    r = np.asarray(model(jnp.asarray(sol.x))) - w_all
+        start = np.full(K, a0)
+        fixed = np.asarray(float(c))
+        transforms = tuple(ScaledLogit(0.0, 1.0) for _ in range(K))  # alpha = sigmoid(u) in (0, 1)
+    data = {"h": h_all, "d": d_all, "w": w_all, "profile": prof, "fixed": fixed, "scale": np.asarray(scale),
+            "w_max": np.asarray(float(w_max)), "smoothing": np.asarray(1.0 if smoothing is None else float(smoothing))}
+    problem = ResidualProblem(_surrogate_residuals(fit_c, smoothing is not None), fitted, transforms, w_all.size,
+                              data=data, key=("opening_surrogate", fit_c, smoothing is None))
+    sol = least_squares(problem, start, method="levenberg_marquardt", max_steps=_FIT_MAX_STEPS, rtol=_FIT_RTOL, atol=_FIT_ATOL)
+    if not sol.converged:
+        raise FitError(f"surrogate fit failed: {sol.reason}")
+    values = np.array([sol.values[f] for f in fitted])
+    a, cc = (alpha_fixed, float(values[0])) if fit_c else (values, float(c))
+    r = sol.predictions - w_all
     rms = float(np.sqrt(np.mean(r**2)))
     return SurrogateFit(
-        alpha=a,
+        alpha=np.asarray(a, dtype=float),
         c=cc,
         ratio=cc / (1.0 - a),
         pre_stretch=1.0 / (1.0 - a),
@@ -362,6 +366,42 @@ def fit_surrogate(
         rms=rms,
         relative_rms=rms / scale,
         fitted=fitted,
-        cost_evaluations=int(sol.nfev),
-        message=str(sol.message),
+        cost_evaluations=int(sol.steps),
+        message=sol.reason,
+        standard_errors=dict(sol.standard_errors),
+        covariance=sol.covariance,
+        correlation=sol.correlation,
+        dof=sol.dof,
     )
+
+
+#: Stopping tolerances of :func:`fit_surrogate` (optimistix Cauchy test on the step in ``u``
+#: and the change of the scaled residuals): tight, the problem is tiny.
+_FIT_RTOL, _FIT_ATOL = 1e-12, 1e-14
+#: Engine steps allowed (each evaluates the widths and their Jacobian once).
+_FIT_MAX_STEPS = 200
+
+
+def _surrogate_model(c, alpha, data, smoothed: bool):
+    """The surrogate widths [m] of all profiles' nodes, as in :func:`surrogate_width` without
+    its checks (and without the clip at 0 of the smooth minimum: the fitted widths)."""
+    raw = c * (data["d"] - data["h"]) / (1.0 - alpha[data["profile"]])
+    if not smoothed:
+        return jnp.minimum(raw, data["w_max"])
+    s = data["smoothing"]
+    return -s * jnp.logaddexp(-raw / s, -data["w_max"] / s)
+
+
+def _surrogate_residuals(fit_c: bool, smoothed: bool):
+    """``residual_fn(values, data) -> (residuals, widths)`` of :func:`fit_surrogate`: residuals
+    ``(w - w_data) / rms(w_data)`` [-], widths ``w`` [m]; ``values = (c,)`` with the alphas
+    fixed (``data["fixed"]``), or the alphas per profile with ``c`` fixed."""
+
+    def residual_fn(values, data):
+        if fit_c:
+            w = _surrogate_model(values[0], data["fixed"], data, smoothed)
+        else:
+            w = _surrogate_model(data["fixed"], values, data, smoothed)
+        return (w - data["w"]) / data["scale"], w
+
+    return residual_fn

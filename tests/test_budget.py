@@ -44,6 +44,9 @@ def test_calibration_removes_budget_bias(problem):
     assert cal.setting == {"dt": 3e-3, "substeps": 1, "iterations": 10, "method": "gauss_seidel"}
     assert float(cal.material.poisson_ratio) == pytest.approx(0.45)  # not fitted: unchanged
     assert float(cal.true_material.youngs_modulus) == 10e3
+    # one observable, one field: an exact match, no residual scatter for a covariance
+    assert cal.dof == 0 and np.isnan(cal.standard_errors["youngs_modulus"]) and cal.jacobian.shape == (1, 1)
+    assert cal.jacobian[0, 0] > 0  # a stiffer material resists more
 
 
 def test_calibration_against_fem_linear_and_user_observable(problem):
@@ -111,3 +114,32 @@ def test_calibration_of_a_flat_punch_indentation_against_fem_linear():
     assert cal.naive_error > 0.1  # the budgeted lattice is far too soft under the punch
     assert cal.calibrated_error < 0.02 and cal.converged
     assert cal.ratio() > 1.0
+
+
+def test_budget_covariance_equals_the_finite_difference_one(problem):
+    """A vector observable (lateral bulge of each upper interior node) and nu calibrated: the
+    Jacobian of the relative mismatch through the unrolled XPBD loop equals a central
+    difference of the budgeted observable (h = 1e-3 in nu; 4.7e-6 measured), and the standard
+    error equals sqrt(s^2 (J^T J)^-1) with that Jacobian, s^2 = |mismatch|^2 / (n - 1)."""
+    mesh, bc = problem
+    mid = np.flatnonzero(np.abs(np.asarray(mesh.points)[:, 2] - 0.01 * 2 / 3) < 1e-9)
+
+    def bulge(u):
+        return jnp.abs(u[mid, 0]) + jnp.abs(u[mid, 1])
+
+    opts = dict(observable=bulge, fit_fields=("poisson_ratio",), tol=1e-13)
+    with pytest.warns(DifftissueWarning, match="stopped at relative error"):  # 16 bulges, one nu: a least-squares compromise
+        cal = calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS, rtol=1e-9, max_steps=40, **opts)
+    nu = float(cal.material.poisson_ratio)
+    norm = np.linalg.norm(cal.reference)
+    h = 1e-3
+    y = [calibrate_for_budget(mesh, "springs_volume", MATERIAL.replace(poisson_ratio=nu + s * h), bc, SETTINGS, max_steps=0, rtol=1e9, **opts).naive
+         for s in (1, -1)]
+    J = ((y[0] - y[1]) / (2 * h) / norm)[:, None]
+    np.testing.assert_allclose(cal.jacobian, J, rtol=1e-4, atol=1e-4 * np.abs(J).max())
+    r = (cal.calibrated - cal.reference) / norm
+    assert cal.dof == mid.size - 1
+    s2 = float(np.sum(r**2)) / cal.dof
+    se = np.sqrt(s2 / float((J.T @ J)[0, 0]))
+    assert cal.standard_errors["poisson_ratio"] == pytest.approx(se, rel=1e-4)
+    assert cal.covariance[0, 0] == pytest.approx(se**2, rel=2e-4)

@@ -272,6 +272,33 @@ def test_unit_tet_volume_and_orientation():
     np.testing.assert_allclose(tet_signed_volume(X), 5.0, rtol=1e-14)
 
 
+def test_numpy_tet_volume_is_the_jax_formula():
+    """The host (NumPy) signed volume :func:`difftissue.mesh.signed_volumes` and the JAX one:
+    +1/6 exactly for the unit right tet, -1/6 with two nodes swapped, agreement to 1e-15 of the
+    largest volume on random tets (<= 3e-16 measured: the products are rounded in another
+    order); the host copies of the formula (pypbd runner) are that function."""
+    from difftissue.export.pypbd_runner import signed_tet_volumes
+    from difftissue.mesh import signed_volumes
+    from difftissue.scenarios import _tet_volumes
+
+    def tet_signed_volume_np(x):  # (..., 4, 3) -> (...)
+        return signed_volumes(x.reshape(-1, 3), np.arange(x.size // 3).reshape(-1, 4)).reshape(x.shape[:-2])
+
+    assert tet_signed_volume_np(UNIT_TET) == 1.0 / 6.0
+    assert float(tet_signed_volume(jnp.asarray(UNIT_TET))) == 1.0 / 6.0
+    assert tet_signed_volume_np(UNIT_TET[[0, 2, 1, 3]]) == -1.0 / 6.0
+    rng = _rng(3)
+    points = rng.normal(size=(300, 3)) * 1e-3
+    tets = rng.integers(0, 300, size=(2000, 4))
+    v_np = tet_signed_volume_np(points[tets])
+    v_jax = np.asarray(tet_signed_volume(jnp.asarray(points[tets])))
+    assert v_np.shape == (2000,) and np.any(v_np < 0) and np.any(v_np > 0)
+    assert np.max(np.abs(v_np - v_jax)) <= 1e-15 * np.max(np.abs(v_np))
+    np.testing.assert_array_equal(signed_volumes(points, tets), v_np)
+    np.testing.assert_array_equal(signed_tet_volumes(points, tets), v_np)
+    np.testing.assert_array_equal(np.asarray(_tet_volumes(jnp.asarray(points), jnp.asarray(tets))), v_jax)
+
+
 @pytest.mark.parametrize("s", [0.7, 1.0, 1.2])
 def test_volume_energy_uniform_scaling(generic, s):
     X = np.asarray(generic["X"])

@@ -156,6 +156,42 @@ def test_fit_recovers_c_or_alpha_from_noisy_surrogate_data():
     assert fit.alpha[0] == pytest.approx(alphas[1], abs=1e-10) and fit.rms < 1e-15
 
 
+def test_fit_standard_errors_equal_the_finite_difference_covariance():
+    """The fit's standard errors (fit engine, Gauss--Newton) equal ``sqrt(diag(s^2 (J^T J)^-1))``
+    with a central-difference Jacobian of the scaled residuals ``(w - w_data) / rms(w_data)``
+    w.r.t. (c) and w.r.t. (alpha_0, alpha_1), ``s^2 = SSE / (n - p)``; and the truth lies within
+    a few standard errors."""
+    rng = np.random.default_rng(11)
+    h = np.linspace(0.0, D, 15)
+    w_max = 1.5e-3
+    alphas, c_true = [0.1, 0.25], 0.5
+    noisy = [np.asarray(surrogate_width(h, D, a, c_true, w_max=w_max)) + 2e-6 * rng.standard_normal(h.size) for a in alphas]
+    w_all = np.concatenate(noisy)
+    scale = float(np.sqrt(np.mean(w_all**2)))
+
+    def fd_standard_errors(residual, v):
+        J = np.empty((w_all.size, v.size))
+        for j in range(v.size):
+            e = np.zeros(v.size)
+            e[j] = 1e-6 * abs(v[j])
+            J[:, j] = (residual(v + e) - residual(v - e)) / (2 * e[j])
+        s2 = float(np.sum(residual(v) ** 2)) / (w_all.size - v.size)
+        return np.sqrt(np.diag(s2 * np.linalg.inv(J.T @ J)))
+
+    fit = fit_surrogate([h, h], noisy, D, alpha=alphas, w_max=w_max)
+    se = fd_standard_errors(lambda v: np.concatenate([np.asarray(surrogate_width(h, D, a, v[0], w_max=w_max)) for a in alphas]) / scale - w_all / scale,
+                            np.array([fit.c]))
+    assert fit.dof == w_all.size - 1
+    assert fit.standard_errors["c"] == pytest.approx(se[0], rel=1e-6)
+    assert abs(fit.c - c_true) < 4 * se[0]
+    fit = fit_surrogate([h, h], noisy, D, c=c_true, w_max=w_max)
+    se = fd_standard_errors(lambda v: np.concatenate([np.asarray(surrogate_width(h, D, a, c_true, w_max=w_max)) for a in v]) / scale - w_all / scale,
+                            np.asarray(fit.alpha))
+    np.testing.assert_allclose([fit.standard_errors["alpha[0]"], fit.standard_errors["alpha[1]"]], se, rtol=1e-6)
+    assert np.all(np.abs(fit.alpha - alphas) < 4 * se)
+    assert fit.covariance.shape == (2, 2) and abs(fit.correlation[0, 1]) < 1e-6  # the profiles share no parameter
+
+
 def test_fit_refuses_unidentifiable_or_bad_input():
     h = np.linspace(0.0, D, 5)
     w = np.asarray(surrogate_width(h, D, 0.3, 0.5))

@@ -19,6 +19,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from ..errors import ExportError
+from ..mesh import signed_volumes
 from ._common import write_text
 from .approximations import approximation_notes, resolve_law
 from .card import MaterialCard, header_lines
@@ -301,8 +302,7 @@ def abaqus_indenter_mesh(spec, height: float, spacing: float):
         apex = np.array([0.0, 0.0, height + 2.0 * r_cap / math.tan(spec.half_angle)])
     pts = np.vstack([P, apex])
     tets = np.column_stack([T[:, 0], T[:, 2], T[:, 1], np.full(len(T), len(P))])
-    a, b, c, d = (pts[tets[:, k]] for k in range(4))
-    vol = np.einsum("ij,ij->i", np.cross(b - a, c - a), d - a) / 6.0
+    vol = signed_volumes(pts, tets)
     if not np.all(vol > 0):
         raise ExportError(f"the meshed {spec.indenter} indenter has {int(np.sum(vol <= 0))} inverted tets (a bug)")
     return pts, tets, r_cap

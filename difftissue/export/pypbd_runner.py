@@ -50,6 +50,7 @@ import numpy as np
 from ..energies.volume import volume_energy
 from ..errors import ExportError
 from ..materials import lame_parameters
+from ..mesh import signed_volumes
 from ..models import ElementTerm, SpringVolumeModel
 
 __all__ = [
@@ -79,8 +80,7 @@ PYPBD_GRAVITY = (0.0, -9.81, 0.0)
 
 def signed_tet_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Signed volumes ``(x1 - x0) . ((x2 - x0) x (x3 - x0)) / 6`` [m^3]."""
-    p = points[tets]
-    return np.einsum("ij,ij->i", p[:, 1] - p[:, 0], np.cross(p[:, 2] - p[:, 0], p[:, 3] - p[:, 0])) / 6.0
+    return signed_volumes(points, tets)
 
 
 def read_pbd_scene(path) -> dict:

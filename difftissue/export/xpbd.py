@@ -19,6 +19,7 @@ import numpy as np
 
 from ..boundary import BoundaryConditions
 from ..errors import ConvergenceError, ExportError
+from ..mesh import signed_volumes
 from ..models import make_model
 from ..scenarios import recover_lattice
 from ..solvers.static import solve_static
@@ -93,7 +94,7 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
     if mesh is not None:
         pts = np.asarray(mesh.points, dtype=float)
         t = np.asarray(mesh.tets)
-        v0 = np.abs(np.einsum("ij,ij->i", np.cross(pts[t[:, 1]] - pts[t[:, 0]], pts[t[:, 2]] - pts[t[:, 0]]), pts[t[:, 3]] - pts[t[:, 0]])) / 6.0
+        v0 = np.abs(signed_volumes(pts, t))
         out["per_tet"] = {
             "rest_volume": v0.tolist(),
             "deviatoric_compliance": (1.0 / (mu * v0)).tolist(),
@@ -155,7 +156,7 @@ def _xpbd_indentation_specimen(card: MaterialCard, spec, mesh) -> dict:
     s = indentation_sets(spec, mesh, card)
     pts = np.asarray(mesh.points, dtype=float)
     t = np.asarray(mesh.tets)
-    v0 = np.abs(np.einsum("ij,ij->i", np.cross(pts[t[:, 1]] - pts[t[:, 0]], pts[t[:, 2]] - pts[t[:, 0]]), pts[t[:, 3]] - pts[t[:, 0]])) / 6.0
+    v0 = np.abs(signed_volumes(pts, t))
     m = np.zeros(len(pts))
     np.add.at(m, t.reshape(-1), np.repeat(card.density * v0 / 4.0, 4))
     if spec.base == "bonded":
@@ -196,7 +197,7 @@ def _specimen_dict(card: MaterialCard, mesh, displacement: float | None) -> dict
     t = np.asarray(mesh.tets)
     base, top, height = block_sets(mesh)
     d = default_displacement(height, displacement)
-    v0 = np.abs(np.einsum("ij,ij->i", np.cross(pts[t[:, 1]] - pts[t[:, 0]], pts[t[:, 2]] - pts[t[:, 0]]), pts[t[:, 3]] - pts[t[:, 0]])) / 6.0
+    v0 = np.abs(signed_volumes(pts, t))
     m = np.zeros(len(pts))
     np.add.at(m, t.reshape(-1), np.repeat(card.density * v0 / 4.0, 4))
     return {"positions": pts.tolist(), "tets": t.tolist(), "masses": m.tolist(),
@@ -321,7 +322,7 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
         if c is not card:
             approximation_notes(c, "XPBD stable neo-Hookean", approximate=approximate, pre_stretch_ok=True)
     pts, t = spec.points, spec.tets
-    v = np.abs(np.einsum("ij,ij->i", np.cross(pts[t[:, 1]] - pts[t[:, 0]], pts[t[:, 2]] - pts[t[:, 0]]), pts[t[:, 3]] - pts[t[:, 0]])) / 6.0
+    v = np.abs(signed_volumes(pts, t))
     lam0 = np.array([cards[r].pre_stretch for r in spec.region_ids])
     v0 = v / lam0**2  # stress-free volume
     mu = np.array([cards[r].shear_modulus for r in spec.region_ids])
