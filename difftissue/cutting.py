@@ -1055,8 +1055,10 @@ def staircase_cut(specimen, path: ScalpelPath, *, allow_disconnect: bool = False
     sc = cs[ca] + t * (cs[cb] - cs[ca])
     hc = ch[ca] + t * (ch[cb] - ch[ca])
     L = g.length
-    in_s = (sc > (-np.inf if prep.open_start else 0.0)) & (sc < (np.inf if prep.open_end else L))
-    in_h = np.ones(len(hc), dtype=bool) if prep.through else hc < prep.depth
+    # A crossing exactly at an end or at the depth (a cube centre there) is not opened: the
+    # tolerance makes that tie independent of round-off (the cut rounds inwards).
+    in_s = (sc > (-np.inf if prep.open_start else 1e-9 * L)) & (sc < (np.inf if prep.open_end else L * (1 - 1e-9)))
+    in_h = np.ones(len(hc), dtype=bool) if prep.through else hc < prep.depth * (1 - 1e-9)
     cut_face = interface & in_s & in_h
     N = len(pts)
     front = np.zeros(N, dtype=bool)
