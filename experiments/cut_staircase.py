@@ -15,10 +15,17 @@ Each is `Incision.solve` (pre-tensioned equilibrium, scalpel in one step, opened
 Outputs per (model, lambda0): the max surface width and the surface opening area (trapezoid of
 the surface widths over arc length, zero at the two crack tips) / cut length = mean surface width.
 
-Writes experiments/results/cut_staircase_cell{h}mm.json per cell size; `--table` prints the
-tables from the JSON files present. CPU time (time.process_time) is recorded per solve.
+Writes experiments/results/cut_staircase_cell{h}mm.json per cell size (rows already in the file
+are kept unless --force); `--linear`: lambda0 = 1.001 only (the linear limit, compared in
+docs/cutting.md with the converged P2 reference of the aligned cut), written to
+cut_staircase_linear_cell{h}mm.json; `--plate`: the inclined through-cut plate of
+experiments/cut_griffith.py with the staircase cut; `--table` prints the tables from the JSON
+files present. CPU time (time.process_time) is recorded per solve. Measured on 2 shared cores:
+42 s (1 mm), 105 s (0.667 mm), 422 s (0.5 mm) per cell size; --linear 43 s + 199 s.
 
-Run: python experiments/cut_staircase.py --cell 1.0 [--cell 0.5 ...] [--force]; then --table
+Run: python experiments/cut_staircase.py --cell 1 --cell 0.6666666666666666 --cell 0.5 --table
+     python experiments/cut_staircase.py --linear --cell 1 --cell 0.5
+     python experiments/cut_staircase.py --plate
 """
 
 from __future__ import annotations
