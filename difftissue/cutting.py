@@ -1,11 +1,13 @@
 """Cut topology: a scalpel path, node snapping and duplication (seed 003), element removal
 (seed 000), progressive closure and the opening width.
 
-A cut is built once, on the host with NumPy, for the FULL scalpel path: nodes nearest the
+A cut is built once, on the host with NumPy, for the FULL scalpel path. By default (``snap``) nodes nearest the
 cutting surface are snapped onto it (surface snapping), the deepest crossed node row onto the
 cut bottom and the nodes nearest the path ends onto the ends (inside snapping), then the nodes
 strictly on the open part of the surface are duplicated and every tet (and lattice cube) is
-reconnected to the side its centroid lies on. No element is created. The result is a
+reconnected to the side its centroid lies on. On lattice specimens the ``staircase`` method
+instead moves no node and opens the cube faces between cubes on either side. No element is
+created. The result is a
 :class:`Cut` pytree whose arrays have fixed shapes; a cut in progress at scalpel arc length
 ``s`` is the same topology with the pairs the scalpel has not reached yet tied together
 (:class:`CutClosureModel`), so sweeping ``s`` never recompiles.
@@ -34,6 +36,7 @@ __all__ = [
     "Cut",
     "Opening",
     "cut_specimen",
+    "staircase_cut",
     "remove_elements",
     "opening_width",
     "closed_mask",
@@ -43,6 +46,11 @@ __all__ = [
 
 #: Largest blade tilt accepted [rad] (60 degrees).
 MAX_TILT = float(np.deg2rad(60.0))
+
+#: The 6 faces of a lattice cube (local vertex ``v = bx + 2 by + 4 bz``): face ``2 a + b`` holds the
+#: vertices with bit ``a`` equal to ``b``, in ascending order (corners (0,0), (1,0), (0,1), (1,1)
+#: of the face).
+_CUBE_FACES = np.array([[v for v in range(8) if (v >> a) & 1 == b] for a in range(3) for b in range(2)])
 
 
 # =========================================================================== the path
@@ -226,10 +234,17 @@ class CutQuality:
             above the bottom) with corners strictly on both sides of the cutting surface (the surface passes through them; they stay on one side, by centroid, and
             bridge the cut locally; 0 when snapping aligned the mesh with the cut).
         n_split_cubes: lattice cubes with duplicated nodes and corners strictly on both sides
-            (None without lattice); ``split_cubes`` says whether they were dropped from the
+            (None without lattice; 0 for a staircase cut, whose ``split_cubes`` is None);
+            ``split_cubes`` says whether they were dropped from the
             lattice (``"drop"``) or kept, bridging the cut (``"keep"``); ``n_split_cubes_kept``
             counts the split cubes kept anyway (all with ``"keep"``; with ``"drop"`` those that
             alone hold a node, which would otherwise have no spring).
+        cut_area: area of the opened faces [m^2] (the faces between the two sides on the open
+            part of the cut); ``ideal_area`` the area of the ideal cutting surface, path length
+            x depth / cos(tilt) [m^2]. Their ratio is about 1 for snapped cuts and
+            ``|cos theta| + |sin theta|`` for a staircase cut at angle ``theta`` to the lattice.
+        max_normal_distance: largest distance of a node of the opened faces from the ideal
+            cutting surface [m] (0 when every opened face lies on it).
     """
 
     min_quality_before: float
@@ -249,6 +264,9 @@ class CutQuality:
     n_split_cubes: int | None = None
     split_cubes: str | None = None
     n_split_cubes_kept: int | None = None
+    cut_area: float | None = None
+    ideal_area: float | None = None
+    max_normal_distance: float | None = None
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -263,13 +281,20 @@ class CutQuality:
         if self.min_cell_jacobian_ratio is not None:
             s += f"; min cube Jacobian ratio {self.min_cell_jacobian_ratio:.3g}"
         s += f"; {self.n_cut_faces} face(s) opened, {self.n_off_surface} duplicated node(s) off the cutting surface, {self.n_bridging_tets} tet(s) bridging"
-        if self.n_split_cubes is not None:
+        if self.n_split_cubes is not None and self.split_cubes is None:
+            s += f", {self.n_split_cubes} cube(s) split"
+        elif self.n_split_cubes is not None:
             s += f", {self.n_split_cubes} cube(s) split ({'dropped from the lattice' if self.split_cubes == 'drop' else 'kept, bridging the cut'}"
             if self.split_cubes == "drop" and self.n_split_cubes_kept:
                 s += f"; {self.n_split_cubes_kept} kept: they alone hold a node"
             s += ")"
         if self.n_removed:
             s += f"; {self.n_removed} tet(s) removed"
+        if self.cut_area is not None and self.ideal_area:
+            s += (
+                f"; opened area {self.cut_area:.4g} m^2 = {self.cut_area / self.ideal_area:.3f} x the ideal surface's, "
+                f"max distance from it {self.max_normal_distance:.3g} m"
+            )
         return s
 
 
@@ -292,7 +317,7 @@ class Cut(eqx.Module):
         surface_pairs: indices into ``pairs`` of the pairs on the top surface, sorted by ``s``.
         node_origin: ``(N',)`` index of each new node in the original mesh.
         materials: the specimen's materials when a :class:`Specimen` was cut, else None.
-        length, depth: cut length and depth [m]; method ``"snap"`` or ``"remove"``; through.
+        length, depth: cut length and depth [m]; method ``"snap"``, ``"staircase"`` or ``"remove"``; through.
         quality: the :class:`CutQuality` report.
     """
 
@@ -798,7 +823,10 @@ def cut_specimen(
     (between the ends, above the bottom; an end on the specimen's outline counts as open) are
     the cut faces, and their nodes are duplicated except the crack front (nodes also on an uncut
     ``+``/``-`` face). Tets and lattice cubes on the ``-`` side (right of the path direction)
-    use the duplicates. ``method="remove"`` (seed 000): see :func:`remove_elements`.
+    use the duplicates. ``method="staircase"`` (lattice specimens): no node moves; the cut
+    follows the cube faces between the cubes whose centres lie on either side of the path, so
+    every cube stays a box on one side (see :func:`staircase_cut`). ``method="remove"``
+    (seed 000): see :func:`remove_elements`.
 
     Args:
         specimen: a :class:`~difftissue.mesh.TetMesh` or :class:`~difftissue.mesh.Specimen`
@@ -817,16 +845,19 @@ def cut_specimen(
             their centroid (their springs and volume term then bridge the cut). On a 25-degree
             through-cut in a plate under tension the springs_volume opening was -48 % of FEM's
             with "keep" and +25 % with "drop" (+12 % on a lattice-aligned cut): see docs/cutting.md.
+            Not used by ``method="staircase"``, which splits no cube.
 
     Returns:
         A :class:`Cut`.
     """
     if method == "remove":
         return remove_elements(specimen, path, allow_disconnect=allow_disconnect, quality_threshold=quality_threshold)
-    if method != "snap":
-        raise CutError(f"method must be 'snap' or 'remove', got {method!r}")
+    if method not in ("snap", "staircase"):
+        raise CutError(f"method must be 'snap', 'staircase' or 'remove', got {method!r}")
     if split_cubes not in ("keep", "drop"):
         raise CutError(f"split_cubes must be 'keep' or 'drop', got {split_cubes!r}")
+    if method == "staircase":
+        return staircase_cut(specimen, path, allow_disconnect=allow_disconnect, quality_threshold=quality_threshold)
     split_cube_policy = split_cubes
     prep = _prepare(specimen, path)
     mesh = prep.mesh
@@ -912,7 +943,8 @@ def cut_specimen(
         prep.points, new_pts, tets, threshold=quality_threshold, min_quality=min_quality, moved=moved, lat=prep.lat,
         lattice_before=lat_cubes, lattice_after=lat_cubes, n_dup=D.size,
         extra=dict(n_cut_faces=int(cut_face.sum()), n_off_surface=off_surface, n_bridging_tets=bridging, n_split_cubes=split_cubes,
-                   split_cubes=split_cube_policy if mesh.lattice is not None else None, n_split_cubes_kept=split_kept),
+                   split_cubes=split_cube_policy if mesh.lattice is not None else None, n_split_cubes_kept=split_kept,
+                   **_opened_geometry(new_pts, faces[cut_face], g, prep)),
     )
     pd = {k: np.concatenate([v, v[D]]) for k, v in mesh.point_data.items()}
     new_mesh = TetMesh(all_pts, new_tets, mesh.region_ids, mesh.region_names, point_data=pd, cell_data=mesh.cell_data, lattice=lattice, validate=False)
@@ -933,6 +965,153 @@ def cut_specimen(
         length=g.length,
         depth=prep.depth,
         method="snap",
+        through=prep.through,
+        quality=quality,
+    )
+
+
+def _opened_geometry(points, faces, g: "_Geometry", prep: "_Prepared") -> dict:
+    """Geometric error of the opened faces ``(F, 3)`` triangles or ``(F, 4)`` lattice quads
+    (corners in :data:`_CUBE_FACES` order) against the ideal cutting surface: their area, the
+    ideal area (path length x depth / cos(tilt)) [m^2] and the largest distance of their nodes
+    from the ideal surface [m] (the horizontal offset times cos(tilt))."""
+    p = points[faces]
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    area = np.linalg.norm(cross, axis=1)
+    if faces.shape[1] == 3:
+        area = 0.5 * area
+    nodes = np.unique(faces.reshape(-1))
+    _, n, _ = g.coords(points[nodes])
+    cos_tilt = 1.0 / np.sqrt(1.0 + g.tan_tilt**2)
+    return dict(
+        cut_area=float(area.sum()),
+        ideal_area=float(g.length * prep.depth / cos_tilt),
+        max_normal_distance=float(np.max(np.abs(n)) * cos_tilt) if nodes.size else 0.0,
+    )
+
+
+def _cube_faces(cubes: np.ndarray):
+    """Interior faces of a cube lattice: ``(F, 4)`` node quads and the two cubes sharing each."""
+    quads = cubes[:, _CUBE_FACES].reshape(-1, 4)
+    _, inverse, counts = np.unique(np.sort(quads, axis=1), axis=0, return_inverse=True, return_counts=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(inverse, kind="stable")
+    twice = counts[inverse[order]] == 2
+    first, second = order[twice][0::2], order[twice][1::2]
+    return quads[first], first // 6, second // 6
+
+
+def staircase_cut(specimen, path: ScalpelPath, *, allow_disconnect: bool = False, quality_threshold: float = 0.1) -> Cut:
+    """Cut a lattice specimen along cube faces (a staircase, face-aligned or voxel cut; no node
+    moves).
+
+    Every lattice cube is put on the side of the cutting surface its centre lies on (``+`` to
+    the left of the path direction, a centre on the surface counts as ``+``). The opened faces
+    are the cube faces between a ``+`` and a ``-`` cube whose centre-to-centre segment crosses
+    the cutting surface on the open part of the cut (between the path ends, above the cut
+    depth; an end on the specimen's outline counts as open, a through-cut has no bottom).
+    Their nodes are duplicated except the crack front (nodes also on a face between a ``+`` and
+    a ``-`` cube that is not opened); cubes and their 6 tets on the ``-`` side use the
+    duplicates. So every cube stays the undistorted box it was, wholly on one side: the
+    ``springs_volume`` lattice is intact on both sides of the cut and no cube is split,
+    dropped or left bridging the cut. The price is geometric: the opened faces are a staircase
+    within about half a cell of the ideal surface; the ends and the depth round to the nearest
+    lattice face. :class:`CutQuality` reports the staircase's area against the ideal surface's
+    (``|cos theta| + |sin theta|`` times for a vertical cut at angle ``theta`` to the lattice) and
+    its largest distance from it. On a path along a lattice line the result equals
+    ``method="snap"`` (no node is snapped there either).
+
+    Args:
+        specimen: a structured :class:`~difftissue.mesh.TetMesh` or
+            :class:`~difftissue.mesh.Specimen` (``block``, ``layered_skin``, ``structured_grid``:
+            a cube lattice whose cubes are split into 6 tets each). Other meshes are refused
+            with :class:`~difftissue.errors.CutError`.
+        path, allow_disconnect, quality_threshold: as in :func:`cut_specimen`.
+
+    Returns:
+        A :class:`Cut` with ``method == "staircase"``; its quality counts ``n_cut_faces`` in
+        tet faces (two per opened cube face).
+    """
+    prep = _prepare(specimen, path)
+    mesh, g = prep.mesh, prep.geom
+    cmap = _tet_cube_map(mesh)
+    if cmap is None:
+        raise CutError(
+            "method='staircase' cuts along the faces of a cube lattice: it needs a structured specimen "
+            "(difftissue.mesh.block, layered_skin or structured_grid) whose tets are the 6-tets-per-cube split of its lattice; "
+            "this mesh has " + ("no lattice" if mesh.lattice is None else "tets that do not match its lattice")
+            + " (use method='snap' or 'remove')"
+        )
+    n_before = _n_components(mesh)
+    pts = prep.points
+    cubes = mesh.lattice.cubes
+    cs, cn, ch = g.coords(pts[cubes].mean(axis=1))
+    cube_side = np.where(cn >= 0, 1, -1).astype(np.int8)
+    quads, ca, cb = _cube_faces(cubes)
+    interface = cube_side[ca] != cube_side[cb]
+    # Where the centre-to-centre segment crosses the cutting surface.
+    den = np.where(interface, cn[ca] - cn[cb], 1.0)
+    t = np.where(interface, cn[ca] / den, 0.5)
+    sc = cs[ca] + t * (cs[cb] - cs[ca])
+    hc = ch[ca] + t * (ch[cb] - ch[ca])
+    L = g.length
+    # A crossing exactly at an end or at the depth (a cube centre there) is not opened: the
+    # tolerance makes that tie independent of round-off (the cut rounds inwards).
+    in_s = (sc > (-np.inf if prep.open_start else 1e-9 * L)) & (sc < (np.inf if prep.open_end else L * (1 - 1e-9)))
+    in_h = np.ones(len(hc), dtype=bool) if prep.through else hc < prep.depth * (1 - 1e-9)
+    cut_face = interface & in_s & in_h
+    N = len(pts)
+    front = np.zeros(N, dtype=bool)
+    front[quads[interface & ~cut_face].reshape(-1)] = True
+    dup = np.zeros(N, dtype=bool)
+    dup[quads[cut_face].reshape(-1)] = True
+    dup &= ~front
+    D = np.flatnonzero(dup)
+    if D.size == 0:
+        raise CutError(
+            f"the staircase cut (length {L:.4g} m, depth {prep.depth:.4g} m) opens no node: it crosses no cube face between cube "
+            f"centres inside the cut; the lattice (cells ~{float(np.median(prep.lat)):.3g} m) is too coarse for it: refine or lengthen the cut"
+        )
+    dup_index = np.full(N, -1)
+    dup_index[D] = N + np.arange(D.size)
+    tets = mesh.tets
+    side = cube_side[cmap]
+    tet_side = np.where(np.any(dup[tets], axis=1), side, 0).astype(np.int8)
+    new_tets = tets.copy()
+    m = (tet_side < 0)[:, None] & dup[tets]
+    new_tets[m] = dup_index[tets[m]]
+    new_cubes = cubes.copy()
+    m = (cube_side < 0)[:, None] & dup[cubes]
+    new_cubes[m] = dup_index[cubes[m]]
+    all_pts = np.concatenate([pts, pts[D]])
+    node_origin = np.concatenate([np.arange(N), D]).astype(np.int32)
+    lattice = _build_lattice(new_cubes, all_pts, mesh.lattice.cube_region_ids)
+    lattice = eqx.tree_at(lambda lt: lt.cell_size, lattice, mesh.lattice.cell_size)
+    s, n, h = g.coords(pts)
+    quality = _quality(
+        pts, pts, tets, threshold=quality_threshold, min_quality=0.0, moved=np.zeros(N, dtype=bool), lat=prep.lat,
+        lattice_before=cubes, lattice_after=cubes, n_dup=D.size,
+        extra=dict(n_cut_faces=2 * int(cut_face.sum()), n_off_surface=int(np.sum(np.abs(n[D]) > 1e-6 * prep.lat[D])), n_bridging_tets=0,
+                   n_split_cubes=0, **_opened_geometry(pts, quads[cut_face], g, prep)),
+    )
+    pd = {k: np.concatenate([v, v[D]]) for k, v in mesh.point_data.items()}
+    new_mesh = TetMesh(all_pts, new_tets, mesh.region_ids, mesh.region_names, point_data=pd, cell_data=mesh.cell_data, lattice=lattice, validate=False)
+    _check_connectivity(new_tets, all_pts, n_before, allow_disconnect)
+    pair_s, pair_h = s[D], h[D]
+    return Cut(
+        mesh=new_mesh,
+        pairs=np.stack([D, dup_index[D]], axis=1).astype(np.int32),
+        pair_s=pair_s,
+        pair_depth=pair_h,
+        pair_normal=g.unit_normal(pair_s),
+        pair_rest_offset=np.zeros((D.size, 3)),
+        tet_side=tet_side,
+        surface_pairs=_surface_order(pair_s, pair_h, prep.scale),
+        node_origin=node_origin,
+        materials=prep.materials,
+        length=L,
+        depth=prep.depth,
+        method="staircase",
         through=prep.through,
         quality=quality,
     )

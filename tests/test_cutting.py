@@ -449,3 +449,170 @@ def test_closure_model_checks_its_inputs():
     term = m.terms(Material(1e4, 0.3))[-1]
     assert term.name == "cut_closure" and np.array_equal(term.nodes, cut.pairs)
     assert float(term.total(jnp.asarray(cut.mesh.points))) == 0.0
+
+
+# ------------------------------------------------------------------- staircase cut
+def _angled_path(centre, length, angle_deg, **kw):
+    c, s = np.cos(np.deg2rad(angle_deg)), np.sin(np.deg2rad(angle_deg))
+    d = 0.5 * length * np.array([c, s])
+    return ScalpelPath([np.asarray(centre) - d, np.asarray(centre) + d], **kw)
+
+
+def test_staircase_on_a_lattice_line_is_the_aligned_cut():
+    # Along a lattice line no node is snapped: the staircase cut is the snapped cut exactly.
+    mesh = block((10 * MM, 6 * MM, 3 * MM), (10, 6, 3))
+    for path in (ScalpelPath([(3 * MM, 3 * MM), (7 * MM, 3 * MM)], depth=2 * MM),
+                 ScalpelPath([(0.0, 2 * MM), (6 * MM, 2 * MM)], depth=1 * MM),     # from the side face: open end
+                 ScalpelPath([(4 * MM, 1 * MM), (4 * MM, 5 * MM)], through=True)):
+        snap = cut_specimen(mesh, path, allow_disconnect=path.through)
+        stair = cut_specimen(mesh, path, method="staircase", allow_disconnect=path.through)
+        assert stair.method == "staircase" and snap.method == "snap"
+        for f in ("pairs", "pair_s", "pair_depth", "pair_normal", "pair_rest_offset", "tet_side", "surface_pairs", "node_origin"):
+            np.testing.assert_array_equal(getattr(stair, f), getattr(snap, f), err_msg=f)
+        np.testing.assert_array_equal(stair.mesh.points, snap.mesh.points)
+        np.testing.assert_array_equal(stair.mesh.tets, snap.mesh.tets)
+        np.testing.assert_array_equal(stair.mesh.lattice.cubes, snap.mesh.lattice.cubes)
+        np.testing.assert_array_equal(stair.mesh.lattice.springs, snap.mesh.lattice.springs)
+        qa, qb = stair.quality, snap.quality
+        assert qa.n_cut_faces == qb.n_cut_faces and qa.n_duplicated == qb.n_duplicated
+        assert qa.cut_area == pytest.approx(qa.ideal_area, rel=1e-12) and qa.max_normal_distance == 0.0
+        assert qb.cut_area == pytest.approx(qb.ideal_area, rel=1e-12)
+
+
+def _cube_sides(mesh, path):
+    """+1 / -1 side of each cube centre of the line through a straight path (independent of the
+    implementation), and the cube centres."""
+    a, b = path.xy
+    t = (b - a) / np.linalg.norm(b - a)
+    c = np.asarray(mesh.points)[mesh.lattice.cubes].mean(axis=1)
+    n = -(c[:, 0] - a[0]) * t[1] + (c[:, 1] - a[1]) * t[0]
+    return np.where(n >= 0, 1, -1), c, t, a
+
+
+def test_staircase_oblique_cut_keeps_every_cube():
+    mesh = block((12 * MM, 8 * MM, 3 * MM), (12, 8, 3))
+    path = _angled_path((6 * MM, 4 * MM), 6 * MM, 25.0, depth=2 * MM)
+    cut = cut_specimen(mesh, path, method="staircase")
+    _invariants(mesh, cut)
+    q = cut.quality
+    new, lat0, lat1 = cut.mesh, mesh.lattice, cut.mesh.lattice
+    # No node moved, every tet keeps its rest shape, every cube its box; all cubes kept.
+    p0, p1 = np.asarray(mesh.points), np.asarray(new.points)
+    np.testing.assert_array_equal(p1[: mesh.n_nodes], p0)
+    np.testing.assert_array_equal(p1[new.tets], p0[mesh.tets])
+    np.testing.assert_array_equal(p1[lat1.cubes], p0[lat0.cubes])
+    np.testing.assert_array_equal(lat1.cell_size, lat0.cell_size)
+    assert q.n_snapped == 0 and q.max_snap_distance == 0.0 and q.min_cell_jacobian_ratio == 1.0
+    assert q.min_quality_after == q.min_quality_before and q.n_split_cubes == 0 and q.n_bridging_tets == 0
+    assert lat1.n_cubes == lat0.n_cubes and lat1.multiplicity.sum() == 24 * lat0.n_cubes
+    # Every cube lies wholly on the side of its centre: + cubes use no duplicate, - cubes no
+    # original of a pair.
+    side, centre, t, a = _cube_sides(mesh, path)
+    assert not np.isin(lat1.cubes[side > 0], cut.pairs[:, 1]).any()
+    assert not np.isin(lat1.cubes[side < 0], cut.pairs[:, 0]).any()
+    # Opened faces: the cube faces shared before and not after. Exactly the faces between a +
+    # and a - cube whose centre-to-centre segment crosses the path line between its ends, above
+    # the cut depth (1.5 mm centre rows: the top two layers).
+    def shared(cubes):
+        faces = np.sort(cubes[:, [[0, 2, 4, 6], [1, 3, 5, 7], [0, 1, 4, 5], [2, 3, 6, 7], [0, 1, 2, 3], [4, 5, 6, 7]]].reshape(-1, 4), axis=1)
+        keys, idx, cnt = np.unique(faces, axis=0, return_index=True, return_counts=True)
+        return {tuple(k) for k in keys[cnt == 2]}, faces
+
+    before, faces0 = shared(lat0.cubes)
+    after, _ = shared(lat1.cubes)
+    after = {tuple(sorted(cut.node_origin[list(k)])) for k in after}
+    opened = before - after
+    owner = {}
+    for k, f in enumerate(map(tuple, faces0)):
+        owner.setdefault(f, []).append(k // 6)
+    L = path.length
+    expect = set()
+    for f in before:
+        i, j = owner[f]
+        if side[i] == side[j]:
+            continue
+        ci, cj = centre[i], centre[j]
+        ni = -(ci[0] - a[0]) * t[1] + (ci[1] - a[1]) * t[0]
+        nj = -(cj[0] - a[0]) * t[1] + (cj[1] - a[1]) * t[0]
+        x = ci + ni / (ni - nj) * (cj - ci)
+        s = (x[:2] - a) @ t
+        if 0 < s < L and 3 * MM - x[2] < 2 * MM:
+            expect.add(f)
+    assert opened == expect and len(opened) > 0
+    assert q.n_cut_faces == 2 * len(opened)
+    # The opened face set is connected (through shared edges) ...
+    fl = [np.array(f) for f in opened]
+    adj = {k: set() for k in range(len(fl))}
+    for u in range(len(fl)):
+        for v in range(u + 1, len(fl)):
+            if len(set(fl[u]) & set(fl[v])) == 2:
+                adj[u].add(v)
+                adj[v].add(u)
+    seen, stack = {0}, [0]
+    while stack:
+        for v in adj[stack.pop()] - seen:
+            seen.add(v)
+            stack.append(v)
+    assert len(seen) == len(fl)
+    # ... and spans the path's length (to half a cell past each end) and the full depth.
+    nodes = p0[np.unique(np.concatenate(fl))]
+    s_nodes = (nodes[:, :2] - a) @ t
+    h = 1 * MM
+    assert s_nodes.min() <= 0.5 * h and s_nodes.max() >= L - 0.5 * h
+    assert s_nodes.min() >= -1.5 * h and s_nodes.max() <= L + 1.5 * h
+    np.testing.assert_allclose([nodes[:, 2].max(), nodes[:, 2].min()], [3 * MM, 1 * MM])
+    # Geometric error: the staircase's area is about (cos + sin) x the ideal surface's (more
+    # at the rounded ends), and its nodes lie within (cos + sin) h / 2 of the ideal plane.
+    cs = np.cos(np.deg2rad(25.0)) + np.sin(np.deg2rad(25.0))
+    assert q.ideal_area == pytest.approx(L * 2 * MM, rel=1e-12)
+    assert 1.0 < q.cut_area / q.ideal_area < 1.25 * cs
+    assert 0.2 * h < q.max_normal_distance <= 0.5 * cs * h * (1 + 1e-9)
+    assert q.n_off_surface > 0 and "opened area" in str(q)
+    # The springs_volume model builds on the cut: every cube and its volume term kept.
+    model = make_model(cut.mesh, "springs_volume")
+    assert model.cells.shape[0] == lat0.n_cubes
+
+
+def test_staircase_through_cut_opens_symmetrically():
+    # A 25-degree through-cut through the centre of a plate under uniform pre-stretch: the
+    # staircase and the spring lattice are symmetric under the half turn about the cut's centre,
+    # so the width profile is symmetric about the middle of the cut; the two faces open by
+    # nearly equal amounts to either side of the path; the opening is near the aligned cut's
+    # (isotropic material, equibiaxial pre-stress: the same in any direction).
+    from difftissue.incision import Incision, IncisionOptions
+
+    mesh = block((12 * MM, 12 * MM, 1 * MM), (12, 12, 1))
+    mat = Material(1e4, 0.3, pre_stretch=1.05)
+    out = {}
+    for angle in (0.0, 25.0):
+        cut = cut_specimen(mesh, _angled_path((6 * MM, 6 * MM), 6 * MM, angle, through=True), method="staircase")
+        inc = Incision(cut, model="springs_volume", base="sliding", options=IncisionOptions(scalpel_steps=1))
+        res = inc.solve(mat)
+        u = np.asarray(res.displacement)
+        a, b = cut.pairs[:, 0], cut.pairs[:, 1]
+        ua, ub = (u[a] * cut.pair_normal).sum(axis=1), (u[b] * cut.pair_normal).sum(axis=1)
+        out[angle] = (cut, np.asarray(res.opening.width), ua, ub)
+    cut, w, ua, ub = out[25.0]
+    s, h = np.round(cut.pair_s / MM, 9), np.round(cut.pair_depth / MM, 9)
+    key = {(si, hi): k for k, (si, hi) in enumerate(zip(s, h))}
+    mirror = np.array([key[(round(6.0 - si, 9), hi)] for si, hi in zip(s, h)])
+    np.testing.assert_allclose(w[mirror], w, rtol=1e-7)
+    assert np.all(ua > 0) and np.all(ub < 0)
+    # Each face moves by about half the opening, away from the path (the + face's share of the
+    # normal opening measured 0.43-0.57 per pair: the staircase's steps lie up to half a cell to
+    # either side of it), the shares of mirrored pairs adding to one.
+    share = ua / (ua - ub)
+    assert np.all(np.abs(share - 0.5) < 0.1), share
+    np.testing.assert_allclose(share[mirror], 1.0 - share, rtol=1e-6)
+    # Mean opening of the staircase against the aligned cut (measured 25 deg / 0 deg = 1.047).
+    ratio = w.mean() / out[0.0][1].mean()
+    assert 0.95 < ratio < 1.1, ratio
+
+
+def test_staircase_refuses_meshes_without_lattice():
+    mesh = _delaunay_box()
+    with pytest.raises(CutError, match="staircase.*cube lattice"):
+        cut_specimen(mesh, ScalpelPath([(2.1 * MM, 5.2 * MM), (7.9 * MM, 4.7 * MM)], depth=2.1 * MM), method="staircase")
+    # Too short for the lattice: no cube face between centres inside the cut.
+    with pytest.raises(CutError, match="staircase cut .* opens no node"):
+        cut_specimen(block((6 * MM, 4 * MM, 2 * MM), (6, 4, 2)), ScalpelPath([(2.2 * MM, 2.1 * MM), (2.4 * MM, 2.1 * MM)], depth=0.3 * MM), method="staircase")
