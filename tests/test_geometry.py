@@ -449,3 +449,18 @@ def test_lateral_refinement_of_a_layered_skin():
         cfg["experiment"][0]["specimen"].update(change)
         with pytest.raises(errors.DifftissueError, match=match):
             parse_config(cfg)
+
+
+def test_incision_config_staircase_cut():
+    """``cut.method = "staircase"`` reaches cut_specimen: an oblique cut keeps every lattice cube
+    (no node moved: the cut mesh's points are the specimen's plus the duplicated ones), and an
+    unknown method is refused with its key."""
+    oblique = {"path": [[2, 3], [6, 5]], "depth": 1}
+    stair = parse_config(_incision(cut={**oblique, "method": "staircase"})).experiments[0].scenario.cut
+    snap = parse_config(_incision(cut=oblique)).experiments[0].scenario.cut
+    assert stair.method == "staircase" and snap.method == "snap"
+    grid = np.unique(np.round(np.asarray(stair.mesh.points)[:, :2] / 1e-3, 9))
+    assert np.allclose(grid, np.round(grid))  # every node still on the 1 mm lattice
+    assert not np.allclose(np.unique(np.round(np.asarray(snap.mesh.points)[:, :2] / 1e-3, 9)), np.round(np.unique(np.round(np.asarray(snap.mesh.points)[:, :2] / 1e-3, 9))))
+    with pytest.raises(errors.DifftissueError, match=r"^experiment\[0\]\.cut\.method: must be one of 'snap', 'staircase', 'remove'"):
+        parse_config(_incision(cut={**oblique, "method": "zigzag"}))

@@ -598,7 +598,7 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     depth = _length(c["depth"], _join(cp, "depth"), unit) if "depth" in c else None
     through = _bool(c.get("through", False), _join(cp, "through"))
     tilt = math.radians(_number(c.get("tilt_deg", 0.0), _join(cp, "tilt_deg"), what="an angle in degrees"))
-    method = _choice(c.get("method", "snap"), _join(cp, "method"), ("snap", "remove"))
+    method = _choice(c.get("method", "snap"), _join(cp, "method"), ("snap", "staircase", "remove"))
     try:
         scalpel = ScalpelPath(pts, depth=depth, through=through, tilt=tilt)
     except DifftissueError as err:
