@@ -267,13 +267,16 @@ def _chebyshev(mv, inv_diag, lambda_max, b, x, degree: int = CHEBYSHEV_DEGREE, r
     """``degree`` steps of Chebyshev iteration for ``A x = b`` in the Jacobi-scaled operator,
     damping the eigenvalues of ``D^-1 A`` in ``[lambda_max / ratio, lambda_max]`` (Saad,
     Iterative Methods, Alg. 12.1). A fixed polynomial in ``D^-1 A``: symmetric in the ``A``
-    inner product, so the V-cycle that uses it before and after the coarse correction is SPD."""
+    inner product, so the V-cycle that uses it before and after the coarse correction is SPD.
+    ``x=None``: start from zero (one operator product fewer)."""
     hi = lambda_max
     lo = lambda_max / ratio
     theta, delta = 0.5 * (hi + lo), 0.5 * (hi - lo)
     sigma = theta / delta
     rho = 1.0 / sigma
-    r = inv_diag * (b - mv(x))
+    # From a zero start (the pre-smoother) the residual is b itself: no product.
+    r = inv_diag * (b if x is None else b - mv(x))
+    x = jnp.zeros_like(b) if x is None else x
     d = r / theta
     for k in range(degree):
         x = x + d
@@ -338,7 +341,7 @@ class MultigridPreconditioner(eqx.Module):
             inv_diag = h.levels[k].inv_diag / self.scale
             lam = SPECTRAL_MARGIN * h.levels[k].lambda_max
         lvl = h.levels[k]
-        x = _chebyshev(mv, inv_diag, lam, b, jnp.zeros_like(b))
+        x = _chebyshev(mv, inv_diag, lam, b, None)
         r = b - mv(x)
         x = x + lvl.P.mv(self._cycle(k + 1, lvl.R.mv(r)))
         return _chebyshev(mv, inv_diag, lam, b, x)

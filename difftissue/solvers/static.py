@@ -64,10 +64,14 @@ NEWTON_CG_FAILURE = 1e-4
 #: tangent is NaN (never a silently wrong gradient).
 TANGENT_CG_FAILURE = 1e-7
 #: Inexact Newton (iterative linear solvers): the CG tolerance of a Newton step is the forcing
-#: term ``eta = min(NEWTON_FORCING_MAX, max(cg_rtol, |g| / |g_cold|))``, the current residual
-#: relative to the residual scale of the Newton tolerance (Eisenstat & Walker 1996): loose far
-#: from the solution, tightening with the residual, so the convergence stays quadratic while
-#: the early steps cost a few CG iterations instead of a solve to ``cg_rtol``.
+#: term ``eta = min(NEWTON_FORCING_MAX, max(cg_rtol, |g| / |g_cold|, tol / (2 |g|)))``, the
+#: current residual relative to the residual scale of the Newton tolerance (Eisenstat & Walker
+#: 1996): loose far from the solution, tightening with the residual, so the convergence stays
+#: quadratic while the early steps cost a few CG iterations instead of a solve to ``cg_rtol``;
+#: the last term is Kelley's safeguard against oversolving (Iterative Methods for Linear and
+#: Nonlinear Equations, 1995, sec. 6.3): a step whose residual is already near the Newton
+#: tolerance ``tol`` needs a linear residual of ``tol / 2``, not ``|g| / |g_cold|`` of ``|g|``.
+#: The Dirichlet predictor (a starting guess) is solved to ``NEWTON_FORCING_MAX``.
 NEWTON_FORCING_MAX = 1e-2
 
 
@@ -319,6 +323,10 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     g_init, h_jump = jax.jvp(lambda uu: _full_gradient(model, uu, material, force), (u_init,), (jump,))
     rhs = Pf * (g_init + h_jump)
     op0, solver0, opts0 = _projected_operator(model, u_init, material, free, options)
+    if isinstance(solver0, PreconditionedCG):
+        # The predictor is a starting guess that Newton corrects: solved to the loosest forcing
+        # term, not to cg_rtol (an exact predictor cost as many CG iterations as a tangent).
+        opts0 = {**opts0, "rtol": max(NEWTON_FORCING_MAX, options.cg_rtol)}
     sol0 = lx.linear_solve(op0, -rhs.reshape(-1), solver0, options=opts0, throw=False)
     cg_steps0, cg_res0 = _linear_stats(sol0)
     delta = sol0.value.reshape(u_init.shape)
@@ -344,7 +352,11 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         op, solver, opts = _projected_operator(model, u, material, free, options)
         if isinstance(solver, PreconditionedCG):
             # Inexact Newton: the forcing term (NEWTON_FORCING_MAX).
-            eta = jnp.clip(jnp.linalg.norm(g) / g_scale, options.cg_rtol, max(NEWTON_FORCING_MAX, options.cg_rtol))
+            # With Kelley's safeguard against oversolving: near the solution a linear residual
+            # of half the Newton tolerance is enough, not |g| / |g_cold| of it.
+            gn = jnp.linalg.norm(g)
+            eta = jnp.maximum(gn / g_scale, 0.5 * tol / jnp.maximum(gn, jnp.finfo(gn.dtype).tiny))
+            eta = jnp.clip(eta, options.cg_rtol, max(NEWTON_FORCING_MAX, options.cg_rtol))
             opts = {**opts, "rtol": eta}
         sol = lx.linear_solve(op, -g.reshape(-1), solver, options=opts, throw=False)
         cg_steps, cg_res = _linear_stats(sol)
