@@ -7,6 +7,8 @@ Compilations are counted two ways: XLA backend compilations reported by
 ``jax.monitoring`` ('/jax/core/compile/backend_compile_duration') and the cache's own
 counters (:func:`difftissue.config.compile_cache_info`)."""
 
+import hashlib
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -16,6 +18,9 @@ import pytest
 from difftissue import Material
 from difftissue.config import SeparatelyCompiled, clear_compile_cache, compile_cache_info, parse_config
 from difftissue.config.compile import scenario_structure
+from difftissue.fit import FitProblem
+from difftissue.fit.problem import hash_scenario_leaves
+from difftissue.materials import MaterialParameterization
 
 jax.config.update("jax_enable_x64", True)
 
@@ -213,3 +218,55 @@ def test_a_scenario_that_is_not_a_pytree_is_not_shared():
         ya, yb = SeparatelyCompiled(a).evaluate(m), SeparatelyCompiled(b).evaluate(m)
     assert c.compiled == 2 and c.hits == 0
     np.testing.assert_array_equal(ya, yb)
+
+
+# ------------------------------------------------------------ one formula for both caches
+def _fit_key(*scenarios):
+    return FitProblem(scenarios, MaterialParameterization(("youngs_modulus", "poisson_ratio")), MATERIAL).structure_key()
+
+
+def _with_leaf(scenario, index, value):
+    """``scenario`` with its pytree leaf ``index`` replaced by ``value`` (the other leaves, the
+    measured data included, are the same objects)."""
+    leaves, treedef = jax.tree_util.tree_flatten(scenario)
+    leaves[index] = value
+    return jax.tree_util.tree_unflatten(treedef, leaves)
+
+
+def test_the_compile_cache_and_the_fit_engine_key_scenarios_by_one_formula(tmp_path):
+    """``config.compile.scenario_structure`` and ``FitProblem.structure_key`` hash a scenario's
+    leaves with ``fit.problem.hash_scenario_leaves``: equal scenarios built twice give equal keys
+    in both, an array leaf changed in its last bit (or other measured data of the same shape) is
+    told apart (kept), an equal copy of an array is not (content, not identity), and the digests are
+    those of the formula each used before it was shared."""
+    sc = _config(tmp_path).experiments[0].scenario
+    again = _config(tmp_path).experiments[0].scenario
+    other_data = _config(tmp_path, scale=2.0).experiments[0].scenario
+    key, leaves, _, data = scenario_structure(sc)
+    assert data and key is not None
+    assert key == scenario_structure(again)[0] == scenario_structure(other_data)[0]
+    assert _fit_key(sc) == _fit_key(again) == _fit_key(other_data)
+    # the compile key's digest IS the shared function's (tag "data")
+    h = hashlib.sha256()
+    assert hash_scenario_leaves(h, leaves, data, data_tag="data") == [] and key[2] == h.hexdigest()
+
+    i = next(i for i, leaf in enumerate(leaves) if i not in data and eqx.is_array(leaf) and leaf.dtype == np.float64 and leaf.size)
+    a = np.array(leaves[i])
+    changed = a.copy()
+    changed.flat[0] = np.nextafter(changed.flat[0], np.inf)
+    bit = _with_leaf(sc, i, changed)
+    same = _with_leaf(sc, i, a.copy())
+    assert scenario_structure(bit)[0] != key and _fit_key(bit) != _fit_key(sc)
+    assert scenario_structure(same)[0] == key and _fit_key(same) == _fit_key(sc)
+
+    # the formula of main 79e6b1a (before it was shared), on fixed leaves: sha256 of each leaf's
+    # shape, dtype and bytes / type name and value, data leaves by shape and dtype after the tag
+    fixed = [np.arange(6.0).reshape(2, 3), jnp.asarray([1, 2, 3], dtype=jnp.int32), None, 1.5, True, 7, "frictionless",
+             np.float64(0.25), np.array([4.0, 5.0])]
+    for tag, digest in (("data", "44eea529e21a1b59379ddade62a56773c1a17e33f318d889e8a7020cff3346b2"),
+                        ("dyn", "e3e0cf76d80dd7446dfe3d639cbbfa9ada78757e56a238f9d35c39207e5624ff")):
+        h = hashlib.sha256()
+        assert hash_scenario_leaves(h, fixed, (8,), data_tag=tag) == []
+        assert h.hexdigest() == digest, tag
+    obj = object()
+    assert hash_scenario_leaves(hashlib.sha256(), [obj, 1.0], ()) == [id(obj)]  # not an array: by identity

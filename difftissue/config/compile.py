@@ -19,12 +19,12 @@ import collections
 import hashlib
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from ..errors import ConfigError
+from ..fit.problem import data_leaf_indices, hash_scenario_leaves
 from ..materials import Material
 
 __all__ = ["SeparatelyCompiled", "compile_cache_info", "clear_compile_cache", "COMPILE_CACHE_SIZE"]
@@ -37,10 +37,6 @@ COMPILE_CACHE_SIZE = 16
 #: ``{key: compiled executable}``, most recently used last (see :func:`_program`).
 _PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 _STATS = {"hits": 0, "compilations": 0, "unshared": 0}
-
-#: Attributes of a scenario holding measured data: passed to the compiled programs as
-#: arguments (never compiled in), so they are not part of a program's key.
-DATA_ATTRIBUTES = ("observed", "sigma")
 
 
 def compile_cache_info() -> dict:
@@ -63,32 +59,20 @@ def clear_compile_cache() -> None:
 def scenario_structure(scenario) -> tuple[tuple | None, list, Any, tuple[int, ...]]:
     """``(key, leaves, treedef, data)`` of a scenario as a pytree: ``leaves`` and ``treedef``
     from :func:`jax.tree_util.tree_flatten`; ``data`` the indices of the leaves that are its
-    measured data (:data:`DATA_ATTRIBUTES`: arguments of the compiled programs); ``key`` what
-    the traced program depends on besides those (see the module docstring), or None when the
+    measured data (:data:`~difftissue.fit.problem.DATA_ATTRIBUTES`: arguments of the compiled
+    programs); ``key`` what the traced program depends on besides those (see the module
+    docstring; the leaves are hashed by :func:`difftissue.fit.problem.hash_scenario_leaves`, the
+    formula of the fit engine's :meth:`~difftissue.fit.FitProblem.structure_key`), or None when the
     static configuration cannot be hashed (then the programs are not shared). A scenario that
     is not a pytree is one leaf, keyed by identity."""
     leaves, treedef = jax.tree_util.tree_flatten(scenario)
-    attrs = [getattr(scenario, a, None) for a in DATA_ATTRIBUTES]
-    data = tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf) and any(leaf is a for a in attrs))
+    data = data_leaf_indices(scenario, leaves)
     try:
         hash(treedef)
     except TypeError:  # a static field that cannot be hashed
         return None, leaves, treedef, data
     h = hashlib.sha256()
-    objects = []
-    for i, leaf in enumerate(leaves):
-        if i in data:
-            a = np.asarray(leaf)
-            h.update(f"data{a.shape}{a.dtype}".encode())
-        elif eqx.is_array(leaf) or isinstance(leaf, np.generic):
-            a = np.ascontiguousarray(leaf)
-            h.update(f"{a.shape}{a.dtype}".encode())
-            h.update(a.tobytes())
-        elif leaf is None or isinstance(leaf, (bool, int, float, complex, str)):
-            h.update(repr((type(leaf).__name__, leaf)).encode())
-        else:  # an object that is not an array: by identity (the cached program keeps it alive)
-            objects.append(id(leaf))
-        h.update(b"|")
+    objects = hash_scenario_leaves(h, leaves, data, data_tag="data")  # objects by identity: the cached program keeps them alive
     return (type(scenario), treedef, h.hexdigest(), tuple(objects)), leaves, treedef, data
 
 

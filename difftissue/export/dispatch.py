@@ -30,11 +30,16 @@ TARGETS = ("febio", "sofa", "abaqus", "pbd", "xpbd", "vtu")
 def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
            law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int | None = None,
            displacement: float | None = None, constraints: str = "xpbd", indentation=None, fitted=None,
-           nu: float | None = None, element: str = "C3D4") -> Path:
+           nu: float | None = None, element: str = "C3D4", field_tolerance: float | None = None) -> Path:
     """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``.
 
     ``to="pbd"``: a pypbd scene (:func:`difftissue.export.pypbd.write_pbd`; ``constraints`` ``"xpbd"`` or
-    ``"fem"``, ``dt`` default 1/60 s, ``iterations`` default 10). ``indentation``: an
+    ``"fem"``, ``dt`` default 1/60 s, ``iterations`` default 10). ``field_tolerance`` (pypbd with a
+    specimen only): the target for the displacement field pypbd comes to rest in at the last load
+    state, a fraction max |u_pypbd - u_card| / max |u_card| [-] (e.g. 0.03); the budget must then
+    meet it as well as the reactions' 2 %, and the export is refused when the pypbd lattice's
+    converged limit already exceeds it (``approximate``: written with the miss stated). The
+    target and the outcome are in the file's ``budget_calibration``. ``indentation``: an
     :class:`~difftissue.export.specimens.IndentationSpecimen` (instead of ``mesh``).
     ``fitted``: a :class:`~difftissue.export.fitted.FittedSpecimen` (the experiment of a
     fem_field / incision fit, :func:`~difftissue.export.fitted.fitted_specimen_from_card`),
@@ -45,12 +50,13 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
     refused unless ``nu`` converts it or ``approximate`` (:func:`resolve_effective_modulus`)."""
     if abaqus_element(element) != "C3D4" and to != "abaqus":
         raise ExportError(f"element = {element!r} is an Abaqus option; {to} is written with linear tets")
+    _pbd_only_field_tolerance(to, field_tolerance)
     card = resolve_effective_modulus(card, nu=nu, approximate=approximate)
     if fitted is not None:
         if mesh is not None or indentation is not None or displacement is not None:
             raise ExportError("a fitted specimen carries its own mesh and prescribed displacements: give no mesh, indentation or displacement")
         return write_fitted(card, to, path, fitted, law=law, approximate=approximate, force=force, dt=dt,
-                            iterations=iterations, substeps=substeps, element=element)
+                            iterations=iterations, substeps=substeps, element=element, field_tolerance=field_tolerance)
     if indentation is not None and displacement is not None:
         raise ExportError("displacement is the compression block's top displacement; an indentation specimen takes its depth")
     if to == "febio":
@@ -64,7 +70,8 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
                             indentation=indentation, element=element)
     if to == "pbd":
         return write_pbd(card, path, mesh=mesh, constraints=constraints, dt=dt, iterations=iterations, substeps=substeps,
-                         approximate=approximate, displacement=displacement, force=force, indentation=indentation)
+                         approximate=approximate, displacement=displacement, force=force, indentation=indentation,
+                         field_tolerance=field_tolerance)
     if to == "xpbd":
         if dt is None or iterations is None:
             raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")
@@ -78,7 +85,7 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
 
 def write_fitted(card: MaterialCard, to: str, path, spec: FittedSpecimen, *, law: str | None = None, approximate: bool = False,
                  force: bool = False, dt: float | None = None, iterations: int | None = None, substeps: int | None = None,
-                 element: str = "C3D4") -> Path:
+                 element: str = "C3D4", field_tolerance: float | None = None) -> Path:
     """Write the complete model of the fitted specimen ``spec`` for target ``to``.
 
     A lattice card (``springs_volume``) is recalibrated to the target's continuum law on this
@@ -109,3 +116,10 @@ def write_fitted(card: MaterialCard, to: str, path, spec: FittedSpecimen, *, law
     if to == "vtu":
         return write_fitted_vtu(card, spec, path, force=force)
     raise ExportError(f"unknown export target {to!r}; choose one of {list(TARGETS)}")
+
+
+def _pbd_only_field_tolerance(to: str, field_tolerance) -> None:
+    """Refuse ``field_tolerance`` for a target that does not measure its displacement field."""
+    if field_tolerance is not None and to != "pbd":
+        raise ExportError(f"field_tolerance applies to the pbd target only (a pypbd scene measures its displacement field at its "
+                          f"budget); the {to} export does not measure a displacement field against the card's model")
