@@ -42,7 +42,7 @@ from .cutting import Cut, CutClosureModel, Opening, closed_mask, opening_width
 from .errors import ConfigError, CutError, DataError
 from .constitutive import surface_tension as _model_surface_tension
 from .materials import Material
-from .mesh import Specimen, write_mesh
+from .mesh import Specimen, signed_volumes, write_mesh
 from .models import make_model, stack_materials
 from .solvers.static import solve_static
 
@@ -386,8 +386,7 @@ class Incision(eqx.Module):
         p = np.asarray(mesh.points, dtype=float)
         tets = np.asarray(mesh.tets)
         ids = np.asarray(mesh.region_ids)
-        x = p[tets]
-        vol = np.abs(np.einsum("ij,ij->i", x[:, 1] - x[:, 0], np.cross(x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]))) / 6.0
+        vol = np.abs(signed_volumes(p, tets))
         lattice = getattr(mesh, "lattice", None)
         out = []
         for r in regions:

@@ -23,7 +23,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .springs import safe_norm
-from .volume import cross, dot
+from .volume import cross, dot, tet_signed_volume
 
 __all__ = [
     "det3",
@@ -92,12 +92,12 @@ def rest_shape(X):
     Returns:
         ``(Dm_inv, V0)``: ``Dm_inv`` [1/m] of shape ``(..., 3, 3)`` is the inverse of the
         matrix ``Dm`` whose columns are ``X1 - X0, X2 - X0, X3 - X0``; ``V0 = det(Dm) / 6``
-        [m^3] of shape ``(...)`` is the signed rest volume. A degenerate rest tet gives
+        [m^3] of shape ``(...)`` is the signed rest volume
+        (:func:`difftissue.energies.volume.tet_signed_volume`). A degenerate rest tet gives
         non-finite values: validate the mesh first (:class:`difftissue.mesh.TetMesh` does).
     """
     Dm = edge_matrix(X)
-    det = det3(Dm)
-    return _adjugate3(Dm) / det[..., None, None], det / 6.0
+    return _adjugate3(Dm) / det3(Dm)[..., None, None], tet_signed_volume(X)
 
 
 def deformation_gradient(x, Dm_inv):
