@@ -428,6 +428,14 @@ def _discretisation_md(rec: Mapping | None) -> list[str]:
             lines.append(f"| {k} | estimated | {v['fine_cells']} / {v['coarse_cells']} | {100 * v['prediction_change_relative']:.3g} % | - |")
         else:
             lines.append(f"| {k} | not estimated | - | - | {v['reason']} |")
+    for k, v in rec["scenarios"].items():
+        a = v.get("specimen")
+        if a:
+            lines += ["", f"{k}: specimen chosen automatically ({a['rule']}): cells {a['cells']}, first cells {a['refine']:.4g} m = contact radius "
+                      f"{a['contact_radius']:.4g} m / {a['cells_per_contact_radius']:g}; "
+                      + (f"the convergence study's force error at this resolution is {100 * a['force_error']:+.2g} % (a fitted E about "
+                         f"{-100 * a['force_error'] / (1 + a['force_error']):+.2g} %)." if a.get("force_error") is not None
+                         else "no tabulated force error for this indenter.")]
     lines += ["", "One evaluation at the fitted values on a mesh of about half the cells in each direction, no refit; "
               "Richardson extrapolation assuming first-order convergence in the cell size gives the fit mesh's error in the "
               "predictions, converted to the parameters through the fit's Jacobian (linearised). An estimate, not a bound: "

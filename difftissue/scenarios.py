@@ -27,6 +27,7 @@ Scenarios:
 from __future__ import annotations
 
 import dataclasses
+import math
 from typing import Any, Sequence
 
 import equinox as eqx
@@ -54,6 +55,8 @@ __all__ = [
     "FEMField",
     "graded_axis",
     "indentation_block",
+    "IndentationSpecimen",
+    "indentation_specimen_for",
     "cylinder",
     "recover_lattice",
 ]
@@ -201,6 +204,150 @@ def indentation_block(size, cells, *, symmetry: str = "quarter", refine: float |
         raise ConfigError(f"symmetry must be 'quarter' or 'none', got {symmetry!r}")
     zs = H - graded_axis(H, nz, refine, core=core)[::-1]
     return structured_grid(xs, ys, zs, region_names=("tissue",))
+
+
+#: Cells of the automatic indentation specimen per contact radius at the largest depth
+#: (``refine = a / CELLS_PER_CONTACT_RADIUS``), chosen from the convergence study
+#: ``experiments/indentation_resolution.py`` (docs/experiments.md, "Indentation at resolution").
+CELLS_PER_CONTACT_RADIUS = 4  # force error +7.3 %; within 1 % needs about 27 (order 1.05)
+#: Half-width and thickness of the automatic specimen in contact radii: a half-space
+#: approximation: the exact bonded-layer stiffening at ``chi = a / H = 1/200``
+#: (:func:`~difftissue.analytic.layer_sphere_factor`) is +0.44 / +0.52 / +0.57 % at nu = 0.3 / 0.45 / 0.5
+#: (lubricated base +0.37 % at nu = 0.45).
+HALF_SPACE_EXTENT = 200.0
+#: Radius of the uniform core of the automatic specimen in contact radii (axis and surface).
+CONTACT_CORE = 1.5
+#: Largest ratio of neighbouring cell sizes outside the core of the automatic specimen [-].
+CELL_GROWTH = 1.3
+#: Relative force error ``F_h / F_converged - 1`` [-] of fem_linear on the automatic specimen
+#: as ``C * m**(-p)`` with ``m`` the cells per contact radius: ``{indenter: (C, p)}``, fitted to
+#: the convergence study (``experiments/indentation_resolution.py``: sphere R = 1 mm to
+#: d/R = 0.02, nu = 0.45, bonded base, m = 3, 4, 6 against the Richardson extrapolation; the
+#: observed order is 1.05). The force is proportional to E, so a fitted E is off by about
+#: ``-error / (1 + error)``. The cone was not measured (no entry: no estimate).
+INDENTATION_FORCE_ERROR = {"sphere": (0.316, 1.054)}
+
+
+@dataclasses.dataclass(frozen=True)
+class IndentationSpecimen:
+    """A block for simulated indentation chosen from the indenter and the depth
+    (:func:`indentation_specimen_for`): the arguments of :func:`indentation_block` and why.
+
+    Attributes:
+        size: ``(Lx, Ly, H)`` [m] of the whole specimen.
+        cells: ``(nx, ny, nz)`` cells of the modelled quarter.
+        symmetry: ``"quarter"``.
+        refine: first (and core) cell size [m].
+        core: width [m] of the uniform core at the axis and the surface.
+        contact_radius: contact radius ``a`` [m] at the largest depth (Hertz ``sqrt(R d)``,
+            cone ``2 d tan(theta) / pi``).
+        cells_per_contact_radius: ``a / refine`` [-].
+        force_error: estimated relative force error ``F_h / F_converged - 1`` [-] of the linear
+            tetrahedra at the largest depth (:data:`INDENTATION_FORCE_ERROR`; None where not
+            measured: the cone); a fitted E is off by about ``-force_error / (1 + force_error)``.
+        thickness_given: True when the thickness is the specimen's own (a layer), False for the
+            half-space approximation.
+    """
+
+    size: tuple[float, float, float]
+    cells: tuple[int, int, int]
+    symmetry: str
+    refine: float
+    core: float
+    contact_radius: float
+    cells_per_contact_radius: float
+    force_error: float | None
+    thickness_given: bool
+
+    def block(self) -> TetMesh:
+        """The mesh: :func:`indentation_block` with these arguments."""
+        return indentation_block(self.size, self.cells, symmetry=self.symmetry, refine=self.refine, core=self.core)
+
+    def record(self) -> dict:
+        """The choice as plain numbers (SI) for reports and ``fit.json``."""
+        return {"rule": "indentation_specimen_for", "size": list(self.size), "cells": list(self.cells), "symmetry": self.symmetry,
+                "refine": self.refine, "core": self.core, "contact_radius": self.contact_radius,
+                "cells_per_contact_radius": self.cells_per_contact_radius, "force_error": self.force_error,
+                "thickness_given": self.thickness_given}
+
+
+def _graded_cells(length: float, first: float, core: float, growth: float) -> int:
+    """Cells of :func:`graded_axis` over ``length`` [m]: ``core / first`` uniform ones plus the
+    fewest geometric ones (ratio <= ``growth``) that reach ``length``."""
+    n_core = max(1, int(round(core / first)))
+    rest = length - n_core * first
+    if rest <= first:
+        return n_core + 1
+    return n_core + int(math.ceil(math.log1p(rest * (growth - 1.0) / first) / math.log(growth) - 1e-9))
+
+
+def indentation_specimen_for(indenter: str, *, radius: float | None = None, half_angle: float | None = None, max_depth: float,
+                             model: str = "fem_linear", thickness: float | None = None,
+                             cells_per_contact_radius: float = CELLS_PER_CONTACT_RADIUS, extent: float = HALF_SPACE_EXTENT) -> IndentationSpecimen:
+    """The indentation block to simulate a sphere or cone indentation to ``max_depth``.
+
+    The contact radius at the largest depth, ``a = sqrt(R d)`` (sphere, Hertz) or
+    ``a = 2 d tan(theta) / pi`` (cone, Sneddon), sets the scale:
+
+    - cells of ``refine = a / cells_per_contact_radius`` uniform within ``CONTACT_CORE a`` of the
+      axis and of the surface (the contact zone), growing by at most :data:`CELL_GROWTH` beyond;
+    - a quarter (``symmetry = "quarter"``) of half-width ``extent a`` (:data:`HALF_SPACE_EXTENT`); the thickness is
+      ``thickness`` when given (the specimen's own: the model then includes its layer effect),
+      else also ``extent a`` (a half-space: finite-size stiffening about +0.5 % for a sphere,
+      :data:`HALF_SPACE_EXTENT`).
+
+    Args:
+        indenter: ``"sphere"`` or ``"cone"``.
+        radius: sphere radius ``R`` [m].
+        half_angle: cone half-angle ``theta`` [rad].
+        max_depth: largest indentation depth ``d`` [m], > 0.
+        model: elastic model; graded cells are boxes, not cubes, so ``"springs_volume"`` is refused.
+        thickness: specimen thickness [m] (None: a half-space).
+        cells_per_contact_radius: ``a / refine`` [-] (default from the convergence study).
+        extent: half-width (and thickness, without ``thickness``) in contact radii [-].
+
+    Raises:
+        ConfigError: a flat punch or unknown indenter, a missing or non-positive size, a
+            springs_volume model, or a thickness that leaves no room below the contact core.
+    """
+    if indenter == "sphere":
+        if radius is None or not float(radius) > 0:
+            raise ConfigError(f"a sphere needs a positive radius [m], got {radius!r}")
+    elif indenter == "cone":
+        if half_angle is None or not 0 < float(half_angle) < math.pi / 2:
+            raise ConfigError(f"a cone needs a half-angle in (0, pi/2) rad, got {half_angle!r}")
+    else:
+        raise ConfigError(f"an automatic indentation specimen is chosen for a sphere or a cone, got {indenter!r} "
+                          "(a flat punch's contact radius is its own: give the specimen)")
+    d = float(max_depth)
+    if not (math.isfinite(d) and d > 0):
+        raise ConfigError(f"max_depth must be a positive depth [m], got {max_depth!r}")
+    if model == "springs_volume":
+        raise ConfigError("the automatic indentation specimen grades its cells (boxes, not cubes), which springs_volume refuses: "
+                          "use model 'fem_linear', 'fem_neo_hookean' or 'stable_neo_hookean', or give the specimen")
+    m = float(cells_per_contact_radius)
+    if not (math.isfinite(m) and m >= 1):
+        raise ConfigError(f"cells_per_contact_radius must be >= 1, got {cells_per_contact_radius!r}")
+    if indenter == "sphere":
+        a = float(analytic.hertz_contact_radius(d, float(radius)))
+    else:
+        a = float(analytic.cone_contact_radius(d, float(half_angle)))
+    h0, core = a / m, CONTACT_CORE * a
+    if not (math.isfinite(float(extent)) and float(extent) > 2 * CONTACT_CORE):
+        raise ConfigError(f"extent must exceed {2 * CONTACT_CORE:g} contact radii, got {extent!r}")
+    half = float(extent) * a
+    if thickness is None:
+        H = half
+    else:
+        H = float(thickness)
+        if not (math.isfinite(H) and H > core + h0 and H > d):
+            raise ConfigError(f"thickness {thickness!r} m leaves no room below the contact core ({core + h0:.3g} m deep at "
+                              f"max_depth {d:.3g} m): give the specimen explicitly")
+    n_xy = _graded_cells(half, h0, core, CELL_GROWTH)
+    n_z = _graded_cells(H, h0, core, CELL_GROWTH)
+    C, p = INDENTATION_FORCE_ERROR.get(indenter, (None, None))
+    return IndentationSpecimen(size=(2 * half, 2 * half, H), cells=(n_xy, n_xy, n_z), symmetry="quarter", refine=h0, core=core,
+                               contact_radius=a, cells_per_contact_radius=m, force_error=None if C is None else float(C * m ** (-p)), thickness_given=thickness is not None)
 
 
 def cylinder(diameter: float, height: float, cells_radial: int = 4, cells_height: int = 4) -> TetMesh:

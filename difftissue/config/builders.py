@@ -23,7 +23,7 @@ from ..incision import Incision, IncisionOptions
 from ..materials import Material
 from ..mesh import Specimen, block, layered_skin, read_mesh
 from ..models import MODELS
-from ..scenarios import AnalyticIndentation, Compression, FEMField, Indentation, SolverOptions, cylinder, indentation_block
+from ..scenarios import AnalyticIndentation, Compression, FEMField, Indentation, SolverOptions, cylinder, indentation_block, indentation_specimen_for
 from ..selectors import selector_from_dict
 from .estimates import _compression_estimate, _compression_plausibility, _indentation_estimate, _plausibility
 from .experiment import Experiment
@@ -254,13 +254,30 @@ def _indentation(e, path, name, base_dir) -> Experiment:
         _fail(_join(path, "penalty"), "not used by a flat punch (its displacement is prescribed)")
     options = _solver_options(e, path)
     p = _join(path, "specimen")
-    if "specimen" not in e:
-        _fail(p, "missing (required): e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" } or { mesh = \"specimen.vtu\", length_unit = \"mm\" }")
-    spec = _table(e["specimen"], p, ("shape", "size", "cells", "symmetry", "refine", "core", "mesh", "length_unit", "reorient"))
+    spec = _table(e["specimen"], p, ("shape", "size", "cells", "symmetry", "refine", "core", "mesh", "length_unit", "reorient")) if "specimen" in e else None
     files = [file]
     symmetry = "none"
     coarse_mesh, skip = None, _MESH_FILE_SKIP
-    if "mesh" in spec:
+    auto = None
+    if spec is None:
+        # no specimen: the block the resolution rule chooses from the indenter and the deepest point
+        if kw["indenter"] == "flat_punch":
+            _fail(p, "missing (required for a flat punch): e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" } "
+                  "or { mesh = \"specimen.vtu\", length_unit = \"mm\" } (a block is chosen automatically for a sphere or a cone only)")
+        if model == "springs_volume":
+            _fail(p, "missing (required): with model springs_volume no block is chosen automatically (the automatic specimen grades its cells, which springs_volume refuses); "
+                  "set model = \"fem_linear\", \"fem_neo_hookean\" or \"stable_neo_hookean\", or give the specimen "
+                  "(e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" })")
+        try:
+            auto = indentation_specimen_for(kw["indenter"], radius=kw.get("radius"), half_angle=kw.get("half_angle"),
+                                            max_depth=float(depth.max()), model=model)
+            mesh = auto.block()
+        except DifftissueError as err:
+            _reraise(p, err)
+        symmetry = auto.symmetry
+        coarse_mesh, skip = _coarse_indentation_block(auto.size, auto.cells, symmetry, auto.refine, auto.core, specimen=auto.record())
+        notes = (*notes, _auto_specimen_note(auto))
+    elif "mesh" in spec:
         mesh, mfile = _mesh_file(spec, p, base_dir)
         files.append(mfile)
     else:
@@ -303,14 +320,27 @@ def _indentation(e, path, name, base_dir) -> Experiment:
                       _indentation_estimate(depth, force, sigma, kw), coarsen=coarsen, coarsen_skip=skip)
 
 
-def _coarse_indentation_block(size, cells, symmetry: str, refine, core=None):
+def _auto_specimen_note(auto) -> str:
+    """The console note of a specimen chosen by :func:`~difftissue.scenarios.indentation_specimen_for`."""
+    return (f"specimen chosen automatically (no 'specimen' given): a quarter of a {auto.size[0]:.4g} x {auto.size[1]:.4g} x {auto.size[2]:.4g} m "
+            f"block, cells {list(auto.cells)}, {auto.refine:.4g} m cells ({auto.cells_per_contact_radius:g} per contact radius "
+            f"{auto.contact_radius:.4g} m at the deepest point) within {auto.core:.4g} m of the axis and the surface; "
+            + (f"estimated discretisation error of the force {100 * auto.force_error:+.2g} %, of a fitted E about "
+               f"{-100 * auto.force_error / (1 + auto.force_error):+.2g} % (linear tetrahedra, from the convergence study)"
+               if auto.force_error is not None else "no tabulated discretisation error for this indenter (see the discretisation check)"))
+
+
+def _coarse_indentation_block(size, cells, symmetry: str, refine, core=None, specimen: dict | None = None):
     """Like :func:`_coarse_block` for :func:`~difftissue.scenarios.indentation_block`: half the
     cells, the same size and symmetry; a graded block doubles its first cell ``refine`` [m]
-    (keeping the uniform ``core`` [m], which then holds half as many cells)."""
+    (keeping the uniform ``core`` [m], which then holds half as many cells). ``specimen``: the
+    record of an automatically chosen block, carried into the discretisation estimate."""
     coarse, ratios = _halved(cells)
     if coarse == tuple(cells):
         return None, f"the specimen has one cell in each direction ({list(cells)}): there is no coarser mesh"
     info = {"fine_cells": list(cells), "coarse_cells": list(coarse), "refinement_ratio": _size_ratio(ratios)}
+    if specimen is not None:
+        info["specimen"] = specimen
     r2 = None if refine is None else 2.0 * refine
     if core is not None:
         try:

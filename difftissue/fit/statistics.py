@@ -437,6 +437,8 @@ def _fine_mesh_error(s: "ScenarioFit", c: Mapping) -> tuple[np.ndarray, dict]:
     info = {"status": "estimated", "fine_cells": c.get("fine_cells"), "coarse_cells": c.get("coarse_cells"), "refinement_ratio": r,
             "prediction_change_relative": float(np.linalg.norm(pc - pf) / norm) if norm > 0 else float("nan"),
             "rms_error_over_sigma": float(np.sqrt(np.mean((e / np.asarray(s.sigma, dtype=float)) ** 2)))}
+    if "specimen" in c:  # an automatically chosen specimen: its rule's record (resolution, tabulated force error)
+        info["specimen"] = dict(c["specimen"])
     return e, info
 
 

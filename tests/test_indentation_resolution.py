@@ -1,0 +1,126 @@
+"""The automatic indentation specimen: the resolution rule and the config's default.
+
+The convergence study behind the rule's constants (minutes of CPU) is
+``experiments/indentation_resolution.py`` with its table in docs/experiments.md; here the
+rule's geometry, its refusals and the config's use of it are checked, without a solve.
+"""
+
+import math
+
+import numpy as np
+import pytest
+
+from difftissue.errors import ConfigError
+from difftissue.scenarios import (CELL_GROWTH, CELLS_PER_CONTACT_RADIUS, CONTACT_CORE, HALF_SPACE_EXTENT, INDENTATION_FORCE_ERROR,
+                                  indentation_specimen_for)
+
+R, D = 1e-3, 2e-5  # a sphere of 1 mm to 20 um: a = sqrt(R d) = 141.4 um
+
+
+def test_sphere_rule_gives_the_documented_block():
+    s = indentation_specimen_for("sphere", radius=R, max_depth=D, cells_per_contact_radius=4)
+    a = math.sqrt(R * D)
+    assert s.contact_radius == pytest.approx(a, rel=1e-12)
+    assert s.refine == pytest.approx(a / 4, rel=1e-12) and s.core == pytest.approx(1.5 * a, rel=1e-12)
+    assert s.symmetry == "quarter" and not s.thickness_given
+    assert s.size == pytest.approx((400 * a, 400 * a, 200 * a), rel=1e-12)
+    # 6 core cells, then ceil(log(1 + 198.5 a * 0.3 / (a/4)) / log 1.3) = 21 graded ones
+    assert s.cells == (27, 27, 27)
+    C, p = INDENTATION_FORCE_ERROR["sphere"]
+    assert s.force_error == pytest.approx(C * 4.0 ** (-p), rel=1e-12)
+    mesh = s.block()
+    pts = np.asarray(mesh.points)
+    for axis, length in ((0, 200 * a), (2, 200 * a)):
+        x = np.unique(pts[:, axis])
+        h = np.diff(x) if axis == 0 else np.diff(x)[::-1]  # z: finest under the top surface
+        np.testing.assert_allclose(h[:6], a / 4, rtol=1e-9)  # the uniform contact core
+        assert np.max(h[1:] / h[:-1]) <= CELL_GROWTH * (1 + 1e-9)  # growth outside it
+        assert x[-1] - x[0] == pytest.approx(length, rel=1e-12)
+
+
+def test_default_resolution_and_cone_contact_radius():
+    s = indentation_specimen_for("sphere", radius=R, max_depth=D)
+    assert s.cells_per_contact_radius == CELLS_PER_CONTACT_RADIUS
+    assert s.core == pytest.approx(CONTACT_CORE * s.contact_radius) and s.size[0] == pytest.approx(2 * HALF_SPACE_EXTENT * s.contact_radius)
+    theta = math.radians(70.0)
+    c = indentation_specimen_for("cone", half_angle=theta, max_depth=1e-4, cells_per_contact_radius=3)
+    assert c.contact_radius == pytest.approx(2e-4 * math.tan(theta) / math.pi, rel=1e-12)
+    assert c.refine == pytest.approx(c.contact_radius / 3, rel=1e-12)
+    assert c.force_error is None  # not measured for a cone: no number rather than the sphere's
+
+
+def test_given_thickness_is_the_specimens_own():
+    s = indentation_specimen_for("sphere", radius=R, max_depth=D, thickness=2e-3, cells_per_contact_radius=4)
+    assert s.thickness_given and s.size[2] == 2e-3 and s.size[0] == pytest.approx(400 * math.sqrt(R * D))
+    assert np.unique(np.asarray(s.block().points)[:, 2])[-1] == pytest.approx(2e-3)
+    with pytest.raises(ConfigError, match="no room below the contact core"):
+        indentation_specimen_for("sphere", radius=R, max_depth=D, thickness=1.5 * math.sqrt(R * D))
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"indenter": "flat_punch", "radius": R}, "flat punch"),
+    ({"indenter": "sphere"}, "positive radius"),
+    ({"indenter": "cone", "half_angle": 2.0}, "half-angle"),
+    ({"indenter": "sphere", "radius": R, "model": "springs_volume"}, "springs_volume"),
+    ({"indenter": "sphere", "radius": R, "cells_per_contact_radius": 0.5}, "cells_per_contact_radius"),
+])
+def test_rule_refuses_what_it_cannot_choose(kw, match):
+    kw = dict(kw)
+    ind = kw.pop("indenter")
+    with pytest.raises(ConfigError, match=match):
+        indentation_specimen_for(ind, max_depth=D, **kw)
+
+
+_TOML = """
+[material]
+youngs_modulus = 1e4
+poisson_ratio = 0.45
+[fit]
+parameters = ["youngs_modulus"]
+[[experiment]]
+name = "sphere"
+scenario = "indentation"
+{model}
+data = {{ format = "table", path = "curve.csv", columns = {{ depth = "depth (um)", force = "force (uN)" }} }}
+indenter = {{ shape = "{shape}", {size} length_unit = "mm" }}
+length_unit = "um"
+"""
+
+
+@pytest.fixture(scope="module")
+def curve_dir(tmp_path_factory):
+    from difftissue import analytic
+
+    d = np.linspace(2e-6, D, 5)
+    f = np.asarray(analytic.hertz_force(d, 1e4, 0.45, R))
+    path = tmp_path_factory.mktemp("curve") / "curve.csv"
+    path.write_text("depth (um),force (uN)\n" + "\n".join(f"{a * 1e6:.6f},{b * 1e6:.10f}" for a, b in zip(d, f)) + "\n")
+    return path.parent
+
+
+def test_config_without_specimen_builds_the_chosen_block(curve_dir):
+    from difftissue.config import load_config
+
+    (curve_dir / "auto.toml").write_text(_TOML.format(model='model = "fem_linear"', shape="sphere", size="radius = 1.0,"))
+    exp = load_config(curve_dir / "auto.toml").experiments[0]
+    chosen = indentation_specimen_for("sphere", radius=R, max_depth=D)
+    sc = getattr(exp.scenario, "scenario", exp.scenario)
+    np.testing.assert_allclose(np.asarray(sc.model.rest_points), np.asarray(chosen.block().points), rtol=0, atol=1e-15)
+    assert sc.symmetry == "quarter" and sc.force_multiplier == 4
+    assert any("specimen chosen automatically" in n and f"cells {list(chosen.cells)}" in n for n in exp.notes)
+    # the discretisation check's coarser block carries the rule's record into the estimate
+    _, info = exp.coarsen()
+    assert info["specimen"] == chosen.record() and info["fine_cells"] == list(chosen.cells)
+
+
+@pytest.mark.parametrize("model, shape, size, match", [
+    ("", "sphere", "radius = 1.0,", "springs_volume"),  # the scenario's default model
+    ('model = "fem_linear"', "flat_punch", "radius = 0.5,", "flat punch"),
+])
+def test_config_without_specimen_refuses_with_the_key(curve_dir, model, shape, size, match):
+    from difftissue.config import load_config
+
+    (curve_dir / "bad.toml").write_text(_TOML.format(model=model, shape=shape, size=size))
+    with pytest.raises(ConfigError, match=match) as err:
+        load_config(curve_dir / "bad.toml")
+    assert "specimen" in str(err.value)
