@@ -27,7 +27,7 @@ import numpy as np
 from .boundary import BoundaryConditions
 from .errors import ConfigError, ConvergenceError, DifftissueWarning, ModelError
 from .fit.residuals import ResidualProblem, least_squares
-from .materials import Identity, Log, Material, ScaledLogit
+from .materials import Identity, Material, ScaledLogit
 from .models import MODELS, ElasticModel, make_model
 from .solvers.static import solve_static
 from .solvers.xpbd import XPBDSettings, xpbd_quasi_static
@@ -43,9 +43,12 @@ _NU_LO, _NU_HI = 0.0, 0.4999
 #: which sets the scale): log E (scaled by the true E), nu in (0, 0.4999) by a scaled logit, the
 #: cubic coefficient as it is.
 _TRANSFORMS = {
-    "youngs_modulus": lambda m: Log(scale=float(m.youngs_modulus)),
-    "poisson_ratio": lambda m: ScaledLogit(_NU_LO, _NU_HI),
-    "cubic_coefficient": lambda m: Identity(),
+    # E within exp(+-reach) of the true value: log-like in between (a logit of E between those
+    # bounds), so a saturated setting (a response insensitive to E) ends at a bound instead of
+    # drifting to 1e34 x E.
+    "youngs_modulus": lambda m, reach: ScaledLogit(float(m.youngs_modulus) * math.exp(-reach), float(m.youngs_modulus) * math.exp(reach)),
+    "poisson_ratio": lambda m, reach: ScaledLogit(_NU_LO, _NU_HI),
+    "cubic_coefficient": lambda m, reach: Identity(),
 }
 
 
@@ -166,8 +169,10 @@ def calibrate_for_budget(
         max_steps: optimiser steps allowed (after the evaluation of the true material).
         rtol: stop when the relative error is at most this.
         tol, max_frames: convergence tolerance and frame limit of the quasi-static XPBD solve.
-        max_log_step: not used any more (the trust region of Levenberg--Marquardt limits
-            the steps); kept so that calls that pass it still run. Must be > 0.
+        max_log_step: the calibrated Young's modulus stays within
+            ``exp(+-max_log_step * max_steps)`` of the true one (the reach of ``max_steps``
+            steps of at most ``max_log_step`` in ``log E``): a saturated setting ends at that
+            bound with ``converged=False``. Must be > 0.
 
     Raises:
         ConfigError: unknown field / observable, bad settings or step counts.
@@ -276,7 +281,8 @@ def calibrate_for_budget(
 
     start = np.array([float(getattr(material, f)) for f in fit_fields])
     y_naive, naive_err = evaluate(start)
-    problem = ResidualProblem(residual_fn, fit_fields, [_TRANSFORMS[f](material) for f in fit_fields], int(y_ref.shape[0]),
+    reach = max_log_step * max(int(max_steps), 1)
+    problem = ResidualProblem(residual_fn, fit_fields, [_TRANSFORMS[f](material, reach) for f in fit_fields], int(y_ref.shape[0]),
                               data={"reference": np.asarray(y_ref), "norm": np.asarray(ref_norm * rtol)})
     # The engine's first step evaluates the start (residual and Jacobian); max_steps optimiser
     # steps follow, until the relative error reaches rtol (the loss is (err / rtol)^2 / 2). With
