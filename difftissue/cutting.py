@@ -946,14 +946,22 @@ def cut_specimen(
                    split_cubes=split_cube_policy if mesh.lattice is not None else None, n_split_cubes_kept=split_kept,
                    **_opened_geometry(new_pts, faces[cut_face], g, prep)),
     )
+    return _cut_from_duplicates(mesh, prep, g, all_pts, new_tets, lattice, D, dup_index, s, h, tet_side, node_origin, quality,
+                                method="snap", n_before=n_before, allow_disconnect=allow_disconnect)
+
+
+def _cut_from_duplicates(mesh, prep, g, all_pts, new_tets, lattice, D, dup_index, s, h, tet_side, node_origin, quality, *,
+                         method: str, n_before: int, allow_disconnect: bool) -> "Cut":
+    """The :class:`Cut` of a mesh whose nodes ``D`` were duplicated (copies ``dup_index[D]``):
+    the new mesh (point data copied to the duplicates), the connectivity check, and the pairs
+    with their path coordinates ``s``, ``h`` [m] (shared by the snapped and the staircase cut)."""
     pd = {k: np.concatenate([v, v[D]]) for k, v in mesh.point_data.items()}
     new_mesh = TetMesh(all_pts, new_tets, mesh.region_ids, mesh.region_names, point_data=pd, cell_data=mesh.cell_data, lattice=lattice, validate=False)
     _check_connectivity(new_tets, all_pts, n_before, allow_disconnect)
-    pairs = np.stack([D, dup_index[D]], axis=1).astype(np.int32)
     pair_s, pair_h = s[D], h[D]
     return Cut(
         mesh=new_mesh,
-        pairs=pairs,
+        pairs=np.stack([D, dup_index[D]], axis=1).astype(np.int32),
         pair_s=pair_s,
         pair_depth=pair_h,
         pair_normal=g.unit_normal(pair_s),
@@ -964,7 +972,7 @@ def cut_specimen(
         materials=prep.materials,
         length=g.length,
         depth=prep.depth,
-        method="snap",
+        method=method,
         through=prep.through,
         quality=quality,
     )
@@ -1094,27 +1102,8 @@ def staircase_cut(specimen, path: ScalpelPath, *, allow_disconnect: bool = False
         extra=dict(n_cut_faces=2 * int(cut_face.sum()), n_off_surface=int(np.sum(np.abs(n[D]) > 1e-6 * prep.lat[D])), n_bridging_tets=0,
                    n_split_cubes=0, **_opened_geometry(pts, quads[cut_face], g, prep)),
     )
-    pd = {k: np.concatenate([v, v[D]]) for k, v in mesh.point_data.items()}
-    new_mesh = TetMesh(all_pts, new_tets, mesh.region_ids, mesh.region_names, point_data=pd, cell_data=mesh.cell_data, lattice=lattice, validate=False)
-    _check_connectivity(new_tets, all_pts, n_before, allow_disconnect)
-    pair_s, pair_h = s[D], h[D]
-    return Cut(
-        mesh=new_mesh,
-        pairs=np.stack([D, dup_index[D]], axis=1).astype(np.int32),
-        pair_s=pair_s,
-        pair_depth=pair_h,
-        pair_normal=g.unit_normal(pair_s),
-        pair_rest_offset=np.zeros((D.size, 3)),
-        tet_side=tet_side,
-        surface_pairs=_surface_order(pair_s, pair_h, prep.scale),
-        node_origin=node_origin,
-        materials=prep.materials,
-        length=L,
-        depth=prep.depth,
-        method="staircase",
-        through=prep.through,
-        quality=quality,
-    )
+    return _cut_from_duplicates(mesh, prep, g, all_pts, new_tets, lattice, D, dup_index, s, h, tet_side, node_origin, quality,
+                                method="staircase", n_before=n_before, allow_disconnect=allow_disconnect)
 
 
 # ===================================================================== element removal
