@@ -5,12 +5,14 @@ subprocesses compile the same programs) loads compiled programs instead of compi
 The cache lives in ``$DIFFTISSUE_TEST_JAX_CACHE`` or ``~/.cache/difftissue-tests/jax``
 (``$XDG_CACHE_HOME`` respected); ``DIFFTISSUE_TEST_JAX_CACHE=off`` disables it."""
 
+import faulthandler
 import os
 from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 
 import jax  # noqa: E402
+import pytest  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
@@ -36,3 +38,59 @@ if _CACHE is not None:
     # Cache every program that took over half a second to compile, however small.
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+# --- A crashed xdist worker must never hang or fail the run (docs/dev/test-suite.md) ---------
+#
+# A worker that dies (a SIGSEGV inside XLA-compiled code, seen once late in a full run) is
+# replaced by xdist; with ``--dist loadfile`` the dead worker's files go back to the queue with
+# the test it was running still pending, so the replacement runs that test again. xdist reports
+# the crash as a failure all the same, and pytest-rerunfailures (``--reruns 1 --only-rerun
+# crashed``) cannot turn it into a re-run because the file scheduler does not implement
+# ``mark_test_pending``. The scheduler below does: the crashed test is already pending again,
+# so marking it is a no-op that tells rerunfailures the re-run will happen. A test that crashes
+# its worker twice still fails.
+
+try:
+    from xdist.scheduler import LoadFileScheduling
+except ImportError:  # xdist not installed: one process, nothing to schedule
+    LoadFileScheduling = None
+
+if LoadFileScheduling is not None:
+
+    class _LoadFileSchedulingRerunsCrashed(LoadFileScheduling):
+        """``--dist loadfile`` whose crashed test is re-run by pytest-rerunfailures."""
+
+        def mark_test_pending(self, item: str) -> None:
+            # remove_node() (called before this, when the worker went down) has put the whole
+            # work unit of the crashed worker back into the queue, ``item`` included and not
+            # completed, and re-scheduled it: nothing is left to do.
+            return None
+
+
+@pytest.hookimpl(optionalhook=True)
+def pytest_xdist_make_scheduler(config, log):
+    if LoadFileScheduling is not None and config.getvalue("dist") == "loadfile":
+        return _LoadFileSchedulingRerunsCrashed(config, log)
+    return None
+
+
+# A watchdog on the xdist controller: should the run ever stop making progress (the one
+# observed crash left the controller waiting on idle workers until CI's limit), dump every
+# thread's stack and exit after DIFFTISSUE_TEST_SESSION_LIMIT seconds (default 75 minutes; the
+# suite takes 15-40 minutes on 2 loaded cores), so that CI ends with a diagnosis instead of a
+# silent time-out. ``0`` turns it off. Per-test hangs inside a worker are pytest-timeout's
+# (``timeout`` in pyproject.toml).
+_SESSION_LIMIT_S = float(os.environ.get("DIFFTISSUE_TEST_SESSION_LIMIT", 75 * 60))
+
+
+def pytest_sessionstart(session):
+    config = session.config
+    is_worker = hasattr(config, "workerinput")
+    distributed = bool(getattr(config.option, "numprocesses", None))
+    if _SESSION_LIMIT_S > 0 and distributed and not is_worker:
+        faulthandler.dump_traceback_later(_SESSION_LIMIT_S, exit=True)
+
+
+def pytest_sessionfinish(session):
+    faulthandler.cancel_dump_traceback_later()
