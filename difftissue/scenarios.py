@@ -26,7 +26,9 @@ Scenarios:
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import hashlib
 import math
 from typing import Any, Sequence
 
@@ -39,6 +41,7 @@ from . import analytic
 from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_free_rigid_modes
 from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
 from .energies.volume import tet_signed_volume
+from .structure_keys import data_leaf_indices, hash_scenario_leaves
 from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError, SelectorError
 from .materials import Material
 from .mesh import TetMesh, graded_axis, structured_grid
@@ -429,13 +432,61 @@ class SolverOptions:
 
 _JITTED: dict[int, tuple[Any, Any]] = {}
 
+#: Most compiled protocols kept for sharing between equal scenarios (least recently used
+#: dropped first); each keeps the scenario it was compiled for (and its mesh) alive.
+SHARED_SOLVES_SIZE = 8
+
+#: ``{structure key: (scenario, _SharedSolve)}`` (see :func:`_structure_key`), most recent last.
+_SHARED: collections.OrderedDict = collections.OrderedDict()
+
+
+def _structure_key(scenario):
+    """What a scenario's compiled protocol depends on: its type, pytree structure (the static
+    configuration) and every leaf (arrays by content, Python scalars by value, other objects by
+    identity: the shared entry keeps them alive) but the measured data (``observed``,
+    ``sigma``: shape and dtype only; a ``_solve_protocol`` never reads them), the formula of
+    :func:`difftissue.structure_keys.hash_scenario_leaves`; None when the static configuration
+    cannot be hashed (then the program is not shared)."""
+    leaves, treedef = jax.tree_util.tree_flatten(scenario)
+    try:
+        hash(treedef)
+    except TypeError:
+        return None
+    h = hashlib.sha256()
+    objects = hash_scenario_leaves(h, leaves, data_leaf_indices(scenario, leaves))
+    return (type(scenario), treedef, h.hexdigest(), tuple(objects))
+
+
+class _SharedSolve:
+    """One jitted ``_solve_protocol`` for a set of equal scenarios. It holds them weakly and
+    traces with any one still alive (they are equal: the same program), so the executable
+    survives as long as one of them does, and none is kept alive by it."""
+
+    def __init__(self):
+        self._users: list = []
+        self.fn = jax.jit(lambda material, *extra: self._live()._solve_protocol(material, *extra))
+
+    def add(self, scenario) -> None:
+        import weakref
+
+        self._users = [r for r in self._users if r() is not None] + [weakref.ref(scenario)]
+
+    def _live(self):
+        for r in reversed(self._users):
+            scenario = r()
+            if scenario is not None:
+                return scenario
+        raise RuntimeError("a scenario's compiled solve outlived every scenario it was compiled for")
+
 
 def _jitted_solve(scenario):
-    """``scenario.solve`` compiled once per scenario object.
+    """``scenario.solve`` compiled once per scenario, shared by equal scenarios.
 
     The scenario is closed over (its mesh arrays stay concrete NumPy, which the sparse solver
     needs for its pattern), so repeated ``predict`` calls reuse one executable; inside an outer
-    ``jit`` (a fit) the call is simply inlined.
+    ``jit`` (a fit) the call is simply inlined. A new scenario object equal to a recent one
+    (:func:`_structure_key`: same mesh, protocol and settings, e.g. the specimen rebuilt by each
+    export of a card) reuses that one's executable instead of compiling the same program again.
     """
     key = id(scenario)
     hit = _JITTED.get(key)
@@ -443,11 +494,18 @@ def _jitted_solve(scenario):
         return hit[1]
     import weakref
 
-    # Only weak references to the scenario: the cache must not keep it (and its mesh) alive.
-    ref = weakref.ref(scenario, lambda _, k=key, cache=_JITTED: cache.pop(k, None))
-    fn = jax.jit(lambda material, *extra: ref()._solve_protocol(material, *extra))
-    _JITTED[key] = (ref, fn)
-    return fn
+    shared_key = _structure_key(scenario)
+    entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
+    if entry is None:
+        entry = (scenario, _SharedSolve())
+    entry[1].add(scenario)
+    if shared_key is not None:
+        _SHARED[shared_key] = entry  # most recent last
+        while len(_SHARED) > SHARED_SOLVES_SIZE:
+            _SHARED.popitem(last=False)
+    # Only a weak reference to the scenario in its own entry: dropped with the object.
+    _JITTED[key] = (weakref.ref(scenario, lambda _, k=key, cache=_JITTED: cache.pop(k, None)), entry[1].fn)
+    return entry[1].fn
 
 
 def _history(u0):

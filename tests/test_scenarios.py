@@ -279,3 +279,33 @@ def test_failed_solve_gives_nan_values_and_derivatives_in_both_modes(cube):
     assert np.isnan(float(jax.jacfwd(out)(1e3)))
     ok = Compression(cube, [0.3], model="fem_neo_hookean", options=SolverOptions(failure="nan", linear_solver="dense"))
     assert np.isfinite(float(jax.grad(lambda E: ok.predict(Material(E, 0.45))[0])(1e3)))
+
+
+def test_an_equal_scenario_rebuilt_reuses_the_compiled_protocol(cube, caplog):
+    """A scenario built again from equal inputs (as each export of a card rebuilds its
+    specimen) shares the first one's executable, also after the first object is gone, and so
+    does one with other measured data (not part of the protocol); a scenario that differs in
+    anything compiled in (here one strain) gets its own."""
+    import gc
+    import logging
+
+    from difftissue import scenarios
+
+    mat = Material(16e3, 0.45)
+    first = Compression(cube, [1e-3, 1e-2], model="fem_linear")
+    expected = np.asarray(first.predict(mat))
+    program = scenarios._jitted_solve(first)
+    del first
+    gc.collect()
+    again = Compression(block((0.01, 0.01, 0.01), (2, 2, 2)), [1e-3, 1e-2], model="fem_linear")
+    assert scenarios._jitted_solve(again) is program
+    with jax.log_compiles(), caplog.at_level(logging.WARNING):
+        caplog.clear()
+        np.testing.assert_allclose(again.predict(mat), expected, rtol=0)
+    assert [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()] == []
+    measured = Compression(cube, [1e-3, 1e-2], [15.0, 170.0], model="fem_linear")
+    assert scenarios._jitted_solve(measured) is program
+    np.testing.assert_allclose(measured.predict(mat), expected, rtol=0)
+    other = Compression(cube, [1e-3, 2e-2], model="fem_linear")
+    assert scenarios._jitted_solve(other) is not program
+    np.testing.assert_allclose(other.predict(mat), [16.0, 320.0], rtol=1e-9)
