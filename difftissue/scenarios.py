@@ -446,8 +446,10 @@ def _structure_key(scenario):
     identity: the shared entry keeps them alive) but the measured data (``observed``,
     ``sigma``: shape and dtype only; a ``_solve_protocol`` never reads them), the formula of
     :func:`difftissue.structure_keys.hash_scenario_leaves`; None when the static configuration
-    cannot be hashed (then the program is not shared)."""
+    cannot be hashed or a leaf is traced (then the program is not shared)."""
     leaves, treedef = jax.tree_util.tree_flatten(scenario)
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
+        return None  # a scenario traced by an outer transformation (the fit engine): inlined there
     try:
         hash(treedef)
     except TypeError:
