@@ -436,6 +436,11 @@ _JITTED: dict[int, tuple[Any, Any]] = {}
 #: dropped first); each keeps the scenario it was compiled for (and its mesh) alive.
 SHARED_SOLVES_SIZE = 8
 
+#: Only scenarios whose arrays hold at most this many bytes share their compiled protocol: a
+#: large mesh's program embeds its arrays (GBs at 10^5 unknowns, docs/dev/solver-design.md),
+#: which must go with the scenario, not stay in a cache.
+SHARED_SOLVES_MAX_BYTES = 16 * 2**20
+
 #: ``{structure key: (scenario, _SharedSolve)}`` (see :func:`_structure_key`), most recent last.
 _SHARED: collections.OrderedDict = collections.OrderedDict()
 
@@ -446,10 +451,13 @@ def _structure_key(scenario):
     identity: the shared entry keeps them alive) but the measured data (``observed``,
     ``sigma``: shape and dtype only; a ``_solve_protocol`` never reads them), the formula of
     :func:`difftissue.structure_keys.hash_scenario_leaves`; None when the static configuration
-    cannot be hashed or a leaf is traced (then the program is not shared)."""
+    cannot be hashed, a leaf is traced or the arrays exceed :data:`SHARED_SOLVES_MAX_BYTES`
+    (then the program is not shared)."""
     leaves, treedef = jax.tree_util.tree_flatten(scenario)
     if any(isinstance(leaf, jax.core.Tracer) for leaf in leaves):
         return None  # a scenario traced by an outer transformation (the fit engine): inlined there
+    if sum(int(getattr(leaf, "nbytes", 0)) for leaf in leaves if eqx.is_array(leaf)) > SHARED_SOLVES_MAX_BYTES:
+        return None
     try:
         hash(treedef)
     except TypeError:
