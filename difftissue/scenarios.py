@@ -30,6 +30,7 @@ import collections
 import dataclasses
 import hashlib
 import math
+import weakref
 from typing import Any, Sequence
 
 import equinox as eqx
@@ -41,7 +42,6 @@ from . import analytic
 from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_free_rigid_modes
 from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
 from .energies.volume import tet_signed_volume
-from .structure_keys import data_leaf_indices, hash_scenario_leaves
 from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError, SelectorError
 from .materials import Material
 from .mesh import TetMesh, graded_axis, structured_grid
@@ -50,6 +50,7 @@ from .models import ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
 from .solvers.static import solve_static
+from .structure_keys import data_leaf_indices, hash_scenario_leaves
 
 __all__ = [
     "AnalyticIndentation",
@@ -477,8 +478,6 @@ class _SharedSolve:
         self.fn = jax.jit(lambda material, *extra: self._live()._solve_protocol(material, *extra))
 
     def add(self, scenario) -> None:
-        import weakref
-
         self._users = [r for r in self._users if r() is not None] + [weakref.ref(scenario)]
 
     def _live(self):
@@ -502,8 +501,6 @@ def _jitted_solve(scenario):
     hit = _JITTED.get(key)
     if hit is not None and hit[0]() is scenario:
         return hit[1]
-    import weakref
-
     shared_key = _structure_key(scenario)
     entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
     if entry is None:
