@@ -270,3 +270,27 @@ def test_parameterization_fits_pre_stretch_y_of_an_equibiaxial_base():
     assert float(m.pre_stretch) == pytest.approx(1.1) and float(m.pre_stretch_y) == pytest.approx(1.02)
     assert Material(E, NU).to_dict().keys() == {"youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch"}
     assert Material(E, NU, pre_stretch_y=1.1).to_dict()["pre_stretch_y"] == 1.1
+
+
+# -------------------------------------------------------------------------- export
+def test_card_and_febio_export_of_an_anisotropic_pre_stretch():
+    from difftissue.errors import ExportError
+    from difftissue.export import MaterialCard, febio_material, pre_stretch_from_febio_gradient, pre_stretches_from_febio_gradient
+    from difftissue.export.approximations import approximation_notes
+
+    params = {"youngs_modulus": {"value": 2e5}, "poisson_ratio": {"value": 0.45}, "pre_stretch": {"value": 1.08}, "pre_stretch_y": {"value": 1.03}}
+    card = MaterialCard(model="fem_neo_hookean", parameters=params, name="skin")
+    m = card.material()
+    assert (float(m.pre_stretch), float(m.pre_stretch_y)) == (1.08, 1.03) and card.is_anisotropic_pre_stretch
+    iso = MaterialCard(model="fem_neo_hookean", parameters={k: v for k, v in params.items() if k != "pre_stretch_y"}, name="skin")
+    assert iso.pre_stretch_y == 1.08 and iso.material().pre_stretch_y is None and not iso.is_anisotropic_pre_stretch
+    F0 = febio_material(card).find(".//F0").text
+    assert pre_stretches_from_febio_gradient(F0) == (1.08, 1.03)
+    with pytest.raises(ExportError, match="equibiaxial"):
+        pre_stretch_from_febio_gradient(F0)
+    assert pre_stretch_from_febio_gradient(febio_material(iso).find(".//F0").text) == 1.08
+    # only y pre-stretched: still written (and refused where a target cannot hold it)
+    only_y = MaterialCard(model="fem_neo_hookean", parameters={**params, "pre_stretch": {"value": 1.0}}, name="skin")
+    assert pre_stretches_from_febio_gradient(febio_material(only_y).find(".//F0").text) == (1.0, 1.03)
+    with pytest.raises(ExportError, match="pre_stretch_y = 1.03"):
+        approximation_notes(only_y, "scikit-fem linear elasticity", approximate=False)
