@@ -102,3 +102,27 @@ class _Data:
         self.abscissa = np.arange(self.observed.size, dtype=float)
         self.x_label, self.y_label = "pair", "width [m]"
         self.predict = model.predict
+
+
+def test_config_takes_pre_stretch_y():
+    """[material] pre_stretch_y and fit.parameters = ["pre_stretch", "pre_stretch_y"]: the scenarios
+    are compiled with the sixth leaf; a bad value names the key."""
+    from difftissue.config import parse_config
+    from difftissue.errors import ConfigError
+
+    exp = {"name": "wound", "scenario": "incision", "length_unit": "mm",
+           "data": {"quantity": "surface_width", "positions": [0.5, 1.0, 1.5], "widths": [0.2, 0.3, 0.2]},
+           "specimen": {"size": [6, 6], "cells": [6, 6], "layers": [{"name": "dermis", "thickness": 1, "cells": 1, "fitted": True},
+                                                                  {"name": "fat", "thickness": 1, "cells": 1, "youngs_modulus": 5e3, "poisson_ratio": 0.45}]},
+           "cut": {"path": [[2, 3], [4, 3]], "depth": 1}}
+    doc = {"material": {"youngs_modulus": 2e5, "poisson_ratio": 0.45, "pre_stretch": 1.05, "pre_stretch_y": 1.02},
+           "fit": {"parameters": ["pre_stretch", "pre_stretch_y"]}, "experiment": [exp]}
+    cfg = parse_config(doc)
+    assert float(cfg.material.pre_stretch_y) == 1.02 and cfg.parameterization.fields == ("pre_stretch", "pre_stretch_y")
+    assert cfg.anisotropic_pre_stretch
+    (sc,) = cfg.fit_scenarios()
+    assert sc._leaves[-1] == "pre_stretch_y"
+    with pytest.raises(ConfigError, match="pre_stretch_y"):
+        parse_config({**doc, "material": {**doc["material"], "pre_stretch_y": -1.0}})
+    with pytest.raises(ConfigError, match="was compiled without one"):
+        SeparatelyCompiled(cfg.experiments[0].scenario).predict(cfg.material)
