@@ -27,7 +27,7 @@ import numpy as np
 from .boundary import BoundaryConditions
 from .errors import ConfigError, ConvergenceError, DifftissueWarning, ModelError
 from .fit.residuals import ResidualProblem, least_squares
-from .materials import Identity, Material, ScaledLogit
+from .materials import MATERIAL_FIELDS, Identity, Material, ScaledLogit
 from .models import MODELS, ElasticModel, make_model
 from .solvers.static import solve_static
 from .solvers.xpbd import XPBDSettings, xpbd_quasi_static
@@ -329,7 +329,7 @@ def calibrate_for_budget(
 
 def _with_values(material: Material, fields, values) -> Material:
     """``material`` with ``fields`` set to ``values`` (physical, SI)."""
-    kw = {name: getattr(material, name) for name in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
+    kw = {name: getattr(material, name) for name in MATERIAL_FIELDS}
     for i, f in enumerate(fields):
         kw[f] = values[i]
     return Material(**kw)

@@ -809,7 +809,8 @@ def _cmd_simulate(args) -> int:
     for w in cfg.data_warnings:
         print(f"warning: {_one_line(w)}")
     print(f"material: E = {float(material.youngs_modulus):.6g} Pa, nu = {float(material.poisson_ratio):.6g}, "
-          f"b = {float(material.cubic_coefficient):.6g}, pre-stretch = {float(material.pre_stretch):.6g}")
+          f"b = {float(material.cubic_coefficient):.6g}, pre-stretch = {float(material.pre_stretch):.6g}"
+          + (f", pre-stretch along y = {float(material.pre_stretch_y):.6g}" if material.pre_stretch_y is not None else ""))
     for s in sims:
         print(f"{s.name} ({s.kind}{', ' + s.model if s.model else ''}): {s.observed.size} points, relative RMS error "
               f"{100 * s.relative_rms:.3g} %, weighted RMS {s.weighted_rms:.3g}, {s.seconds:.1f} s")
@@ -903,7 +904,7 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("config", help="the fit config (TOML), as for difftissue fit")
     sim.add_argument("--out", required=True, help="output directory: simulation.json, simulation.png, one CSV per experiment")
     sim.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE",
-                     help="replace a material field, SI units (youngs_modulus, poisson_ratio, cubic_coefficient, density, pre_stretch); repeatable")
+                     help="replace a material field, SI units (youngs_modulus, poisson_ratio, cubic_coefficient, density, pre_stretch, pre_stretch_y); repeatable")
     sim.add_argument("--force", action="store_true", help="overwrite the outputs in --out")
     sim.add_argument("--progress", action=argparse.BooleanOptionalAction, default=None,
                      help="show the phases on stderr (default: a status line on a terminal, else a line every 10 s)")

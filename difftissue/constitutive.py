@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import MaterialError, ModelError
-from .materials import Material, _is_concrete, surface_tension_from_pre_stretch
+from .materials import Material, _is_concrete, _require_equibiaxial, biaxial_pre_stress, explicit_pre_stretch_y, material_fields, surface_tension_from_pre_stretch
 from .mesh import block
 from .models import MODELS, make_model
 
@@ -48,6 +48,9 @@ __all__ = [
     "MembraneState",
     "membrane_state",
     "surface_tension",
+    "BiaxialMembraneState",
+    "biaxial_membrane_state",
+    "surface_tensions",
     "pre_stretch_for_surface_tension",
     "DIRECTIONS",
     "UNIAXIAL_STRAIN_RANGE",
@@ -106,7 +109,7 @@ def _energy_density(kind, shape, material: Material, F):
 def _scalar_material(material: Material) -> Material:
     if not isinstance(material, Material):
         raise MaterialError(f"expected a Material, got {type(material).__name__}")
-    leaves = {f: jnp.asarray(getattr(material, f), dtype=float) for f in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
+    leaves = {f: jnp.asarray(getattr(material, f), dtype=float) for f in material_fields(material)}
     bad = [f for f, v in leaves.items() if v.ndim != 0]
     if bad:
         raise MaterialError(f"the homogeneous response needs one material (scalar fields); {bad} have shapes {[leaves[f].shape for f in bad]}")
@@ -182,6 +185,9 @@ def membrane_state(kind: str, material: Material, *, cell_size=None) -> Membrane
     shape). Range errors of the model (``springs_volume``: ``nu >= 1/4`` and the lattice's
     ``pre_stretch_range``) are raised as the model raises them.
     """
+    _require_equibiaxial(material, "membrane_state (equibiaxial)")
+    if material.pre_stretch_y is not None:  # equal to pre_stretch (checked): the equibiaxial state
+        material = material.replace(pre_stretch_y=None)
     shape = _cell_shape(kind, cell_size)
     mat = _checked(kind, shape, material)
     return _membrane_state(kind, shape, mat)
@@ -203,6 +209,79 @@ def _membrane_state(kind, shape, mat) -> MembraneState:
     lz = _newton(g, h, jnp.atleast_1d(lz0), f"membrane state of {kind} at pre_stretch", mat.youngs_modulus)[0]
     tension = jax.grad(psi, argnums=0)(one, lz)  # d psi / d s: force per current length per mesh thickness
     return MembraneState(lz, tension, tension / lz, tension * lam0)
+
+
+class BiaxialMembraneState(NamedTuple):
+    """Homogeneous state of a layer pre-stretched by ``(lambda_x, lambda_y)``
+    (``Material.pre_stretch``, ``pre_stretch_y``), held at the mesh in x and y, free in z.
+
+    Attributes (the in-plane ones of shape ``(2,)``: x then y):
+        thickness_stretch: ``lambda_z`` [-], current thickness / mesh (stress-free) thickness.
+        tension_per_thickness: ``(T_x, T_y) / t`` [Pa]: ``T_x`` is the force along x per unit
+            current length of a line along y (a cut along y is pulled open by it).
+        cauchy_stress: ``(sigma_xx, sigma_yy) = (T_x, T_y) / (lambda_z t)`` [Pa].
+        nominal_stress: ``(P_xx, P_yy) = (lambda_y T_x, lambda_x T_y) / t`` [Pa], force per unit
+            stress-free area.
+    """
+
+    thickness_stretch: jax.Array
+    tension_per_thickness: jax.Array
+    cauchy_stress: jax.Array
+    nominal_stress: jax.Array
+
+
+def biaxial_membrane_state(kind: str, material: Material, *, cell_size=None) -> BiaxialMembraneState:
+    """The model's own biaxial plane-stress state at ``material.pre_stretch_xy`` (see
+    :class:`BiaxialMembraneState`); :func:`membrane_state` is its equibiaxial case.
+
+    Args and conventions as :func:`membrane_state`: the stress-free state is the mesh shrunk by
+    ``diag(1/lambda_x, 1/lambda_y, 1)``, the thickness follows from ``d psi / d lambda_z = 0``.
+    Jit-able, differentiable in every field of ``material``.
+    """
+    shape = _cell_shape(kind, cell_size)
+    material = explicit_pre_stretch_y(material)
+    mat = _checked(kind, shape, material)
+    return _biaxial_membrane_state(kind, shape, mat)
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _biaxial_membrane_state(kind, shape, mat) -> BiaxialMembraneState:
+    lx, ly = mat.pre_stretch, mat.pre_stretch_y
+    nu = mat.poisson_ratio
+
+    def psi(sx, sy, lz):  # per unit mesh volume; (sx, sy) stretch x and y about the mesh
+        F = jnp.diag(jnp.stack([sx, sy, lz]))
+        return _energy_density(kind, shape, mat, F)
+
+    one = jnp.ones_like(lx)
+    g = jax.grad(lambda y: psi(one, one, y[0]))
+    h = jax.hessian(lambda y: psi(one, one, y[0]))
+    lz0 = (lx * ly) ** (-nu / (1.0 - nu))  # the linear thickness change, as a start
+    lz = _newton(g, h, jnp.atleast_1d(lz0), f"membrane state of {kind} at (pre_stretch, pre_stretch_y)", mat.youngs_modulus)[0]
+    tx, ty = jax.grad(psi, argnums=(0, 1))(one, one, lz)
+    t = jnp.stack([tx, ty])
+    return BiaxialMembraneState(lz, t, t / lz, t * jnp.stack([ly, lx]))
+
+
+def surface_tensions(kind: str, material: Material, thickness, *, cell_size=None):
+    """Surface tensions ``(T_x, T_y)`` [N/m] a layer of the model carries at an (anisotropic)
+    pre-stretch ``(lambda_x, lambda_y)`` = ``(material.pre_stretch, material.pre_stretch_y)``.
+
+    ``T_x`` is the in-plane force along x per unit in-vivo length of a line along y (so a cut
+    along y gapes under ``T_x``), ``T_y`` the same across a line along x; each the Cauchy stress
+    times the current thickness (:func:`biaxial_membrane_state`). Equal to
+    :func:`surface_tension` twice for an equibiaxial material. Linear limit:
+    ``t (sigma_x, sigma_y)`` of :func:`difftissue.materials.biaxial_pre_stress`.
+
+    Args:
+        kind, thickness, cell_size: as for :func:`surface_tension`.
+        material: one material; ``pre_stretch_y`` None means ``pre_stretch``.
+
+    Returns a ``(2,)`` array. Jit-able, differentiable.
+    """
+    if _is_concrete(thickness) and not np.all(np.asarray(thickness, dtype=float) > 0):
+        raise MaterialError(f"layer thickness must be > 0 m, got {thickness!r}")
+    return thickness * biaxial_membrane_state(kind, material, cell_size=cell_size).tension_per_thickness
 
 
 def surface_tension(kind: str, material: Material, thickness, *, cell_size=None):
@@ -251,6 +330,10 @@ def pre_stretch_for_surface_tension(kind: str, material: Material, tension, thic
         raise MaterialError(f"layer thickness must be > 0 m, got {thickness!r}")
     if _is_concrete(tension) and not (np.all(np.isfinite(np.asarray(tension, dtype=float))) and np.all(np.asarray(tension, dtype=float) >= 0)):
         raise MaterialError(f"surface tension must be a finite number >= 0 N/m, got {tension!r}")
+    if material.pre_stretch_y is not None:
+        raise MaterialError("pre_stretch_for_surface_tension inverts the equibiaxial surface tension; the material has a "
+                            "pre_stretch_y (anisotropic pre-stretch): give it without one (pre_stretch_y=None), or solve "
+                            "surface_tensions(...) = (T_x, T_y) for both pre-stretches")
     shape = _cell_shape(kind, cell_size)
     mat = _checked(kind, shape, material.replace(pre_stretch=1.0) if _is_concrete(material) else material)
     target = jnp.asarray(tension, dtype=float) / jnp.asarray(thickness, dtype=float)
@@ -306,6 +389,8 @@ def uniaxial_stress(kind: str, material: Material, strain, *, direction: str = "
     """
     shape = _cell_shape(kind, cell_size)
     _frame(direction, shape)
+    if material.pre_stretch_y is not None:  # ignored like pre_stretch: the bar starts stress-free
+        material = material.replace(pre_stretch_y=None)
     mat = _checked(kind, shape, material)
     mat = eqx.tree_at(lambda m: m.pre_stretch, mat, jnp.ones_like(mat.pre_stretch))
     eps = jnp.asarray(strain, dtype=jnp.result_type(float))
@@ -407,6 +492,8 @@ def surface_tension_record(kind: str, material: Material, layers, *, fields=(), 
     layers, ``model`` and the definition in words.
     """
     layers = [(str(n), float(t), None if c is None else tuple(float(v) for v in np.asarray(c).reshape(3))) for n, t, c in layers]
+    if material.pre_stretch_y is not None:
+        return _biaxial_surface_tension_record(kind, material, layers, fields=fields, covariance=covariance)
 
     def total(m):
         return sum(surface_tension(kind, m, t, cell_size=c) for _, t, c in layers)
@@ -430,6 +517,39 @@ def surface_tension_record(kind: str, material: Material, layers, *, fields=(), 
                        "equibiaxial stress with traction-free top and bottom: Cauchy stress x current thickness = t P_xx / lambda0 "
                        "(t the layer's mesh thickness, P the nominal stress); per unit stress-free length it is lambda0 times this. "
                        "linearised_surface_tension = E (lambda0 - 1) t / (1 - nu) is the small-strain formula"),
+    }
+
+
+def _biaxial_surface_tension_record(kind, material, layers, *, fields, covariance) -> dict:
+    """:func:`surface_tension_record` of an anisotropic pre-stretch: ``value`` is ``T_x``,
+    ``value_y`` is ``T_y`` (:func:`surface_tensions`)."""
+
+    def total(m, i):
+        return sum(surface_tensions(kind, m, t, cell_size=c)[i] for _, t, c in layers)
+
+    tx, ty = float(total(material, 0)), float(total(material, 1))
+    t_sum = sum(t for _, t, _ in layers)
+    lin = [float(v) * t_sum for v in biaxial_pre_stress(material)]
+    se = [_delta_se(lambda m, i=i: total(m, i), material, tuple(fields), covariance) for i in (0, 1)]
+    lz = [float(biaxial_membrane_state(kind, material, cell_size=c).thickness_stretch) for _, _, c in layers]
+    return {
+        "value": tx,
+        "value_y": ty,
+        "unit": "N/m",
+        "standard_error": se[0],
+        "standard_error_y": se[1],
+        "model": kind,
+        "pre_stretch": float(material.pre_stretch),
+        "pre_stretch_y": float(material.pre_stretch_y),
+        "layers": [{"name": n, "thickness": t, "cell_size": None if c is None or kind != "springs_volume" else list(c), "thickness_stretch": z}
+                   for (n, t, c), z in zip(layers, lz)],
+        "linearised_surface_tension": lin[0],
+        "linearised_surface_tension_y": lin[1],
+        "linearised_over_model": lin[0] / tx if tx != 0 else None,
+        "definition": ("anisotropic pre-stretch (pre_stretch along x, pre_stretch_y along y): value is T_x, the in-plane force along x "
+                       "per unit in-vivo length of a line along y (a cut along y gapes under it), value_y is T_y; each from the "
+                       "model's own biaxial stress with traction-free top and bottom (Cauchy stress x current thickness). "
+                       "linearised_surface_tension(_y) = t E (eps_x + nu eps_y) / (1 - nu^2) (and x <-> y) is the small-strain formula"),
     }
 
 

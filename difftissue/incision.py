@@ -41,7 +41,7 @@ from .boundary import ROLLER_FACES, BoundaryConditions, Roller, apply_rollers, r
 from .cutting import Cut, CutClosureModel, Opening, closed_mask, opening_width
 from .errors import ConfigError, CutError, DataError
 from .constitutive import surface_tension as _model_surface_tension
-from .materials import Material
+from .materials import Material, explicit_pre_stretch_y
 from .mesh import Specimen, signed_volumes, write_mesh
 from .models import make_model, stack_materials
 from .solvers.static import solve_static
@@ -365,13 +365,18 @@ class Incision(eqx.Module):
         if self.fitted_regions is None:
             return material
         idx = jnp.asarray(self.fitted_regions)
+        base = self.base_materials
+        fields = _FIELDS
+        if material.pre_stretch_y is not None or base.pre_stretch_y is not None:
+            fields = _FIELDS + ("pre_stretch_y",)  # anisotropic: lambda_y = lambda_x where a material has none
+            material, base = explicit_pre_stretch_y(material), explicit_pre_stretch_y(base)
         vals = []
-        for f in _FIELDS:
+        for f in fields:
             v = jnp.asarray(getattr(material, f), dtype=float)
             if v.ndim != 0:
                 raise ConfigError(f"with fitted_regions the material's {f} must be a scalar, got shape {v.shape}")
-            vals.append(jnp.asarray(getattr(self.base_materials, f), dtype=float).at[idx].set(v))
-        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in _FIELDS), self.base_materials, tuple(vals))
+            vals.append(jnp.asarray(getattr(base, f), dtype=float).at[idx].set(v))
+        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in fields), base, tuple(vals))
 
     def fitted_layers(self) -> list[tuple[str, float, np.ndarray | None]]:
         """The regions the fitted material applies to, as layers: ``(name, thickness [m], cell)``.
@@ -661,6 +666,8 @@ def write_incision_series(directory, cut: Cut, displacements, positions, *, stem
         sp = Specimen(mesh, tuple(mats)).cell_fields()
         cell["youngs_modulus"] = sp["youngs_modulus"]
         cell["pre_stretch"] = sp["pre_stretch"]
+        if "pre_stretch_y" in sp:
+            cell["pre_stretch_y"] = sp["pre_stretch_y"]
     names = []
     for k, (u, s) in enumerate(zip(us, pos)):
         tied = np.zeros(mesh.n_nodes)

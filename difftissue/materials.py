@@ -24,6 +24,9 @@ from .errors import MaterialError, ModelRangeError
 
 __all__ = [
     "Material",
+    "MATERIAL_FIELDS",
+    "material_fields",
+    "explicit_pre_stretch_y",
     "lame_parameters",
     "shear_modulus",
     "bulk_modulus",
@@ -39,6 +42,7 @@ __all__ = [
     "distance_compliance",
     "volume_compliance",
     "equibiaxial_pre_stress",
+    "biaxial_pre_stress",
     "surface_tension_from_pre_stretch",
     "pre_stretch_from_surface_tension",
     "Transform",
@@ -71,8 +75,19 @@ FIELD_UNITS: dict[str, str] = {
     "cubic_coefficient": "1",
     "density": "kg/m^3",
     "pre_stretch": "1",
+    "pre_stretch_y": "1",
     "surface_tension": "N/m",
 }
+
+#: Every field of :class:`Material`, in order. ``pre_stretch_y`` may be None (isotropic
+#: pre-stretch); :func:`material_fields` lists the fields one material holds.
+MATERIAL_FIELDS = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch", "pre_stretch_y")
+
+
+def material_fields(material) -> tuple[str, ...]:
+    """The fields ``material`` holds values for: :data:`MATERIAL_FIELDS` without
+    ``pre_stretch_y`` when it is None (isotropic pre-stretch)."""
+    return MATERIAL_FIELDS if getattr(material, "pre_stretch_y", None) is not None else MATERIAL_FIELDS[:-1]
 
 
 class Material(eqx.Module):
@@ -91,11 +106,18 @@ class Material(eqx.Module):
             different ``b_c`` (:func:`difftissue.constitutive.continuum_cubic_coefficient`;
             nonzero at ``b = 0``); the FEM and stable neo-Hookean models ignore ``b``.
         density: mass density [kg/m^3], > 0 (soft tissue is close to 1000-1100).
-        pre_stretch: in-plane equibiaxial pre-stretch ``lambda0`` [-] of a pre-tensioned
-            layer (skin); 1 means no pre-tension. Rest lengths are scaled by 1/lambda0.
+        pre_stretch: in-plane pre-stretch ``lambda0`` [-] of a pre-tensioned layer (skin) along
+            x, and along y too unless ``pre_stretch_y`` is given; 1 means no pre-tension. The
+            stress-free state is the mesh shrunk by ``1/lambda0`` in x (and y).
             See :func:`difftissue.constitutive.surface_tension` for the surface tension [N/m]
             a model's layer carries (:func:`surface_tension_from_pre_stretch` is the linear
             formula).
+        pre_stretch_y: in-plane pre-stretch ``lambda_y`` [-] along y, > 0, for an anisotropic
+            pre-tension (skin along and across Langer's lines): the stress-free state is the
+            mesh shrunk by ``diag(1/pre_stretch, 1/pre_stretch_y, 1)``. None (the default)
+            means equal to ``pre_stretch`` (equibiaxial), and leaves the pytree's leaves
+            exactly those of an isotropic material. The two surface tensions:
+            :func:`difftissue.constitutive.surface_tensions`.
 
     Construction with concrete values validates the ranges and raises
     :class:`~difftissue.errors.MaterialError` naming the field. Inside ``jit`` the values
@@ -109,6 +131,7 @@ class Material(eqx.Module):
     cubic_coefficient: float | jax.Array = 0.0
     density: float | jax.Array = 1000.0
     pre_stretch: float | jax.Array = 1.0
+    pre_stretch_y: float | jax.Array | None = None
 
     def __check_init__(self):
         checks = (
@@ -117,9 +140,12 @@ class Material(eqx.Module):
             ("cubic_coefficient", "", lambda v: True, ""),
             ("density", "kg/m^3", lambda v: v > 0, "must be > 0"),
             ("pre_stretch", "", lambda v: v > 0, "must be > 0"),
+            ("pre_stretch_y", "", lambda v: v > 0, "must be > 0"),
         )
         for name, unit, ok, rule in checks:
             value = getattr(self, name)
+            if value is None and name == "pre_stretch_y":
+                continue
             if not _is_concrete(value):
                 continue
             arr = np.asarray(value, dtype=float)
@@ -148,9 +174,21 @@ class Material(eqx.Module):
         """Bulk modulus ``K = E / (3 (1 - 2 nu))`` [Pa]."""
         return bulk_modulus(self.youngs_modulus, self.poisson_ratio)
 
+    @property
+    def is_equibiaxial(self) -> bool:
+        """True when the pre-stretch is equibiaxial by construction (``pre_stretch_y`` is None)."""
+        return self.pre_stretch_y is None
+
+    @property
+    def pre_stretch_xy(self) -> tuple:
+        """``(lambda_x, lambda_y)`` [-]: ``pre_stretch`` and ``pre_stretch_y`` (``pre_stretch``
+        itself when ``pre_stretch_y`` is None)."""
+        return self.pre_stretch, (self.pre_stretch if self.pre_stretch_y is None else self.pre_stretch_y)
+
     def replace(self, **changes) -> "Material":
-        """A copy with some fields changed (validated again)."""
-        fields = {k: getattr(self, k) for k in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
+        """A copy with some fields changed (validated again). ``pre_stretch_y=None`` makes the
+        pre-stretch equibiaxial again."""
+        fields = {k: getattr(self, k) for k in MATERIAL_FIELDS}
         unknown = set(changes) - set(fields)
         if unknown:
             raise MaterialError(f"unknown material field(s) {sorted(unknown)}; known: {sorted(fields)}")
@@ -165,6 +203,7 @@ class Material(eqx.Module):
             "cubic_coefficient": float(self.cubic_coefficient),
             "density": float(self.density),
             "pre_stretch": float(self.pre_stretch),
+            **({} if self.pre_stretch_y is None else {"pre_stretch_y": float(self.pre_stretch_y)}),
         }
 
 
@@ -373,8 +412,33 @@ def equibiaxial_pre_stress(material: Material):
     directions and free through its thickness. The models' own stress at finite ``lambda0``:
     :func:`difftissue.constitutive.membrane_state`.
     """
+    _require_equibiaxial(material, "equibiaxial_pre_stress")
     eps0 = material.pre_stretch - 1.0
     return material.youngs_modulus * eps0 / (1.0 - material.poisson_ratio)
+
+
+def _require_equibiaxial(material: Material, what: str) -> None:
+    """Raise :class:`MaterialError` when ``material`` has a ``pre_stretch_y`` differing from
+    ``pre_stretch`` (or one not known yet, inside jit)."""
+    if material.pre_stretch_y is None:
+        return
+    if _is_concrete((material.pre_stretch, material.pre_stretch_y)) and np.array_equal(np.asarray(material.pre_stretch), np.asarray(material.pre_stretch_y)):
+        return
+    raise MaterialError(f"{what} is the equibiaxial (pre_stretch_y = pre_stretch) formula, but the material has pre_stretch_y = "
+                        f"{material.pre_stretch_y!r} and pre_stretch = {material.pre_stretch!r}; use biaxial_pre_stress or "
+                        "difftissue.constitutive.surface_tensions for an anisotropic pre-stretch")
+
+
+def biaxial_pre_stress(material: Material):
+    """Linear in-plane pre-stresses ``(sigma_x, sigma_y)`` [Pa] of a layer pre-stretched by
+    ``(lambda_x, lambda_y)`` and free through its thickness (small-strain plane stress):
+    ``sigma_x = E (eps_x + nu eps_y) / (1 - nu^2)``, ``eps = lambda - 1``. Equals
+    :func:`equibiaxial_pre_stress` twice when ``lambda_x = lambda_y``."""
+    lx, ly = material.pre_stretch_xy
+    ex, ey = lx - 1.0, ly - 1.0
+    E, nu = material.youngs_modulus, material.poisson_ratio
+    c = E / (1.0 - nu * nu)
+    return c * (ex + nu * ey), c * (ey + nu * ex)
 
 
 def surface_tension_from_pre_stretch(material: Material, thickness):
@@ -393,6 +457,22 @@ def pre_stretch_from_surface_tension(material: Material, surface_tension, thickn
     if _is_concrete(thickness) and not np.all(np.asarray(thickness, dtype=float) > 0):
         raise MaterialError(f"layer thickness must be > 0 m, got {thickness!r}")
     return 1.0 + surface_tension * (1.0 - material.poisson_ratio) / (material.youngs_modulus * thickness)
+
+
+def explicit_pre_stretch_y(material: Material) -> Material:
+    """``material`` with ``pre_stretch_y`` set: ``pre_stretch`` where it is None (the same
+    physics; the pytree then has the ``pre_stretch_y`` leaf, e.g. to stack with anisotropic
+    materials or to differentiate in ``lambda_y``). Works on traced values."""
+    if material.pre_stretch_y is not None:
+        return material
+    return eqx.tree_at(lambda m: m.pre_stretch_y, material, material.pre_stretch, is_leaf=lambda x: x is None)
+
+
+def _field_value(material: Material, field: str):
+    """``material``'s value of ``field``; ``pre_stretch_y`` is ``pre_stretch`` when None."""
+    if field == "pre_stretch_y" and material.pre_stretch_y is None:
+        return material.pre_stretch
+    return getattr(material, field)
 
 
 # -------------------------------------------------------------- fitting transforms
@@ -474,6 +554,7 @@ DEFAULT_TRANSFORMS: dict[str, Transform] = {
     "cubic_coefficient": Identity(),
     "density": Log(scale=1e3),
     "pre_stretch": Log(),
+    "pre_stretch_y": Log(),
 }
 
 
@@ -510,7 +591,7 @@ class MaterialParameterization(eqx.Module):
 
     def pack(self, material: Material) -> jax.Array:
         """Unconstrained vector ``u`` (shape ``(len(fields),)``) of the fitted fields."""
-        return jnp.stack([jnp.asarray(t.inverse(getattr(material, f)), dtype=float) for f, t in zip(self.fields, self.transforms)])
+        return jnp.stack([jnp.asarray(t.inverse(_field_value(material, f)), dtype=float) for f, t in zip(self.fields, self.transforms)])
 
     def values(self, u) -> dict[str, jax.Array]:
         """Physical values of the fitted fields from ``u``."""
@@ -519,5 +600,7 @@ class MaterialParameterization(eqx.Module):
     def unpack(self, u, base: Material) -> Material:
         """``base`` with the fitted fields replaced by their values at ``u``."""
         vals = self.values(u)
+        if "pre_stretch_y" in self.fields:  # fitting lambda_y of an equibiaxial base too
+            base = explicit_pre_stretch_y(base)
         # eqx.tree_at keeps the result a valid pytree under tracing without re-validation.
         return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in self.fields), base, tuple(vals[f] for f in self.fields))

@@ -625,8 +625,11 @@ class Specimen(eqx.Module):
 
     def cell_fields(self) -> dict[str, np.ndarray]:
         """Per-tet material fields (SI) for export: ``youngs_modulus``, ``poisson_ratio``, ..."""
-        table = np.array([[float(v) for v in m.to_dict().values()] for m in self.materials])
-        keys = list(self.materials[0].to_dict())
+        mats = self.materials
+        if any(m.pre_stretch_y is not None for m in mats):  # a pre_stretch_y column, = pre_stretch where none is given
+            mats = [m if m.pre_stretch_y is not None else m.replace(pre_stretch_y=m.pre_stretch) for m in mats]
+        table = np.array([[float(v) for v in m.to_dict().values()] for m in mats])
+        keys = list(mats[0].to_dict())
         return {k: table[self.mesh.region_ids, c] for c, k in enumerate(keys)}
 
 

@@ -40,7 +40,7 @@ from .energies.fem import linear_elastic_energy_density, neo_hookean_energy_dens
 from .energies.neo_hookean import deformation_gradient, det3, rest_shape, stable_neo_hookean_energy_density
 from .energies.springs import cubic_spring_energy, cubic_spring_hessian
 from .errors import InvertedElementError, MaterialError, ModelError, ModelRangeError
-from .materials import Material, _is_concrete, lame_parameters
+from .materials import Material, _is_concrete, explicit_pre_stretch_y, lame_parameters, material_fields
 from .mesh import _CUBE_DIAGONALS, _CUBE_EDGES, _CUBE_CORNERS, TetMesh
 
 __all__ = [
@@ -93,6 +93,8 @@ def stack_materials(materials: Sequence[Material]) -> Material:
     materials = list(materials)
     if not materials:
         raise MaterialError("need at least one material")
+    if any(m.pre_stretch_y is not None for m in materials):  # anisotropic somewhere: lambda_y = lambda_x elsewhere
+        materials = [explicit_pre_stretch_y(m) for m in materials]
     return jax.tree_util.tree_map(lambda *v: jnp.stack([jnp.asarray(a, dtype=float) for a in v]), *materials)
 
 
@@ -258,10 +260,10 @@ class ElasticModel(eqx.Module):
         (from :meth:`checked`) is returned as it is.
         """
         if isinstance(material, CheckedMaterial):
-            return {name: getattr(material, name) for name in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
+            return {name: getattr(material, name) for name in material_fields(material)}
         R = self.n_regions
         out = {}
-        for name in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch"):
+        for name in material_fields(material):
             v = jnp.asarray(getattr(material, name), dtype=float)
             if v.ndim == 0:
                 v = jnp.broadcast_to(v, (R,))
@@ -278,8 +280,9 @@ class ElasticModel(eqx.Module):
                     raise MaterialError(f"{name} contains NaN or infinite values: {np.asarray(arr)}")
             if not np.all(np.asarray(E) > 0):
                 raise MaterialError(f"youngs_modulus must be > 0 Pa, got {np.asarray(E)}")
-            if not np.all(np.asarray(out["pre_stretch"]) > 0):
-                raise MaterialError(f"pre_stretch must be > 0 (1 = no pre-tension), got {np.asarray(out['pre_stretch'])}")
+            for name in ("pre_stretch", "pre_stretch_y"):
+                if name in out and not np.all(np.asarray(out[name]) > 0):
+                    raise MaterialError(f"{name} must be > 0 (1 = no pre-tension), got {np.asarray(out[name])}")
             nu_np = np.asarray(nu)
             if not np.all((nu_np >= self.nu_min) & (nu_np < 0.5)):
                 raise ModelRangeError(f"{bad_nu}: {nu_np}")
@@ -287,28 +290,33 @@ class ElasticModel(eqx.Module):
             finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in out.values()]))
             E = eqx.error_if(E, ~finite, "material parameters contain NaN or infinite values")
             E = eqx.error_if(E, jnp.any(E <= 0), "youngs_modulus must be > 0 Pa")
-            out["pre_stretch"] = eqx.error_if(out["pre_stretch"], jnp.any(out["pre_stretch"] <= 0), "pre_stretch must be > 0 (1 = no pre-tension)")
+            for name in ("pre_stretch", "pre_stretch_y"):
+                if name in out:
+                    out[name] = eqx.error_if(out[name], jnp.any(out[name] <= 0), f"{name} must be > 0 (1 = no pre-tension)")
             nu = eqx.error_if(nu, jnp.any((nu < self.nu_min) | (nu >= 0.5)), bad_nu)
             out["youngs_modulus"], out["poisson_ratio"] = E, nu
         return out
 
-    def stress_free_tets(self, pre_stretch):
+    def stress_free_tets(self, pre_stretch, pre_stretch_y=None):
         """Inverse rest edge matrices and rest volumes of the tets' stress-free state.
 
-        A region pre-stretched by ``lambda0`` is stress-free when shrunk by ``1/lambda0`` in x
-        and y: ``Dm_inv_eff = Dm_inv diag(lambda0, lambda0, 1)`` [1/m] (so the elastic
-        deformation gradient is ``F_mesh diag(lambda0, lambda0, 1)``) and
-        ``V0_eff = V0 / lambda0^2`` [m^3]. Exact (bit for bit) at ``lambda0 = 1``.
+        A region pre-stretched by ``(lambda_x, lambda_y)`` is stress-free when shrunk by
+        ``diag(1/lambda_x, 1/lambda_y, 1)``: ``Dm_inv_eff = Dm_inv diag(lambda_x, lambda_y, 1)``
+        [1/m] (so the elastic deformation gradient is ``F_mesh diag(lambda_x, lambda_y, 1)``) and
+        ``V0_eff = V0 / (lambda_x lambda_y)`` [m^3]. Exact (bit for bit) at ``lambda = 1``; with
+        ``lambda_y = lambda_x`` bit for bit the equibiaxial result.
 
         Args:
-            pre_stretch: ``(n_regions,)`` pre-stretch per region [-] (``region_values``).
+            pre_stretch: ``(n_regions,)`` pre-stretch ``lambda_x`` per region [-] (``region_values``).
+            pre_stretch_y: ``(n_regions,)`` ``lambda_y`` per region [-]; None: ``lambda_x``.
 
         Returns:
-            ``(Dm_inv_eff (M, 3, 3), V0_eff (M,))``, differentiable in ``pre_stretch``.
+            ``(Dm_inv_eff (M, 3, 3), V0_eff (M,))``, differentiable in both pre-stretches.
         """
-        lam0 = jnp.asarray(pre_stretch)[self.tet_regions]
-        scale = jnp.stack([lam0, lam0, jnp.ones_like(lam0)], axis=-1)
-        return jnp.asarray(self.tet_Dm_inv) * scale[:, None, :], jnp.asarray(self.tet_volumes) / (lam0 * lam0)
+        lx = jnp.asarray(pre_stretch)[self.tet_regions]
+        ly = lx if pre_stretch_y is None else jnp.asarray(pre_stretch_y)[self.tet_regions]
+        scale = jnp.stack([lx, ly, jnp.ones_like(lx)], axis=-1)
+        return jnp.asarray(self.tet_Dm_inv) * scale[:, None, :], jnp.asarray(self.tet_volumes) / (lx * ly)
 
     @abc.abstractmethod
     def terms(self, material: Material) -> tuple[ElementTerm, ...]:
@@ -382,7 +390,7 @@ class FEMModel(ElasticModel):
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = self.tet_regions
-        Dm_inv, V0 = self.stress_free_tets(p["pre_stretch"])
+        Dm_inv, V0 = self.stress_free_tets(p["pre_stretch"], p.get("pre_stretch_y"))
         fn = _fem_linear_energy if self.kind == "fem_linear" else _fem_neo_hookean_energy
         return (ElementTerm("tets", self.tets, fn, (Dm_inv, V0, lam[r], mu[r])),)
 
@@ -399,7 +407,7 @@ class StableNeoHookeanModel(ElasticModel):
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = self.tet_regions
-        Dm_inv, V0 = self.stress_free_tets(p["pre_stretch"])
+        Dm_inv, V0 = self.stress_free_tets(p["pre_stretch"], p.get("pre_stretch_y"))
         return (ElementTerm("tets", self.tets, _stable_neo_hookean_energy, (Dm_inv, V0, mu[r], (lam + mu)[r])),)
 
 
@@ -449,6 +457,36 @@ def _cell_spring_factor_slopes(cell_size: np.ndarray) -> np.ndarray:
     return out
 
 
+def _cell_spring_factor_ratio_slopes(cell_size: np.ndarray) -> np.ndarray:
+    """Coefficients ``(C, 24, 2)`` [m] of ``(rho - 1, 1/rho - 1)``, ``rho = lambda_x / lambda_y``,
+    in the 24 spring factors of each box cell shrunk by ``diag(1/lambda_x, 1/lambda_y, 1)``.
+
+    With ``q = 1/(lambda_x lambda_y)`` and ``u_a = V / (4 h_a^2)`` the factors of
+    :func:`_cell_spring_factors` of the shrunk cell are exactly
+
+        edge along x:  3 u_x rho - u_y / rho - u_z q     edge along y: 3 u_y / rho - u_x rho - u_z q
+        edge along z:  3 u_z q - u_x rho - u_y / rho     diagonal in (x, y): u_x rho + u_y / rho
+        diagonal in (x, z): u_z q + u_x rho              diagonal in (y, z): u_z q + u_y / rho
+
+    so ``g = g(1) + (q - 1) dg/ds + (rho - 1) c_x + (1/rho - 1) c_y`` with ``dg/ds`` of
+    :func:`_cell_spring_factor_slopes` (``q = s`` when ``lambda_x = lambda_y``, where the last
+    two terms vanish exactly) and ``(c_x, c_y)`` returned here.
+    """
+    h = np.asarray(cell_size, dtype=float)
+    V = np.prod(h, axis=1)
+    ux, uy = V / (4.0 * h[:, 0] ** 2), V / (4.0 * h[:, 1] ** 2)
+    out = np.zeros((len(h), 24, 2))
+    for s, (a, b) in enumerate(_CUBE_EDGES):
+        bit = a ^ b
+        out[:, s, 0] = 3.0 * ux if bit == 1 else -ux
+        out[:, s, 1] = 3.0 * uy if bit == 2 else -uy
+    for s, (a, b) in enumerate(_CUBE_DIAGONALS):
+        bit = a ^ b
+        out[:, 12 + s, 0] = ux if bit & 1 else 0.0
+        out[:, 12 + s, 1] = uy if bit & 2 else 0.0
+    return out
+
+
 def _admissible_pre_stretch(g: np.ndarray, slope: np.ndarray) -> tuple[float, float]:
     """Range ``(lo, hi)`` of ``lambda0`` keeping every ``g + (lambda0^-2 - 1) slope >= 0``."""
     lo, hi = 0.0, math.inf
@@ -478,6 +516,11 @@ class SpringVolumeModel(ElasticModel):
     ``1/lambda0`` in x and y. The springs get that state's rest lengths
     ``L0 sqrt(1 + c (lambda0^-2 - 1))`` (``c`` the in-plane fraction of ``L0^2``) and geometric
     factors (:func:`_cell_spring_factor_slopes`), the cells the rest volume ``V / lambda0^2``.
+    An anisotropic pre-stretch ``(lambda_x, lambda_y)`` (``Material.pre_stretch_y``) shrinks the
+    cell by ``diag(1/lambda_x, 1/lambda_y, 1)``: rest lengths
+    ``L0 sqrt(1 + c (sx - 1) + c_y (sy - sx))`` (``s = lambda^-2``, ``c_y`` the y fraction),
+    factors of :func:`_cell_spring_factor_ratio_slopes`, rest volume ``V / (lambda_x lambda_y)``;
+    with ``lambda_y = lambda_x`` all of it is bit for bit the equibiaxial model.
     A spring shared by cells of different regions is one element per region (their rest
     lengths differ when the regions' pre-stretches do).
 
@@ -486,7 +529,12 @@ class SpringVolumeModel(ElasticModel):
             rest_lengths ``(S,)`` [m] in the mesh; spring_regions ``(S,)``.
         spring_factors: ``(S,)`` sum over the cells of the element's region holding the spring
             of ``g`` [m]; spring_factor_slopes ``(S,)`` [m] the same sum of ``dg/ds``.
-        spring_in_plane: ``(S,)`` ``(dx^2 + dy^2) / L0^2`` of each spring in the mesh [-].
+        spring_in_plane: ``(S,)`` ``(dx^2 + dy^2) / L0^2`` of each spring in the mesh [-];
+            spring_in_plane_y ``(S,)`` its part ``dy^2 / L0^2``.
+        spring_factor_ratio_slopes: ``(S, 2)`` [m] the sums of the coefficients of
+            :func:`_cell_spring_factor_ratio_slopes` (anisotropic pre-stretch).
+        cell_factor_terms: ``(C, 24, 4)`` [m] per cell and spring ``(g, dg/ds, c_x, c_y)``, for
+            the range check of an anisotropic pre-stretch.
         cells: ``(C, 8)`` cell nodes; cell_regions ``(C,)``; cell_volumes ``(C,)`` [m^3];
             cell_jacobians ``(C, 8)`` the cells' ``det(dx/dxi)`` at their Gauss points in the
             mesh [m^3] (the reference of :meth:`min_volume_ratio`).
@@ -500,6 +548,9 @@ class SpringVolumeModel(ElasticModel):
     spring_factors: np.ndarray
     spring_factor_slopes: np.ndarray
     spring_in_plane: np.ndarray
+    spring_in_plane_y: np.ndarray
+    spring_factor_ratio_slopes: np.ndarray
+    cell_factor_terms: np.ndarray
     cells: np.ndarray
     cell_regions: np.ndarray
     cell_volumes: np.ndarray
@@ -525,12 +576,15 @@ class SpringVolumeModel(ElasticModel):
                 "stable_neo_hookean / fem models"
             )
         slope = _cell_spring_factor_slopes(lat.cell_size)
+        ratio = _cell_spring_factor_ratio_slopes(lat.cell_size)
         R = len(mesh.region_names)
         rows = (lat.cube_springs.reshape(-1), np.repeat(lat.cube_region_ids, 24))
         factors = np.zeros((lat.n_springs, R))
         np.add.at(factors, rows, g.reshape(-1))
         slopes = np.zeros((lat.n_springs, R))
         np.add.at(slopes, rows, slope.reshape(-1))
+        ratio_slopes = np.zeros((lat.n_springs, R, 2))
+        np.add.at(ratio_slopes, rows, ratio.reshape(-1, 2))
         held = np.zeros((lat.n_springs, R), dtype=bool)
         held[rows] = True
         spring_ids, regions = np.nonzero(held)  # sorted by spring: one element per region holding it
@@ -546,6 +600,9 @@ class SpringVolumeModel(ElasticModel):
         self.spring_factors = factors[spring_ids, regions]
         self.spring_factor_slopes = slopes[spring_ids, regions]
         self.spring_in_plane = (d[:, 0] ** 2 + d[:, 1] ** 2) / self.rest_lengths**2
+        self.spring_in_plane_y = d[:, 1] ** 2 / self.rest_lengths**2
+        self.spring_factor_ratio_slopes = ratio_slopes[spring_ids, regions]
+        self.cell_factor_terms = np.concatenate([g[..., None], slope[..., None], ratio], axis=-1)
         self.cells = lat.cubes
         self.cell_regions = lat.cube_region_ids
         self.cell_jacobians = np.asarray(_jit_hexahedron_jacobians(np.asarray(p[lat.cubes], dtype=float)))
@@ -557,8 +614,35 @@ class SpringVolumeModel(ElasticModel):
         if isinstance(material, CheckedMaterial):
             return material
         p = self.region_values(material)
-        p["pre_stretch"] = self._check_pre_stretch(p["pre_stretch"])
+        if "pre_stretch_y" in p:
+            p["pre_stretch"], p["pre_stretch_y"] = self._check_pre_stretch_xy(p["pre_stretch"], p["pre_stretch_y"])
+        else:
+            p["pre_stretch"] = self._check_pre_stretch(p["pre_stretch"])
         return CheckedMaterial(**p)
+
+    def _anisotropic_cell_factors(self, lx, ly):
+        """``(C, 24)`` spring factors [m] of the cells shrunk by ``diag(1/lambda_x, 1/lambda_y, 1)``."""
+        r = self.cell_regions
+        q, rho, irho = 1.0 / (lx * ly) - 1.0, lx / ly - 1.0, ly / lx - 1.0
+        t = jnp.asarray(self.cell_factor_terms)
+        return t[..., 0] + t[..., 1] * q[r, None] + t[..., 2] * rho[r, None] + t[..., 3] * irho[r, None]
+
+    def _check_pre_stretch_xy(self, lx, ly):
+        msg = (
+            "(pre_stretch, pre_stretch_y) outside the range the springs_volume lattice represents for these cells (a spring "
+            "factor of the cell shrunk by diag(1/pre_stretch, 1/pre_stretch_y, 1) would turn negative); use cells of "
+            "other proportions or the stable_neo_hookean / fem models"
+        )
+        if _is_concrete((lx, ly)):
+            g = np.asarray(self._anisotropic_cell_factors(jnp.asarray(lx), jnp.asarray(ly)))
+            bad = np.flatnonzero(np.min(g, axis=1) < 0)
+            if bad.size:
+                r = int(self.cell_regions[bad[0]])
+                raise ModelRangeError(f"{msg}: region {self.region_names[r]!r} has (pre_stretch, pre_stretch_y) = "
+                                      f"({np.asarray(lx)[r]:g}, {np.asarray(ly)[r]:g}), cell {int(bad[0])}")
+            return lx, ly
+        ok = jnp.all(self._anisotropic_cell_factors(lx, ly) >= 0)
+        return eqx.error_if(lx, ~ok, msg), ly
 
     def _check_pre_stretch(self, lam0):
         lo, hi = self.pre_stretch_range[:, 0], self.pre_stretch_range[:, 1]
@@ -579,11 +663,20 @@ class SpringVolumeModel(ElasticModel):
         """Per spring element ``(L0 [m], k [N/m], a [N/m^3])`` of the stress-free state."""
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
-        lam0 = p["pre_stretch"] if isinstance(material, CheckedMaterial) else self._check_pre_stretch(p["pre_stretch"])
         r = self.spring_regions
-        ds = 1.0 / (lam0 * lam0) - 1.0  # s - 1, exactly 0 at lambda0 = 1
-        g = self.spring_factors + self.spring_factor_slopes * ds[r]
-        rest = self.rest_lengths * jnp.sqrt(1.0 + self.spring_in_plane * ds[r])
+        if "pre_stretch_y" in p:
+            lx, ly = (p["pre_stretch"], p["pre_stretch_y"]) if isinstance(material, CheckedMaterial) else self._check_pre_stretch_xy(p["pre_stretch"], p["pre_stretch_y"])
+            dsx = 1.0 / (lx * lx) - 1.0
+            dsy = 1.0 / (ly * ly) - 1.0
+            dq = 1.0 / (lx * ly) - 1.0  # = dsx bit for bit when lx = ly, where the ratio terms are exactly 0
+            c = self.spring_factor_ratio_slopes
+            g = self.spring_factors + self.spring_factor_slopes * dq[r] + c[:, 0] * (lx / ly - 1.0)[r] + c[:, 1] * (ly / lx - 1.0)[r]
+            rest = self.rest_lengths * jnp.sqrt(1.0 + self.spring_in_plane * dsx[r] + self.spring_in_plane_y * (dsy - dsx)[r])
+        else:
+            lam0 = p["pre_stretch"] if isinstance(material, CheckedMaterial) else self._check_pre_stretch(p["pre_stretch"])
+            ds = 1.0 / (lam0 * lam0) - 1.0  # s - 1, exactly 0 at lambda0 = 1
+            g = self.spring_factors + self.spring_factor_slopes * ds[r]
+            rest = self.rest_lengths * jnp.sqrt(1.0 + self.spring_in_plane * ds[r])
         k = g * mu[r]
         a = g * (p["cubic_coefficient"] * mu)[r] / rest**2
         return rest, k, a
@@ -594,9 +687,11 @@ class SpringVolumeModel(ElasticModel):
         return k, a
 
     def cell_rest_volumes(self, material: Material):
-        """Stress-free cell volumes ``V / lambda0^2`` [m^3], shape ``(C,)``."""
-        lam0 = self.region_values(material)["pre_stretch"][self.cell_regions]
-        return jnp.asarray(self.cell_volumes) / (lam0 * lam0)
+        """Stress-free cell volumes ``V / (lambda_x lambda_y)`` [m^3], shape ``(C,)``."""
+        p = self.region_values(material)
+        lx = p["pre_stretch"][self.cell_regions]
+        ly = p["pre_stretch_y"][self.cell_regions] if "pre_stretch_y" in p else lx
+        return jnp.asarray(self.cell_volumes) / (lx * ly)
 
     def terms(self, material):
         p = self.region_values(material)

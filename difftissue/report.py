@@ -166,7 +166,7 @@ def derived_quantities(result: FitResult, *, model=None, scenarios: Sequence | N
     out: dict[str, Any] = {}
     tensions = []
     for s in scenarios or ():
-        if not isinstance(s, Incision) or float(mat.pre_stretch) == 1.0:
+        if not isinstance(s, Incision) or float(mat.pre_stretch) == 1.0 and mat.pre_stretch_y is None:
             continue
         try:
             rec = {"scenario": s.name, **surface_tension_record(s.kind, mat, s.fitted_layers(), fields=fields, covariance=cov)}
@@ -195,6 +195,15 @@ def _derived_md(derived: Mapping | None) -> list[str]:
             continue
         se = f" ± {r['standard_error']:.3g}" if r.get("standard_error") is not None else ""
         layers = ", ".join(f"{d['name']} {1e3 * d['thickness']:.4g} mm" for d in r["layers"])
+        if "value_y" in r:  # anisotropic pre-stretch
+            se_y = f" ± {r['standard_error_y']:.3g}" if r.get("standard_error_y") is not None else ""
+            lines += ["", f"**Surface tensions** ({r['scenario']}, model {r['model']}, pre_stretch {r['pre_stretch']:.6g} along x, "
+                      f"pre_stretch_y {r['pre_stretch_y']:.6g}, layer {layers}): **T_x = {r['value']:.4g}{se} N/m, "
+                      f"T_y = {r['value_y']:.4g}{se_y} N/m**, the in-plane forces per unit in-vivo length across a line along y "
+                      "(T_x) and along x (T_y), from the model's own biaxial stress with free top and bottom. The linear "
+                      f"formulas give {r['linearised_surface_tension']:.4g} and {r['linearised_surface_tension_y']:.4g} N/m "
+                      "(`linearised_surface_tension`, `_y` in fit.json)."]
+            continue
         lines += ["", f"**Surface tension** ({r['scenario']}, model {r['model']}, pre_stretch {r['pre_stretch']:.6g}, layer {layers}): "
                   f"**T = {r['value']:.4g}{se} N/m**, the in-plane force per unit in-vivo length the model's layer carries "
                   "(its own equibiaxial stress with free top and bottom: Cauchy stress x current thickness). "

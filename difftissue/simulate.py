@@ -192,11 +192,13 @@ def write_simulation_outputs(material, sims: Sequence[SimulatedExperiment], out_
         for p in paths.values():
             if p.exists():
                 raise OutputExistsError(f"{p} exists; refusing to overwrite it (choose another --out or pass --force)")
-    mat = {k: float(getattr(material, k)) for k in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")}
+    from .materials import FIELD_UNITS, material_fields
+
+    mat = {k: float(getattr(material, k)) for k in material_fields(material)}
     record = {
         "schema": "difftissue-simulation/1",
         "material": mat,
-        "units": {"youngs_modulus": "Pa", "poisson_ratio": "1", "cubic_coefficient": "1", "density": "kg/m^3", "pre_stretch": "1"},
+        "units": {k: FIELD_UNITS[k] for k in mat},
         "experiments": [
             {"name": s.name, "kind": s.kind, "model": s.model, "x_label": s.x_label, "y_label": s.y_label,
              "abscissa": s.abscissa, "observed": s.observed, "predicted": s.predicted, "sigma": s.sigma,

@@ -137,7 +137,7 @@ EXPORT_NAMES = [
     "CARD_VERSION", "MODEL_ENERGIES", "PARAMETER_UNITS", "TARGETS", "MaterialCard", "card_from_fit", "card_from_fit_json",
     "resolve_effective_modulus", "read_card", "write_card", "abaqus_name", "abaqus_number", "abaqus_reaction_print",
     "abaqus_quadratic", "ABAQUS_ELEMENTS", "model_mismatch", "uniaxial_signed_errors", "portable_path", "febio_material",
-    "febio_indenter_cap", "febio_prestrain_gradient", "pre_stretch_from_febio_gradient", "sofa_force_field",
+    "febio_indenter_cap", "febio_prestrain_gradient", "pre_stretch_from_febio_gradient", "pre_stretches_from_febio_gradient", "sofa_force_field",
     "sofa_polynomial_coefficients", "springs_from_sofa_polynomial", "sofa_springs_split", "abaqus_material", "xpbd_parameters",
     "write_febio", "write_sofa", "write_abaqus", "write_xpbd", "write_vtu", "to_skfem", "export", "UNITS", "UNITS_LINE",
     "LAW_MODELS", "UNIAXIAL_STRAINS", "febio_model", "sofa_scene", "ABAQUS_FIELD_WIDTH", "abaqus_model", "FEBIO_INDENTER_MATERIAL",

@@ -268,4 +268,4 @@ def test_parameterization_errors():
         MaterialParameterization(("youngs_modulus", "youngs_modulus"))
     with pytest.raises(errors.MaterialError, match="not fitted"):
         MaterialParameterization(("youngs_modulus",), transforms={"poisson_ratio": ScaledLogit()})
-    assert set(DEFAULT_TRANSFORMS) == {"youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch"}
+    assert set(DEFAULT_TRANSFORMS) == {"youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch", "pre_stretch_y"}

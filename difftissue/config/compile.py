@@ -153,7 +153,7 @@ class SeparatelyCompiled:
     failures' messages are kept in :attr:`failures`.
     """
 
-    def __init__(self, scenario, *, mode: str = "forward", n_tangents: int = 1):
+    def __init__(self, scenario, *, mode: str = "forward", n_tangents: int = 1, pre_stretch_y: bool = False):
         """
         Args:
             scenario: a scenario with ``predict(material)`` and the data attributes.
@@ -161,6 +161,9 @@ class SeparatelyCompiled:
             n_tangents: forward mode: the number of tangents a Jacobian call pushes through
                 (the number of fitted parameters); primal-only calls run the same program with
                 that many zero tangents, so one program serves both.
+            pre_stretch_y: compile for materials with an anisotropic pre-stretch
+                (``Material.pre_stretch_y``, then a sixth leaf; a material without one passes
+                ``pre_stretch`` for it). Without it a material with a ``pre_stretch_y`` is refused.
         """
         if mode not in ("forward", "reverse"):
             raise ConfigError(f"mode must be 'forward' or 'reverse', got {mode!r}")
@@ -174,7 +177,8 @@ class SeparatelyCompiled:
         for k in ("name", "observed", "sigma", "abscissa", "x_label", "y_label"):
             setattr(self, k, getattr(scenario, k))
         n = int(np.asarray(scenario.observed).size)
-        n_leaves = len(_MATERIAL_LEAVES)
+        self._leaves = _MATERIAL_LEAVES + (("pre_stretch_y",) if pre_stretch_y else ())
+        n_leaves = len(self._leaves)
 
         # The measured data are arguments of the compiled programs (``data``), everything else
         # of the scenario is compiled in and keys the programs shared with equal scenarios.
@@ -199,7 +203,7 @@ class SeparatelyCompiled:
 
         def valid(v) -> bool:
             v = np.asarray(v, dtype=float)
-            return bool(np.all(np.isfinite(v)) and v[0] > 0 and -1.0 < v[1] < 0.5 and v[3] > 0 and v[4] > 0)
+            return bool(np.all(np.isfinite(v)) and v[0] > 0 and -1.0 < v[1] < 0.5 and np.all(v[3:] > 0))
 
         def guarded(fn, v, *args, shape=(n,)):
             # An invalid material (optimistix evaluates the Jacobian of a discarded branch at an
@@ -314,8 +318,15 @@ class SeparatelyCompiled:
     def evaluate(self, material) -> np.ndarray:
         """The prediction at ``material`` on the host, through the same compiled function the
         fit calls (no extra compilation); NaN where the evaluation fails."""
-        return self._host_f(np.array([float(getattr(material, k)) for k in _MATERIAL_LEAVES]))
+        return self._host_f(np.array([float(v) for v in self._values(material)]))
+
+    def _values(self, material):
+        """The material's leaves in the compiled order (``pre_stretch_y``: see ``__init__``)."""
+        if material.pre_stretch_y is not None and "pre_stretch_y" not in self._leaves:
+            raise ConfigError(f"{self.name}: the material has a pre_stretch_y (anisotropic pre-stretch) but this scenario was compiled "
+                              "without one; build SeparatelyCompiled(..., pre_stretch_y=True)")
+        return [material.pre_stretch if (k == "pre_stretch_y" and material.pre_stretch_y is None) else getattr(material, k) for k in self._leaves]
 
     def predict(self, material):
-        v = jnp.stack([jnp.asarray(getattr(material, k), dtype=jnp.float64).reshape(()) for k in _MATERIAL_LEAVES])
+        v = jnp.stack([jnp.asarray(x, dtype=jnp.float64).reshape(()) for x in self._values(material)])
         return self._call(v)

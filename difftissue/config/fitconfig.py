@@ -90,6 +90,11 @@ class FitConfig:
         names = dict.fromkeys(e.model or "analytic" for e in self.experiments)
         return "; ".join(names)
 
+    @property
+    def anisotropic_pre_stretch(self) -> bool:
+        """True when the material has a ``pre_stretch_y`` or it is fitted."""
+        return self.material.pre_stretch_y is not None or "pre_stretch_y" in self.parameterization.fields
+
     def fit_scenarios(self, separate_compilation: bool | None = None) -> tuple:
         """The scenarios handed to :func:`~difftissue.fit.fit`: the simulated ones wrapped in
         :class:`SeparatelyCompiled` unless ``separate_compilation`` (default: the config's
@@ -99,7 +104,8 @@ class FitConfig:
             return self.scenarios
         mode = "reverse" if (self.options.get("method") in ("adam", "lbfgs") or self.options.get("jac") == "bwd") else "forward"
         n_tangents = len(self.parameterization.fields)
-        return tuple(SeparatelyCompiled(e.scenario, mode=mode, n_tangents=n_tangents) if e.kind != "analytic_indentation" else e.scenario for e in self.experiments)
+        aniso = self.anisotropic_pre_stretch
+        return tuple(SeparatelyCompiled(e.scenario, mode=mode, n_tangents=n_tangents, pre_stretch_y=aniso) if e.kind != "analytic_indentation" else e.scenario for e in self.experiments)
 
     def run(self, **overrides):
         """Fit: :func:`difftissue.fit.fit` with the config's options updated by ``overrides``
@@ -139,7 +145,7 @@ class FitConfig:
                 continue
             try:
                 sc, info = e.coarsen()
-                wrapped = SeparatelyCompiled(sc)
+                wrapped = SeparatelyCompiled(sc, pre_stretch_y=material.pre_stretch_y is not None)
                 pred = np.asarray(wrapped.evaluate(material), dtype=float)
             except DifftissueError as err:
                 skipped[e.name] = f"the coarser mesh could not be built: {err}"

@@ -27,8 +27,9 @@ FIELDS = {
     "cubic_coefficient": "1",
     "density": "kg/m^3",
     "pre_stretch": "1",
+    "pre_stretch_y": "1",
 }
-_POSITIVE_FIELDS = ("youngs_modulus", "density", "pre_stretch")
+_POSITIVE_FIELDS = ("youngs_modulus", "density", "pre_stretch", "pre_stretch_y")
 _LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3, "um": 1e-6, "µm": 1e-6, "nm": 1e-9}
 _MESH_UNITS = ("m", "cm", "mm", "um", "µm")
 

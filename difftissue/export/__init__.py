@@ -42,7 +42,7 @@ from .approximations import LAW_MODELS, UNIAXIAL_STRAINS, model_mismatch, uniaxi
 from .card import (CARD_VERSION, MODEL_ENERGIES, PARAMETER_UNITS, MaterialCard, card_from_fit, card_from_fit_json, portable_path,
                    read_card, resolve_effective_modulus, write_card)
 from .dispatch import TARGETS, export
-from .febio import (febio_indentation_model, febio_material, febio_model, febio_prestrain_gradient, pre_stretch_from_febio_gradient,
+from .febio import (febio_indentation_model, febio_material, febio_model, febio_prestrain_gradient, pre_stretch_from_febio_gradient, pre_stretches_from_febio_gradient,
                     write_febio)
 from .scikit_fem import to_skfem
 from .sofa import (sofa_force_field, sofa_indentation_scene, sofa_polynomial_coefficients, sofa_scene, sofa_springs_split,
@@ -74,6 +74,7 @@ __all__ = [
     "febio_indenter_cap",
     "febio_prestrain_gradient",
     "pre_stretch_from_febio_gradient",
+    "pre_stretches_from_febio_gradient",
     "sofa_force_field",
     "sofa_polynomial_coefficients",
     "springs_from_sofa_polynomial",

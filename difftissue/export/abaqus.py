@@ -451,8 +451,8 @@ def abaqus_indentation_model(card: MaterialCard, spec, *, law: str | None = None
 
 
 def _refuse_pre_stretch(cards, target: str):
-    lam = [c.pre_stretch for c in cards]
-    if any(v != 1.0 for v in lam):
+    lam = [c.pre_stretch for c in cards] + [c.pre_stretch_y for c in cards]
+    if any(c.is_pre_stretched for c in cards):
         # dropping the pre-stretch makes the incision stress-free: nothing would open
         raise ExportError(f"{target} fitted specimen: pre_stretch {sorted(set(lam))} cannot be represented by {target}, and without it "
                           "the cut specimen is stress-free and does not open (--approximate does not apply); export the incision "

@@ -167,9 +167,10 @@ def approximation_notes(card: MaterialCard, target: str, *, approximate: bool, c
         notes.append("APPROXIMATION ERROR: " + _signed_error_text(card, law)
                      + ("; under inhomogeneous strain the lattice/continuum difference is larger" if mismatch else ""))
     lam0 = card.pre_stretch
-    if lam0 != 1.0 and not pre_stretch_ok:
-        msg = f"pre_stretch = {lam0:g} (pre-tension) is not written for {target}"
+    if card.is_pre_stretched and not pre_stretch_ok:
+        what = f"pre_stretch = {lam0:g}" + (f", pre_stretch_y = {card.pre_stretch_y:g}" if "pre_stretch_y" in card.parameters else "")
+        msg = f"{what} (pre-tension) is not written for {target}"
         if not approximate:
             raise ExportError(msg + "; pass approximate=True (--approximate) to export the material without pre-tension")
-        notes.append(f"APPROXIMATION: pre_stretch = {lam0:g} dropped; the exported material starts stress-free")
+        notes.append(f"APPROXIMATION: {what} dropped; the exported material starts stress-free")
     return notes

@@ -371,7 +371,8 @@ def xpbd_document_constraints(doc: dict, factor: float, fitted_tets: np.ndarray 
     tets = np.asarray(sp["tets"], dtype=np.int64)
     pt = doc["per_tet"]
     lam0 = np.asarray(pt.get("pre_stretch", np.ones(len(tets))), dtype=float)
-    rest = pts[tets] * np.stack([1.0 / lam0, 1.0 / lam0, np.ones_like(lam0)], axis=-1)[:, None, :]
+    lam_y = np.asarray(pt["pre_stretch_y"], dtype=float) if "pre_stretch_y" in pt else lam0
+    rest = pts[tets] * np.stack([1.0 / lam0, 1.0 / lam_y, np.ones_like(lam0)], axis=-1)[:, None, :]
     Ds = np.stack([rest[:, k + 1] - rest[:, 0] for k in range(3)], axis=-1)
     V0 = np.asarray(pt["rest_volume"], dtype=float)
     mu = np.asarray(pt["mu"], dtype=float) if "mu" in pt else 1.0 / (np.asarray(pt["deviatoric_compliance"]) * V0)

@@ -30,6 +30,7 @@ __all__ = [
     "MODEL_ENERGIES",
     "PARAMETER_UNITS",
     "MATERIAL_FIELDS",
+    "OPTIONAL_MATERIAL_FIELDS",
     "FINITE_STRAIN_MODELS",
     "MaterialCard",
     "model_parts",
@@ -45,6 +46,10 @@ __all__ = [
 
 #: The material fields of a card and of :class:`~difftissue.materials.Material`, in order.
 MATERIAL_FIELDS = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
+
+#: Fields a card holds only when given: ``pre_stretch_y`` (anisotropic pre-stretch along y;
+#: absent means equal to ``pre_stretch``).
+OPTIONAL_MATERIAL_FIELDS = ("pre_stretch_y",)
 
 
 #: Version of the card schema written by :meth:`MaterialCard.to_json`.
@@ -86,6 +91,7 @@ _RULES = {
     "poisson_ratio": (lambda v: -1.0 < v < 0.5, "must lie in (-1, 0.5) (0.5 is the incompressible limit)"),
     "density": (lambda v: v > 0, "must be > 0"),
     "pre_stretch": (lambda v: v > 0, "must be > 0"),
+    "pre_stretch_y": (lambda v: v > 0, "must be > 0"),
 }
 
 
@@ -206,6 +212,21 @@ class MaterialCard:
         return self.value("pre_stretch")
 
     @property
+    def pre_stretch_y(self) -> float:
+        """``lambda_y``: the card's ``pre_stretch_y``, else ``pre_stretch`` (equibiaxial)."""
+        return self.value("pre_stretch_y") if "pre_stretch_y" in self.parameters else self.pre_stretch
+
+    @property
+    def is_pre_stretched(self) -> bool:
+        """True when either in-plane pre-stretch differs from 1 (pre-tension)."""
+        return self.pre_stretch != 1.0 or self.pre_stretch_y != 1.0
+
+    @property
+    def is_anisotropic_pre_stretch(self) -> bool:
+        """True when ``pre_stretch_y`` is given and differs from ``pre_stretch``."""
+        return self.pre_stretch_y != self.pre_stretch
+
+    @property
     def shear_modulus(self) -> float:
         """``mu = E / (2 (1 + nu))`` [Pa]."""
         return self.youngs_modulus / (2.0 * (1.0 + self.poisson_ratio))
@@ -223,7 +244,7 @@ class MaterialCard:
 
     def material(self):
         """The card as a :class:`~difftissue.materials.Material` (the :data:`MATERIAL_FIELDS`)."""
-        return Material(**{k: self.value(k) for k in MATERIAL_FIELDS})
+        return Material(**{k: self.value(k) for k in MATERIAL_FIELDS + tuple(f for f in OPTIONAL_MATERIAL_FIELDS if f in self.parameters)})
 
     # ------------------------------------------------------------------ JSON
     def to_dict(self) -> dict:

@@ -23,7 +23,7 @@ from .recalibration import indentation_card
 from .specimens import (FEBIO_INDENTER_MATERIAL, block_sets, check_indentation, default_displacement, febio_indenter_cap,
                         indentation_sets, no_mesh_with_indentation)
 
-__all__ = ["febio_material", "febio_prestrain_gradient", "pre_stretch_from_febio_gradient", "febio_model", "write_febio",
+__all__ = ["febio_material", "febio_prestrain_gradient", "pre_stretch_from_febio_gradient", "pre_stretches_from_febio_gradient", "febio_model", "write_febio",
            "febio_indentation_model", "febio_fitted_model"]
 
 
@@ -46,26 +46,36 @@ def febio_material(card: MaterialCard, *, law: str | None = None, approximate: b
     in a comment. A ``pre_stretch`` other than 1 wraps the material in FEBio's
     ``<material type="prestrain elastic">`` with ``<elastic type=...>`` (the law above) and
     ``<prestrain type="prestrain gradient"><ramp>1.0</ramp><F0>l,0,0,0,l,0,0,0,1</F0>``
-    (:func:`febio_prestrain_gradient`).
+    (:func:`febio_prestrain_gradient`); a ``pre_stretch_y`` (anisotropic) gives
+    ``F0 = diag(pre_stretch, pre_stretch_y, 1)``.
     """
     law = resolve_law(card, law)
     notes = approximation_notes(card, "FEBio " + law, approximate=approximate, pre_stretch_ok=True)
-    lam0 = card.pre_stretch
+    lam0, lam_y = card.pre_stretch, card.pre_stretch_y
     mats = ET.Element("Material")
     for line in header_lines(card, "FEBio", law) + notes:
         mats.append(xml_comment(line))
     etype = "neo-Hookean" if law == "neo_hookean" else "isotropic elastic"
-    if lam0 == 1.0:
+    if not card.is_pre_stretched:
         m = ET.SubElement(mats, "material", {"id": str(mat_id), "name": card.name, "type": etype})
         ET.SubElement(m, "density").text = fmt(card.density)
         ET.SubElement(m, "E").text = fmt(card.youngs_modulus)
         ET.SubElement(m, "v").text = fmt(card.poisson_ratio)
         return mats
-    sigma0 = card.youngs_modulus * (lam0 - 1.0) / (1.0 - card.poisson_ratio)
-    mats.append(xml_comment(
-        f"pre-tension: pre_stretch lambda0 = {lam0:.10g} in x and y (the stress-free state is the mesh shrunk by 1/lambda0 "
-        f"in x and y): prestrain gradient F0 = diag(lambda0, lambda0, 1); small-strain equibiaxial pre-stress "
-        f"E (lambda0 - 1) / (1 - nu) = {sigma0:.6g} Pa"))
+    if card.is_anisotropic_pre_stretch:
+        E, nu = card.youngs_modulus, card.poisson_ratio
+        sx = E * ((lam0 - 1.0) + nu * (lam_y - 1.0)) / (1.0 - nu * nu)
+        sy = E * ((lam_y - 1.0) + nu * (lam0 - 1.0)) / (1.0 - nu * nu)
+        mats.append(xml_comment(
+            f"anisotropic pre-tension: pre_stretch lambda_x = {lam0:.10g}, pre_stretch_y lambda_y = {lam_y:.10g} (the stress-free "
+            f"state is the mesh shrunk by diag(1/lambda_x, 1/lambda_y, 1)): prestrain gradient F0 = diag(lambda_x, lambda_y, 1); "
+            f"small-strain biaxial pre-stresses E (eps_x + nu eps_y) / (1 - nu^2) = {sx:.6g} Pa, (x <-> y) {sy:.6g} Pa"))
+    else:
+        sigma0 = card.youngs_modulus * (lam0 - 1.0) / (1.0 - card.poisson_ratio)
+        mats.append(xml_comment(
+            f"pre-tension: pre_stretch lambda0 = {lam0:.10g} in x and y (the stress-free state is the mesh shrunk by 1/lambda0 "
+            f"in x and y): prestrain gradient F0 = diag(lambda0, lambda0, 1); small-strain equibiaxial pre-stress "
+            f"E (lambda0 - 1) / (1 - nu) = {sigma0:.6g} Pa"))
     m = ET.SubElement(mats, "material", {"id": str(mat_id), "name": card.name, "type": "prestrain elastic"})
     ET.SubElement(m, "density").text = fmt(card.density)
     el = ET.SubElement(m, "elastic", {"type": etype})
@@ -74,23 +84,39 @@ def febio_material(card: MaterialCard, *, law: str | None = None, approximate: b
     ET.SubElement(el, "v").text = fmt(card.poisson_ratio)
     pre = ET.SubElement(m, "prestrain", {"type": "prestrain gradient"})
     ET.SubElement(pre, "ramp").text = "1.0"
-    ET.SubElement(pre, "F0").text = febio_prestrain_gradient(lam0)
+    ET.SubElement(pre, "F0").text = febio_prestrain_gradient(lam0, lam_y if card.is_anisotropic_pre_stretch else None)
     return mats
 
 
-def febio_prestrain_gradient(pre_stretch: float) -> str:
-    """FEBio ``<F0>`` text of difftissue's pre-stretch: ``diag(lambda0, lambda0, 1)`` row by row.
+def febio_prestrain_gradient(pre_stretch: float, pre_stretch_y: float | None = None) -> str:
+    """FEBio ``<F0>`` text of difftissue's pre-stretch: ``diag(lambda_x, lambda_y, 1)`` row by row.
 
     FEBio's ``prestrain elastic`` evaluates its ``elastic`` material at ``F Fp`` with ``Fp`` the
     prestrain gradient (map from the stress-free to the reference configuration, Maas et al.
     2016); difftissue's pre-stretch makes the stress-free state the mesh shrunk by
-    ``1/lambda0`` in x and y, so ``Fp = diag(lambda0, lambda0, 1)``. Inverse:
-    :func:`pre_stretch_from_febio_gradient`.
+    ``diag(1/lambda_x, 1/lambda_y, 1)``, so ``Fp = diag(lambda_x, lambda_y, 1)``
+    (``pre_stretch_y`` None: ``lambda_y = lambda_x = pre_stretch``). Inverses:
+    :func:`pre_stretch_from_febio_gradient` (equibiaxial), :func:`pre_stretches_from_febio_gradient`.
     """
     lam0 = finite(pre_stretch, "pre_stretch")
     if lam0 <= 0:
         raise ExportError(f"pre_stretch = {lam0:g} must be > 0")
-    return ",".join(fmt(v) for v in (lam0, 0.0, 0.0, 0.0, lam0, 0.0, 0.0, 0.0, 1.0))
+    lam_y = lam0 if pre_stretch_y is None else finite(pre_stretch_y, "pre_stretch_y")
+    if lam_y <= 0:
+        raise ExportError(f"pre_stretch_y = {lam_y:g} must be > 0")
+    return ",".join(fmt(v) for v in (lam0, 0.0, 0.0, 0.0, lam_y, 0.0, 0.0, 0.0, 1.0))
+
+
+def pre_stretches_from_febio_gradient(text: str) -> tuple[float, float]:
+    """``(lambda_x, lambda_y)`` from an FEBio ``<F0>`` of the form ``diag(lambda_x, lambda_y, 1)``
+    (others refused)."""
+    try:
+        F = np.array([float(v) for v in str(text).split(",")]).reshape(3, 3)
+    except ValueError:
+        raise ExportError(f"F0 = {text!r}: expected 9 comma-separated numbers") from None
+    if not (np.allclose(F, np.diag(np.diag(F)), rtol=0, atol=0) and F[2, 2] == 1.0):
+        raise ExportError(f"F0 = {text!r} is not an in-plane pre-stretch diag(lx, ly, 1)")
+    return float(F[0, 0]), float(F[1, 1])
 
 
 def pre_stretch_from_febio_gradient(text: str) -> float:

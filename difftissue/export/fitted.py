@@ -63,7 +63,7 @@ from .._io import sha256_file
 from ..errors import ExportError
 from ..mesh import TetMesh, read_mesh, write_mesh
 from ..models import stack_materials
-from .card import MATERIAL_FIELDS, MaterialCard, scenario_record
+from .card import MATERIAL_FIELDS, OPTIONAL_MATERIAL_FIELDS, MaterialCard, scenario_record
 
 __all__ = [
     "SPECIMEN_FORMAT",
@@ -165,7 +165,7 @@ class FittedSpecimen:
             else:
                 vals = self.region_materials[r]
                 out.append(MaterialCard(model=card.model, name=f"{card.name}_{r}", provenance={"fixed_region": r},
-                                        parameters={k: {"value": float(vals[k])} for k in MATERIAL_FIELDS}))
+                                        parameters={k: {"value": float(vals[k])} for k in MATERIAL_FIELDS + OPTIONAL_MATERIAL_FIELDS if k in vals}))
         return out
 
     def material(self, card):
@@ -176,6 +176,10 @@ class FittedSpecimen:
     def pre_stretches(self, card) -> np.ndarray:
         """``(n_regions,)`` pre-stretch ``lambda0`` of each region."""
         return np.array([c.pre_stretch for c in self.region_cards(card)])
+
+    def pre_stretches_y(self, card) -> np.ndarray:
+        """``(n_regions,)`` pre-stretch ``lambda_y`` of each region (``pre_stretch`` where a card has no ``pre_stretch_y``)."""
+        return np.array([c.pre_stretch_y for c in self.region_cards(card)])
 
     def mesh(self):
         """The specimen as a :class:`~difftissue.mesh.TetMesh` (no fields)."""
@@ -290,7 +294,8 @@ def fitted_specimen(scenario) -> FittedSpecimen | None:
     else:
         fitted = tuple(names[i] for i in scenario.fitted_regions)
         base = scenario.base_materials
-        mats = {names[i]: {f: float(np.asarray(getattr(base, f))[i]) for f in MATERIAL_FIELDS}
+        fields = MATERIAL_FIELDS + (("pre_stretch_y",) if base.pre_stretch_y is not None else ())
+        mats = {names[i]: {f: float(np.asarray(getattr(base, f))[i]) for f in fields}
                 for i in range(len(names)) if i not in scenario.fitted_regions}
     return FittedSpecimen(scenario=name, experiment="incision", model=model, points=pts, tets=tets,
                           region_ids=regions, region_names=names, fitted_regions=fitted, region_materials=mats,
@@ -337,14 +342,15 @@ def specimen_fields(spec: FittedSpecimen, card=None) -> tuple[dict, dict]:
                      cut_surface_rank=rank.astype(np.float64))
     fitted = np.array([spec.region_names[r] in spec.fitted_regions for r in spec.region_ids])
     cell: dict[str, np.ndarray] = {"fitted_material": fitted.astype(np.float64)}
-    for f in MATERIAL_FIELDS:
+    aniso = (card is not None and "pre_stretch_y" in card.parameters) or any("pre_stretch_y" in v for v in spec.region_materials.values())
+    for f in MATERIAL_FIELDS + (("pre_stretch_y",) if aniso else ()):
         v = np.full(m, np.nan)
         for i, r in enumerate(spec.region_names):
             sel = spec.region_ids == i
             if r in spec.region_materials:
-                v[sel] = spec.region_materials[r][f]
+                v[sel] = spec.region_materials[r].get(f, spec.region_materials[r]["pre_stretch"]) if f == "pre_stretch_y" else spec.region_materials[r][f]
             elif card is not None:
-                v[sel] = card.value(f)
+                v[sel] = card.pre_stretch_y if f == "pre_stretch_y" else card.value(f)
         cell[f] = v
     if card is not None:
         cards = spec.region_cards(card)
@@ -395,7 +401,7 @@ def read_specimen(path, *, scenario: str, experiment: str, model: str, protocol:
             fitted.append(r)
             continue
         vals = {}
-        for f in MATERIAL_FIELDS:
+        for f in MATERIAL_FIELDS + tuple(f for f in OPTIONAL_MATERIAL_FIELDS if f in cd):
             v = np.unique(np.asarray(cd[f], dtype=float).reshape(-1)[sel])
             if v.size != 1 or not np.isfinite(v[0]):
                 raise ExportError(f"{path}: fixed region {r!r} has no single finite {f}")

@@ -208,7 +208,7 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = 
                               "use constraints='fem' (approximate) for other meshes")
         model = SpringVolumeModel(mesh)
         try:
-            k, _ = model.spring_constants(card.material().replace(pre_stretch=1.0))  # pre-stretch is dropped (noted) for this target
+            k, _ = model.spring_constants(card.material().replace(pre_stretch=1.0, pre_stretch_y=None))  # pre-stretch is dropped (noted) for this target
         except ModelError as e:
             raise ExportError(f"pypbd: the scene is difftissue's spring lattice, which this mesh cannot carry: {e}") from None
         k = np.asarray(k, dtype=float)
@@ -269,7 +269,7 @@ def _calibrate_budget(scene, card, mesh, base, moved, dvec, fractions, *, pinned
     # the displacement field at the last load state: the card's model, the scene energy's exact minimum (what every budget
     # converges to; the pypbd lattice is not the card's model), and the card's model carrying the particles' weights
     u_card = card_reference_field(card, mesh, fixed, presc, fractions[-1])
-    mat = card.material().replace(pre_stretch=1.0, cubic_coefficient=0.0)  # what the scene holds (dropped terms noted)
+    mat = card.material().replace(pre_stretch=1.0, pre_stretch_y=None, cubic_coefficient=0.0)  # what the scene holds (dropped terms noted)
     u_lattice = card_reference_field(card, mesh, fixed, presc, fractions[-1], model=pbd_reference_model(mesh), material=mat)
     weight = np.asarray(scene["particles"]["masses"], dtype=float)[:, None] * np.asarray(scene["gravity"], dtype=float)[None, :]
     u_weight = card_reference_field(card, mesh, fixed, presc, fractions[-1], force=weight)

@@ -112,7 +112,7 @@ def recalibrated_card(card, spec: FittedSpecimen, law: str, *, approximate: bool
     with the reason noted."""
     why = model_mismatch(card, law)
     own = next(m for m in model_parts(card.model) if m in ("springs_volume",))
-    if spec.experiment == "incision" or spec.reaction is None or card.pre_stretch != 1.0 or spec.region_materials:
+    if spec.experiment == "incision" or spec.reaction is None or card.is_pre_stretched or spec.region_materials:
         raise ExportError(f"{why}; the fitted {spec.experiment} specimen {spec.scenario!r} cannot be recalibrated (needs a summed "
                           "reaction, one material and no pre-stretch); pass approximate=True (--approximate) to write the card's values "
                           "with the measured error noted")

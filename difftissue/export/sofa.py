@@ -162,7 +162,7 @@ def sofa_scene(card: MaterialCard, mesh=None, *, law: str | None = None, approxi
     if law == "springs":
         model = SpringVolumeModel(mesh)
         # pre-stretch is dropped (and noted) for this target: springs of the unstretched lattice
-        k, a = (np.asarray(v, dtype=float) for v in model.spring_constants(card.material().replace(pre_stretch=1.0)))
+        k, a = (np.asarray(v, dtype=float) for v in model.spring_constants(card.material().replace(pre_stretch=1.0, pre_stretch_y=None)))
         split = sofa_springs_split(card, spring_fraction)
         coeffs = sofa_polynomial_coefficients(split["spring_fraction"] * k, a, model.rest_lengths)
         springs = np.asarray(model.springs)
@@ -334,7 +334,7 @@ def sofa_fitted_scene(card, spec: FittedSpecimen, *, law: str | None = None, app
     """
     law = resolve_law(card, law)
     cards = spec.region_cards(card)
-    if any(c.pre_stretch != 1.0 for c in cards):
+    if any(c.is_pre_stretched for c in cards):
         raise ExportError("SOFA fitted specimen: a pre-stretch (an incision) cannot be written for SOFA (no prestrain in its tetrahedral "
                           "force fields), and without it the cut specimen does not open; export the incision to febio, xpbd or vtu")
     used = {id(cards[r]) for r in np.unique(spec.region_ids)}

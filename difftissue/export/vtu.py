@@ -21,13 +21,15 @@ def _material_cells(card: MaterialCard, n: int) -> dict[str, np.ndarray]:
     """Cell fields of ``n`` cells of the card's material: the :data:`~difftissue.export.card.MATERIAL_FIELDS`
     and ``shear_modulus``, ``lame_lambda``, ``bulk_modulus`` (SI), constant over the cells."""
     vals = {k: card.value(k) for k in MATERIAL_FIELDS}
+    if "pre_stretch_y" in card.parameters:  # anisotropic pre-stretch
+        vals["pre_stretch_y"] = card.pre_stretch_y
     vals.update(shear_modulus=card.shear_modulus, lame_lambda=card.lame_lambda, bulk_modulus=card.bulk_modulus)
     return {k: np.full(n, float(v)) for k, v in vals.items()}
 
 
 def write_vtu(card: MaterialCard, mesh, path, *, displacement: float | None = None, force: bool = False, indentation=None) -> Path:
     """Write ``mesh`` as VTU with per-cell material fields: ``youngs_modulus``, ``poisson_ratio``,
-    ``cubic_coefficient``, ``density``, ``pre_stretch``, ``shear_modulus`` (mu), ``lame_lambda``,
+    ``cubic_coefficient``, ``density``, ``pre_stretch`` (and ``pre_stretch_y`` when the card has one), ``shear_modulus`` (mu), ``lame_lambda``,
     ``bulk_modulus`` (all SI), constant over the cells, and the specimen's boundary conditions as
     point data: ``boundary`` (0 free, 1 base fixed, 2 top moved) and ``prescribed_displacement``
     [m] (top: ``(0, 0, displacement)``, default -10 % of the height). No conversion is involved."""

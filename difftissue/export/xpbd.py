@@ -310,9 +310,9 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
     with the reason and a smaller ``dt`` that does (``approximate``: written, the measured error
     noted). ``calibrate=False`` writes the card's converged-limit compliances (conversion checks)."""
     base = card
-    if card.pre_stretch != 1.0:  # the header is the card's material; its pre-stretch is carried per tet below
+    if card.is_pre_stretched:  # the header is the card's material; its pre-stretch is carried per tet below
         d = card.to_dict()
-        d["parameters"] = {k: dict(v) for k, v in d["parameters"].items()}
+        d["parameters"] = {k: dict(v) for k, v in d["parameters"].items() if k != "pre_stretch_y"}
         d["parameters"]["pre_stretch"] = {"value": 1.0, "unit": "1", "standard_error": None}
         base = MaterialCard.from_dict(d)
     doc = xpbd_parameters(base, dt=dt, iterations=iterations, substeps=substeps, approximate=approximate)
@@ -324,7 +324,9 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
     pts, t = spec.points, spec.tets
     v = np.abs(signed_volumes(pts, t))
     lam0 = np.array([cards[r].pre_stretch for r in spec.region_ids])
-    v0 = v / lam0**2  # stress-free volume
+    aniso = any(c.is_anisotropic_pre_stretch for c in cards)
+    lam_y = np.array([cards[r].pre_stretch_y for r in spec.region_ids])
+    v0 = v / (lam0 * lam_y) if aniso else v / lam0**2  # stress-free volume
     mu = np.array([cards[r].shear_modulus for r in spec.region_ids])
     lam_s = np.array([cards[r].lame_lambda + cards[r].shear_modulus for r in spec.region_ids])
     rho = np.array([cards[r].density for r in spec.region_ids])
@@ -334,16 +336,22 @@ def xpbd_fitted_parameters(card, spec: FittedSpecimen, *, dt: float, iterations:
                       "deviatoric_compliance": (1.0 / (mu * v0)).tolist(), "hydrostatic_compliance": (1.0 / (lam_s * v0)).tolist(),
                       "deviatoric_alpha_tilde": (1.0 / (mu * v0) / h**2).tolist(), "hydrostatic_alpha_tilde": (1.0 / (lam_s * v0) / h**2).tolist(),
                       "unit": "compliance 1/(Pa m^3); rest_volume m^3 of the stress-free tet (the mesh tet shrunk by 1/pre_stretch in x, y)"}
+    if aniso:  # anisotropic pre-stretch: the tets shrink by 1/pre_stretch in x and 1/pre_stretch_y in y
+        doc["per_tet"]["pre_stretch_y"] = lam_y.tolist()
+        doc["per_tet"]["unit"] = ("compliance 1/(Pa m^3); rest_volume m^3 of the stress-free tet (the mesh tet shrunk by "
+                                  "diag(1/pre_stretch, 1/pre_stretch_y, 1))")
     m = np.zeros(len(pts))
     np.add.at(m, t.reshape(-1), np.repeat(rho * v / 4.0, 4))
     presc = [[int(n), int(c), float(spec.prescribed[n, c])] for n, c in zip(*np.nonzero(spec.fixed))]
-    regions = [{"name": r, "fitted": r in spec.fitted_regions, **{f: cards[i].value(f) for f in MATERIAL_FIELDS}}
+    regions = [{"name": r, "fitted": r in spec.fitted_regions, **{f: cards[i].value(f) for f in MATERIAL_FIELDS},
+                **({"pre_stretch_y": cards[i].pre_stretch_y} if aniso else {})}
                for i, r in enumerate(spec.region_names)]
     sp: dict[str, Any] = {"experiment": spec.experiment, "scenario": spec.scenario, "difftissue_model": spec.model,
                           "positions": pts.tolist(), "tets": t.tolist(), "regions": regions, "masses": m.tolist(),
                           "fixed": {c: np.flatnonzero(spec.fixed[:, i]).tolist() for i, c in enumerate("xyz")},
                           "prescribed_displacement": presc,
-                          "rest_shape": "per tet: Dm from the positions shrunk by 1/pre_stretch in x and y (stress-free state)",
+                          "rest_shape": ("per tet: Dm from the positions shrunk by 1/pre_stretch in x and 1/pre_stretch_y in y (stress-free state)"
+                                         if aniso else "per tet: Dm from the positions shrunk by 1/pre_stretch in x and y (stress-free state)"),
                           "assumptions": spec.describe(),
                           "note": "SI; fixed: node ids per held component; prescribed_displacement: [node, component (0 x, 1 y, 2 z), value m]"}
     if spec.reaction is not None:
@@ -393,8 +401,7 @@ def xpbd_fitted_budget(doc: dict, card, spec: FittedSpecimen, *, approximate: bo
       with a smaller ``dt`` that reaches it, or with ``approximate`` written with the error noted.
     """
     fitted_tets = np.array([spec.region_names[r] in spec.fitted_regions for r in spec.region_ids])
-    pre = spec.pre_stretches(card)
-    if spec.reaction is None or np.any(pre != 1.0):
+    if spec.reaction is None or any(c.is_pre_stretched for c in spec.region_cards(card)):
         return xpbd_fitted_field_check(doc, card, spec, approximate=approximate)
     fr = _budget_fractions(spec)
     observe = spec.reaction & spec.fixed

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from ..materials import FIELD_UNITS, Material, MaterialParameterization
+from ..materials import FIELD_UNITS, Material, MaterialParameterization, material_fields
 # the structure-key formula (shared with the scenarios' compiled protocols, which must not
 # import fit); its names stay importable from here
 from ..structure_keys import DATA_ATTRIBUTES, data_leaf_indices, hash_scenario_leaves  # noqa: F401
@@ -296,7 +296,7 @@ class FitProblem:
         def h(b: bytes) -> str:
             return hashlib.sha256(b).hexdigest()[:16]
 
-        fixed = {f: np.asarray(getattr(self.base, f), dtype=float).tolist() for f in ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch") if f not in self.fields}
+        fixed = {f: np.asarray(getattr(self.base, f), dtype=float).tolist() for f in material_fields(self.base) if f not in self.fields}
         data = hashlib.sha256()
         for obs, sig in zip(self._observed, self._sigma):
             data.update(np.ascontiguousarray(obs, dtype="<f8").tobytes())

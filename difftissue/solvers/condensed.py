@@ -68,7 +68,7 @@ def _columns_jvp(primals, tangents, *, model, free, dofs, options):
     Z, G = _columns(material, model=model, free=free, dofs=dofs, options=options)
     material = jax.tree_util.tree_map(lambda p: jnp.asarray(p, dtype=Z.dtype), material)
     t_material = jax.tree_util.tree_map(
-        lambda t, p: jnp.zeros_like(p) if t is None else t, t_material, material, is_leaf=lambda z: z is None
+        lambda t, p: None if p is None else (jnp.zeros_like(p) if t is None else t), t_material, material, is_leaf=lambda z: z is None
     )
     P = jnp.asarray(free, dtype=Z.dtype).reshape(-1)
     x0 = jnp.asarray(model.rest_points, dtype=Z.dtype)

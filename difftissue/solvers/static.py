@@ -437,7 +437,9 @@ def _equilibrium_jvp(primals, tangents, *, free, u_init, options):
     u, info = _equilibrium(material, displacement, force, model, free=free, u_init=u_init, options=options)
 
     def fill(t, p):
-        return jax.tree_util.tree_map(lambda tt, pp: jnp.zeros_like(jnp.asarray(pp, dtype=u.dtype)) if tt is None else tt, t, p, is_leaf=lambda z: z is None)
+        # a None field of the material (Material.pre_stretch_y of an equibiaxial one) stays None
+        return jax.tree_util.tree_map(lambda tt, pp: None if pp is None else (jnp.zeros_like(jnp.asarray(pp, dtype=u.dtype)) if tt is None else tt),
+                                      t, p, is_leaf=lambda z: z is None)
 
     P = free.astype(u.dtype)
     t_material = fill(t_material, material) if t_material is not None else jax.tree_util.tree_map(lambda p: jnp.zeros_like(jnp.asarray(p, dtype=u.dtype)), material)

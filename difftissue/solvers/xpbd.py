@@ -489,7 +489,7 @@ def xpbd_constraints(model: ElasticModel, material: Material, *, colors=None) ->
     - :class:`~difftissue.models.StableNeoHookeanModel`: a :class:`StableNeoHookeanConstraints`
       (equal up to a constant).
 
-    ``material.pre_stretch`` is honoured: the constraints get the stress-free state's rest
+    ``material.pre_stretch`` (and ``pre_stretch_y``, anisotropic) is honoured: the constraints get the stress-free state's rest
     lengths, spring constants, rest volumes and ``Dm_inv`` exactly as the model's energy does
     (:meth:`~difftissue.models.SpringVolumeModel.spring_parameters`,
     :meth:`~difftissue.models.ElasticModel.stress_free_tets`).
@@ -513,7 +513,7 @@ def xpbd_constraints(model: ElasticModel, material: Material, *, colors=None) ->
         p = model.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = model.tet_regions
-        Dm_inv, V0 = model.stress_free_tets(p["pre_stretch"])
+        Dm_inv, V0 = model.stress_free_tets(p["pre_stretch"], p.get("pre_stretch_y"))
         return (StableNeoHookeanConstraints(model.tets, Dm_inv, V0, mu[r], (lam + mu)[r], colors=c[0]),)
     raise _unsupported(model)
 
