@@ -6,7 +6,8 @@ bonded base. Hertz: F = 4/3 E* sqrt(R) d^1.5 with 1/R = 1/R1 + 1/R2. The same me
 top indented by a sphere of radius R (the Hertz-equivalent flat problem) separates the finite
 size and the discretisation (shared by both) from the curvature (the feature under test).
 
-Run: PYTHONPATH=. python experiments/curved_indentation.py [m ...]
+Run: PYTHONPATH=. python experiments/curved_indentation.py [m ...]   (cells per contact radius)
+     PYTHONPATH=. python experiments/curved_indentation.py --sweep     (R2 = 1, 2, 4 mm at m = 3)
 """
 import sys
 import time
@@ -46,7 +47,22 @@ def run(m, depths=(0.5 * D, D)):
     return dome.n_nodes, f_dome / hz, f_flat / hz, f_dome / f_flat, time.process_time() - t
 
 
+def sweep_r2(m=3, radii=(1e-3, 2e-3, 4e-3)):
+    """F_dome / F_flat(R) at m cells per a for domes of several radii (same R1, same a)."""
+    global R2, REFF, D
+    print("| R2 [mm] | R [mm] | F_dome / F_Hertz (d/2, d) | F_flat(R) / F_Hertz (d/2, d) | F_dome / F_flat(R) (d/2, d) |")
+    print("|---|---|---|---|---|")
+    for r2 in radii:
+        R2, REFF = r2, 1.0 / (1.0 / R1 + 1.0 / r2)
+        D = A * A / REFF
+        n, rd, rf, r, cpu = run(m, depths=(0.5 * D, D))
+        print(f"| {r2 * 1e3:g} | {REFF * 1e3:.4g} | {rd[0]:.4f}, {rd[1]:.4f} | {rf[0]:.4f}, {rf[1]:.4f} | {r[0]:.4f}, {r[1]:.4f} |", flush=True)
+
+
 if __name__ == "__main__":
+    if sys.argv[1:] == ["--sweep"]:
+        sweep_r2()
+        sys.exit(0)
     ms = [float(v) for v in sys.argv[1:]] or [2, 3, 4, 6]
     print(f"R1 = R2 = {R1 * 1e3:g} mm, R = {REFF * 1e3:g} mm, a = {A * 1e3:g} mm at d = {D * 1e6:g} um, quarter {HALF * 1e3:g} x {HALF * 1e3:g} x {H * 1e3:g} mm, E = {E:g} Pa, nu = {NU}")
     print("| cells per a | nodes | F_dome / F_Hertz (d/2, d) | F_flat(R) / F_Hertz (d/2, d) | F_dome / F_flat(R) (d/2, d) | CPU s |")

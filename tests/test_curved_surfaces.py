@@ -192,3 +192,31 @@ def test_errors():
     # a record keeps the placement; dataclass stays hashable (static data of the compiled solve)
     g = place_indenter(ConeIndenter(1.0), mesh, axis_point=(0.0, 0.0, 2e-3))
     assert hash(g) == hash(dataclasses.replace(g)) and g.record()["axis_direction"] == [0.0, 0.0, -1.0]
+
+
+def test_config_places_the_indenter_on_a_mesh_file(tmp_path):
+    from difftissue.config import parse_config
+    from difftissue.mesh import write_mesh
+
+    dome = curved_top(block((2e-3, 2e-3, 1e-3), (4, 4, 2), origin=(-1e-3, -1e-3, 0.0)), 2e-3)
+    write_mesh(tmp_path / "dome.vtu", dome)
+    d = np.linspace(2e-6, 10e-6, 5)
+    (tmp_path / "curve.csv").write_text("depth (um),force (uN)\n" + "\n".join(f"{a * 1e6:.6f},{1.0 + a * 1e6:.6f}" for a in d) + "\n")
+    exp = {"name": "dome", "scenario": "indentation", "model": "fem_linear",
+           "data": {"format": "table", "path": "curve.csv", "columns": {"depth": "depth (um)", "force": "force (uN)"}},
+           "indenter": {"shape": "sphere", "radius": 1.0, "length_unit": "mm", "surface": "boundary", "axis_point": [0.25, 0.0, 3.0]},
+           "specimen": {"mesh": "dome.vtu"}}
+    cfg = {"material": {"youngs_modulus": 1e3, "poisson_ratio": 0.3}, "fit": {"parameters": ["youngs_modulus"]}, "experiment": [exp]}
+    sc = parse_config(cfg, base_dir=tmp_path).experiments[0].scenario
+    g = sc.model.indenter
+    assert g.axis_direction == (0.0, 0.0, -1.0) and g.contact_point[:2] == pytest.approx((0.25e-3, 0.0), abs=1e-15)
+    assert g.contact_point[2] < 1e-3  # on the dome's slope, below the apex
+    for key, value, msg in [("axis_point", [0.0, 0.0], r"indenter\.axis_point: must be a point"),
+                            ("surface", "curved", r"indenter\.surface: must be one of 'top', 'boundary'"),
+                            ("axis_direction", [0, 0, 0], r"indenter\.axis_direction: must not be zero")]:
+        bad = {**exp, "indenter": {**exp["indenter"], key: value}}
+        with pytest.raises(ConfigError, match=msg):
+            parse_config({**cfg, "experiment": [bad]}, base_dir=tmp_path)
+    bad = {**exp, "indenter": {"shape": "sphere", "radius": 1.0, "length_unit": "mm", "contact_point": [0, 0, 1]}}
+    with pytest.raises(ConfigError, match=r"indenter\.contact_point: places the indenter on a curved surface"):
+        parse_config({**cfg, "experiment": [bad]}, base_dir=tmp_path)
