@@ -220,3 +220,36 @@ def test_config_places_the_indenter_on_a_mesh_file(tmp_path):
     bad = {**exp, "indenter": {"shape": "sphere", "radius": 1.0, "length_unit": "mm", "contact_point": [0, 0, 1]}}
     with pytest.raises(ConfigError, match=r"indenter\.contact_point: places the indenter on a curved surface"):
         parse_config({**cfg, "experiment": [bad]}, base_dir=tmp_path)
+
+
+@pytest.mark.parametrize("geom", [SphereIndenter(1e-3, axis_direction=(0.3, -0.2, -1.0), contact_point=(1e-4, 2e-4, 1e-3)),
+                                  ConeIndenter(1.1, axis_direction=(0.3, -0.2, -1.0), contact_point=(1e-4, 2e-4, 1e-3))])
+def test_general_penetration_gradients_against_central_differences(geom):
+    rng = np.random.default_rng(3)
+    n = np.asarray(geom.axis_direction)
+    x0 = np.asarray(geom.contact_point) + 2e-5 * n + 1e-4 * rng.standard_normal((5, 3))
+
+    def f(x, d):
+        return jnp.sum(jnp.sin(1e3 * geom.penetration(x, d)))
+
+    gx, gd = jax.grad(f, argnums=(0, 1))(jnp.asarray(x0), 1e-5)
+    h = 1e-9
+    fd_x = np.zeros_like(x0)
+    for i in range(x0.shape[0]):
+        for k in range(3):
+            e = np.zeros_like(x0)
+            e[i, k] = h
+            fd_x[i, k] = (float(f(x0 + e, 1e-5)) - float(f(x0 - e, 1e-5))) / (2 * h)
+    np.testing.assert_allclose(np.asarray(gx), fd_x, rtol=1e-6, atol=1e-6 * np.abs(fd_x).max())
+    fd_d = (float(f(x0, 1e-5 + h)) - float(f(x0, 1e-5 - h))) / (2 * h)
+    assert float(gd) == pytest.approx(fd_d, rel=1e-6)
+    # the flat formula of the same geometry along -z: the same penetrations
+    flat = dataclasses.replace(geom, axis_direction=None, contact_point=None, axis_xy=(1e-4, 2e-4), surface_z=1e-3)
+    tilted_as_flat = dataclasses.replace(geom, axis_direction=(0.0, 0.0, -1.0))
+    np.testing.assert_allclose(np.asarray(tilted_as_flat.penetration(jnp.asarray(x0), 1e-5)), np.asarray(flat.penetration(jnp.asarray(x0), 1e-5)),
+                               rtol=0, atol=1e-15)
+    # touch_depth: the penetration is zero there (points in front of the indenter)
+    td = geom.touch_depth(x0)
+    ok = np.isfinite(td)
+    pen = np.array([float(geom.penetration(jnp.asarray(x0[i]), td[i])) for i in np.flatnonzero(ok)])
+    np.testing.assert_allclose(pen, 0.0, atol=1e-15)
