@@ -175,6 +175,13 @@ def test_errors():
         Indentation(mesh, [1e-5], radius=1e-4, surface="curved")
     with pytest.raises(BoundaryConditionError, match="misses"):
         Indentation(mesh, [1e-5], model="fem_linear", radius=1e-4, surface="boundary", axis_point=(5e-3, 0.0, 2e-3))
+    n = np.array([0.1, 0.0, -1.0]) / np.linalg.norm([0.1, 0.0, -1.0])
+    with pytest.raises(ConfigError, match="apex on an axis that is not along x, y or z"):
+        Indentation(mesh, [1e-5], model="fem_linear", indenter="cone", half_angle=1.2, surface="boundary",
+                    axis_point=np.array([0.0, 0.0, 1e-3]) - 1e-3 * n, axis_direction=n)
+    with pytest.raises(ConfigError, match="quarter symmetry indents along -z"):
+        Indentation(indentation_block((2e-3, 2e-3, 1e-3), (2, 2, 2)), [1e-5], model="fem_linear", radius=1e-3, symmetry="quarter",
+                    surface="boundary", axis_direction=n)
     with pytest.raises(BoundaryConditionError, match="already penetrates"):
         place_indenter(SphereIndenter(1e-3), mesh, contact_point=(0.0, 0.0, 0.9e-3))
     with pytest.raises(ModelError, match="both axis_direction and contact_point"):
