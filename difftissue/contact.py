@@ -18,9 +18,15 @@ Two ways a rigid body loads the tissue, both differentiable:
   prescribed and the nodes slide; bonded: all three components. The reaction force is the
   sum of the static solution's reactions over those nodes.
 
-Conventions: the tissue surface is the plane ``z = surface_z`` with the tissue below it; the
-indenter approaches along ``-z``; ``depth`` [m] is positive into the tissue; reaction forces
-are reported positive when they push the indenter back (compressive), in N.
+Conventions: by default the tissue surface is the plane ``z = surface_z`` with the tissue
+below it and the indenter approaches along ``-z``. On a curved surface (any boundary of a mesh
+from file) the indenter is given by its approach direction ``axis_direction`` (unit, into the
+tissue) and the position ``contact_point`` [m] of its tip at depth 0 (:func:`place_indenter`
+finds it: the first contact of the indenter moving along its axis onto the surface), and the
+candidate nodes are the boundary nodes whose outward normal faces the indenter
+(:func:`facing_surface_nodes`). ``depth`` [m] is positive into the tissue, along the axis;
+reaction forces are reported positive when they push the indenter back (compressive), in N,
+along the axis.
 """
 
 from __future__ import annotations
@@ -50,6 +56,10 @@ __all__ = [
     "surface_node_areas",
     "contact_force",
     "top_surface_nodes",
+    "boundary_node_normals",
+    "facing_surface_nodes",
+    "surface_point_on_axis",
+    "place_indenter",
 ]
 
 
@@ -66,31 +76,112 @@ def _safe_norm(v, axis=-1):
 
 
 # --------------------------------------------------------------------- indenters
+def _unit3(name: str, v) -> tuple[float, float, float]:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)) or not np.linalg.norm(a) > 0:
+        raise ModelError(f"{name} must be a non-zero finite 3-vector, got {v!r}")
+    a = a / np.linalg.norm(a)
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def _point3(name: str, v) -> tuple[float, float, float]:
+    a = np.asarray(v, dtype=float).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ModelError(f"{name} must be a finite 3-vector [m], got {v!r}")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
 @dataclasses.dataclass(frozen=True, kw_only=True)
 class Indenter:
-    """Geometry of a rigid axisymmetric indenter whose tip is at
-    ``(axis_xy[0], axis_xy[1], surface_z - depth)``.
+    """Geometry of a rigid axisymmetric indenter.
+
+    Two ways to place it:
+
+    - on a flat top surface (default): the tip is at ``(axis_xy[0], axis_xy[1], surface_z -
+      depth)``, the indenter approaches along ``-z``;
+    - anywhere (a curved surface): ``axis_direction`` is the unit approach direction (into
+      the tissue) and ``contact_point`` [m] the tip's position at depth 0; the tip is at
+      ``contact_point + depth * axis_direction`` (``axis_xy`` and ``surface_z`` then stay at
+      their defaults). :func:`place_indenter` computes the contact point of the first contact.
 
     A frozen (hashable) dataclass: the geometry is static data of a compiled solve, the
     ``depth`` [m] is passed separately and may be traced, so a ``lax.scan`` over a depth
-    protocol compiles once. Subclasses define :meth:`penetration`.
+    protocol compiles once. Subclasses define :meth:`penetration` and :meth:`touch_depth`.
     """
 
     axis_xy: tuple[float, float] = (0.0, 0.0)
     surface_z: float = 0.0
+    axis_direction: tuple[float, float, float] | None = None
+    contact_point: tuple[float, float, float] | None = None
 
     def __post_init__(self):
         object.__setattr__(self, "axis_xy", (float(self.axis_xy[0]), float(self.axis_xy[1])))
         object.__setattr__(self, "surface_z", float(self.surface_z))
+        if self.axis_direction is None and self.contact_point is None:
+            return
+        if self.axis_direction is None or self.contact_point is None:
+            raise ModelError("an indenter placed off the flat top needs both axis_direction and contact_point [m]")
+        if self.axis_xy != (0.0, 0.0) or self.surface_z != 0.0:
+            raise ModelError("give either axis_xy and surface_z (approach along -z onto a flat top) or axis_direction and contact_point, not both")
+        object.__setattr__(self, "axis_direction", _unit3("axis_direction", self.axis_direction))
+        object.__setattr__(self, "contact_point", _point3("contact_point", self.contact_point))
+
+    @property
+    def on_flat_top(self) -> bool:
+        """True for the default placement (along -z onto the plane ``z = surface_z``)."""
+        return self.axis_direction is None
+
+    def frame(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(contact_point (3,) [m], axis_direction (3,))``: the tip at depth 0 and the unit
+        approach direction, for either placement."""
+        if self.on_flat_top:
+            return np.array([self.axis_xy[0], self.axis_xy[1], self.surface_z]), np.array([0.0, 0.0, -1.0])
+        return np.asarray(self.contact_point, dtype=float), np.asarray(self.axis_direction, dtype=float)
 
     def tip(self, depth):
-        """Position [m] of the lowest point of the indenter at ``depth``, shape ``(3,)``."""
+        """Position [m] of the tip (the leading point on the axis) at ``depth``, shape ``(3,)``."""
         d = jnp.asarray(depth, dtype=float)
-        return jnp.stack([jnp.full_like(d, self.axis_xy[0]), jnp.full_like(d, self.axis_xy[1]), self.surface_z - d])
+        if self.on_flat_top:
+            return jnp.stack([jnp.full_like(d, self.axis_xy[0]), jnp.full_like(d, self.axis_xy[1]), self.surface_z - d])
+        return jnp.asarray(self.contact_point) + d * jnp.asarray(self.axis_direction)
+
+    def axial_radial(self, x, depth):
+        """``(t, r)`` of points ``x (..., 3)`` relative to the tip at ``depth``: ``t`` [m] the
+        distance behind the tip along the axis (towards the indenter's body, ``-axis_direction``),
+        ``r`` [m] the distance from the axis (smoothed at 0, see ``_safe_norm``)."""
+        rel = x - self.tip(depth)
+        n = jnp.asarray(self.axis_direction)
+        s = rel @ n
+        return -s, _safe_norm(rel - s[..., None] * n)
+
+    def distance_from_axis(self, x):
+        """Distance [m] of points ``x (..., 3)`` from the indenter axis."""
+        if self.on_flat_top:
+            return jnp.hypot(x[..., 0] - self.axis_xy[0], x[..., 1] - self.axis_xy[1])
+        rel = x - jnp.asarray(self.contact_point)
+        n = jnp.asarray(self.axis_direction)
+        return jnp.linalg.norm(rel - (rel @ n)[..., None] * n, axis=-1)
 
     def penetration(self, x, depth):
         """Penetration [m] of points ``x (..., 3)`` into the indenter at ``depth`` (> 0 inside)."""
         raise NotImplementedError
+
+    def touch_depth(self, points) -> np.ndarray:
+        """Depth [m] at which each of the fixed ``points (K, 3)`` [m] first touches the indenter
+        moving along its axis (``inf`` where it never touches the indenter's front)."""
+        raise NotImplementedError
+
+    def _axial_radial_np(self, points) -> tuple[np.ndarray, np.ndarray]:
+        # NumPy (t, r) of points relative to the tip at depth 0: t along the approach direction
+        c, n = self.frame()
+        rel = np.asarray(points, dtype=float).reshape(-1, 3) - c
+        t = rel @ n
+        return t, np.linalg.norm(rel - t[:, None] * n, axis=1)
+
+    def _placement_record(self) -> dict:
+        if self.on_flat_top:
+            return {}
+        return {"axis_direction": list(self.axis_direction), "contact_point": list(self.contact_point)}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -104,12 +195,21 @@ class SphereIndenter(Indenter):
         object.__setattr__(self, "radius", _positive("sphere radius", self.radius))
 
     def penetration(self, x, depth):
-        c = self.tip(depth) + jnp.array([0.0, 0.0, self.radius])
+        if self.on_flat_top:
+            c = self.tip(depth) + jnp.array([0.0, 0.0, self.radius])
+        else:
+            c = self.tip(depth) - self.radius * jnp.asarray(self.axis_direction)
         return self.radius - _safe_norm(x - c)
 
+    def touch_depth(self, points) -> np.ndarray:
+        t, r = self._axial_radial_np(points)
+        R = self.radius
+        return np.where(r <= R, t + R - np.sqrt(np.maximum(R * R - r * r, 0.0)), np.inf)
+
     def record(self) -> dict:
-        """The indenter in a material card's scenario record: ``{"indenter": "sphere", "radius": R [m]}``."""
-        return {"indenter": "sphere", "radius": float(self.radius)}
+        """The indenter in a material card's scenario record: ``{"indenter": "sphere", "radius": R [m]}``
+        (plus ``axis_direction`` and ``contact_point`` [m] when placed off the flat top)."""
+        return {"indenter": "sphere", "radius": float(self.radius), **self._placement_record()}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -129,14 +229,22 @@ class ConeIndenter(Indenter):
             raise ModelError(f"cone half_angle must lie in (0, pi/2) rad, got {self.half_angle!r}")
 
     def penetration(self, x, depth):
-        tip = self.tip(depth)
-        r = _safe_norm(x[..., :2] - tip[:2])
-        dz = x[..., 2] - tip[2]
+        if self.on_flat_top:
+            tip = self.tip(depth)
+            r = _safe_norm(x[..., :2] - tip[:2])
+            dz = x[..., 2] - tip[2]
+        else:
+            dz, r = self.axial_radial(x, depth)
         return dz * np.sin(self.half_angle) - r * np.cos(self.half_angle)
 
+    def touch_depth(self, points) -> np.ndarray:
+        t, r = self._axial_radial_np(points)
+        return t + r / np.tan(self.half_angle)
+
     def record(self) -> dict:
-        """The indenter in a material card's scenario record: ``{"indenter": "cone", "half_angle": theta [rad]}``."""
-        return {"indenter": "cone", "half_angle": float(self.half_angle)}
+        """The indenter in a material card's scenario record: ``{"indenter": "cone", "half_angle": theta [rad]}``
+        (plus ``axis_direction`` and ``contact_point`` [m] when placed off the flat top)."""
+        return {"indenter": "cone", "half_angle": float(self.half_angle), **self._placement_record()}
 
 
 def surface_node_areas(mesh: TetMesh, nodes: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -187,6 +295,136 @@ def top_surface_nodes(mesh: TetMesh, *, tolerance: float = 1e-9) -> np.ndarray:
     tol = tolerance * float(np.linalg.norm(hi - lo))
     ids, _ = surface_node_areas(mesh)
     return ids[np.abs(p[ids, 2] - hi[2]) <= tol]
+
+
+def _mirror_face_mask(mesh: TetMesh, planes: Sequence[str]) -> np.ndarray:
+    """True for the boundary faces that lie on the mirror ``planes`` (bounding-box faces)."""
+    p = np.asarray(mesh.points, dtype=float)
+    f = mesh.boundary_faces
+    on_plane = np.zeros(len(f), dtype=bool)
+    for plane in planes:
+        if not isinstance(plane, str) or plane.count("-") != 1 or plane.split("-")[0] not in "xyz" or plane.split("-")[1] not in ("min", "max"):
+            raise BoundaryConditionError(f"mirror planes must be faces of the bounding box such as 'x-min', got {plane!r}")
+        on = BoundingBoxFace(*plane.split("-"), tolerance=1e-9).mask(p)  # type: ignore[arg-type]
+        on_plane |= np.all(on[f], axis=1)
+    return on_plane
+
+
+def boundary_node_normals(mesh: TetMesh, *, mirror_planes: Sequence[str] = ()) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Boundary nodes, their tributary areas [m^2] and outward unit normals.
+
+    The normal of a node is the area-weighted mean of the outward normals of its boundary faces
+    (``TetMesh.boundary_faces`` are outward-oriented), the area a third of each face. Faces on
+    ``mirror_planes`` (bounding-box faces such as ``"x-min"``, symmetry planes of a part model)
+    are left out: they are interior to the whole specimen.
+
+    Returns:
+        ``(node_ids (K,), areas (K,), normals (K, 3))``, the nodes with a positive area.
+    """
+    p = np.asarray(mesh.points, dtype=float)
+    f = mesh.boundary_faces[~_mirror_face_mask(mesh, mirror_planes)] if mirror_planes else mesh.boundary_faces
+    cross = np.cross(p[f[:, 1]] - p[f[:, 0]], p[f[:, 2]] - p[f[:, 0]])  # 2 x area x unit normal
+    area = np.zeros(len(p))
+    np.add.at(area, f.reshape(-1), np.repeat(0.5 * np.linalg.norm(cross, axis=1) / 3.0, 3))
+    acc = np.zeros((len(p), 3))
+    for k in range(3):
+        np.add.at(acc, f[:, k], cross)
+    ids = np.flatnonzero(area > 0)
+    nrm = acc[ids]
+    length = np.linalg.norm(nrm, axis=1)
+    # a node whose faces' normals cancel (a knife edge) has no normal: NaN, never facing
+    nrm = np.where(length[:, None] > 0, nrm / np.where(length > 0, length, 1.0)[:, None], np.nan)
+    return ids.astype(np.int32), area[ids], nrm
+
+
+def facing_surface_nodes(mesh: TetMesh, axis_direction, *, mirror_planes: Sequence[str] = (), min_cosine: float = 1e-6) -> np.ndarray:
+    """Boundary nodes that face an indenter approaching along ``axis_direction``: the outward
+    normal ``n`` (:func:`boundary_node_normals`) has ``n . axis_direction < -min_cosine``.
+
+    On a flat top surface approached along -z these are the top nodes (those on its edges
+    included, their normal leaning out but still up); on a dome or a cylinder, the half the
+    indenter sees. Nodes on the far side of a thin part or in an undercut also face the
+    indenter when their normal does; the contact candidates are meant for a surface that the
+    axis meets once."""
+    d = np.asarray(_unit3("axis_direction", axis_direction))
+    ids, _, nrm = boundary_node_normals(mesh, mirror_planes=mirror_planes)
+    with np.errstate(invalid="ignore"):
+        keep = (nrm @ d) < -float(min_cosine)
+    return ids[keep]
+
+
+def surface_point_on_axis(mesh: TetMesh, axis_point, axis_direction, *, mirror_planes: Sequence[str] = ()) -> np.ndarray:
+    """The point [m] where the indenter axis first meets the boundary surface: the line through
+    ``axis_point`` [m] along the unit ``axis_direction``, coming from ``-infinity``, intersected
+    with the boundary triangles that face it (outward normal against the direction).
+
+    Raises:
+        BoundaryConditionError: the axis misses the surface.
+    """
+    c = np.asarray(_point3("axis_point", axis_point))
+    n = np.asarray(_unit3("axis_direction", axis_direction))
+    p = np.asarray(mesh.points, dtype=float)
+    f = mesh.boundary_faces[~_mirror_face_mask(mesh, mirror_planes)] if mirror_planes else mesh.boundary_faces
+    a, b, e = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
+    e1, e2 = b - a, e - a
+    normal = np.cross(e1, e2)
+    denom = normal @ n
+    facing = denom < 0
+    # Moller-Trumbore with a tolerance on the barycentric coordinates (a point on an edge or a vertex hits)
+    h = np.cross(n, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    ok = facing & (np.abs(det) > 0)
+    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+    s = c - a
+    u = inv * np.einsum("ij,ij->i", s, h)
+    q = np.cross(s, e1)
+    v = inv * (q @ n)
+    t = inv * np.einsum("ij,ij->i", e2, q)
+    eps = 1e-9
+    hit = ok & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
+    if not np.any(hit):
+        raise BoundaryConditionError(f"the indenter axis through {c.tolist()} m along {n.tolist()} misses the specimen's surface")
+    return c + float(np.min(t[hit])) * n
+
+
+def place_indenter(indenter: Indenter, mesh: TetMesh, *, axis_point=None, axis_direction=(0.0, 0.0, -1.0), contact_point=None,
+                   nodes=None, mirror_planes: Sequence[str] = ()) -> Indenter:
+    """``indenter`` placed on the (curved) surface of ``mesh`` with its depth measured from the
+    first contact.
+
+    The axis runs through ``axis_point`` [m] along ``axis_direction`` (the approach, into the
+    tissue). With ``contact_point`` [m] given, the tip is there at depth 0. Otherwise the tip at
+    depth 0 is where the indenter, moving along its axis from outside, first touches a node of
+    ``nodes`` (default: :func:`facing_surface_nodes`): the depth is measured from the first
+    contact. On a smooth surface whose normal at the axis point is the axis (the top of a dome,
+    a cylinder's crest) this is the surface point on the axis (:func:`surface_point_on_axis`).
+
+    Raises:
+        BoundaryConditionError: the axis misses the surface, or a given ``contact_point`` lets the
+            indenter penetrate a node at depth 0.
+    """
+    n = _unit3("axis_direction", axis_direction)
+    if nodes is None:
+        nodes = facing_surface_nodes(mesh, n, mirror_planes=mirror_planes)
+    nodes = np.asarray(nodes, dtype=np.int64)
+    if nodes.size == 0:
+        raise BoundaryConditionError("no boundary node faces the indenter")
+    p = np.asarray(mesh.points, dtype=float)
+    scale = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+    if contact_point is None:
+        if axis_point is None:
+            raise BoundaryConditionError("place_indenter needs axis_point or contact_point [m]")
+        s = surface_point_on_axis(mesh, axis_point, n, mirror_planes=mirror_planes)
+        trial = dataclasses.replace(indenter, axis_xy=(0.0, 0.0), surface_z=0.0, axis_direction=n, contact_point=tuple(s))
+        d0 = float(np.min(trial.touch_depth(p[nodes])))
+        if not np.isfinite(d0):
+            raise BoundaryConditionError("no surface node comes under the indenter moving along its axis")
+        return dataclasses.replace(trial, contact_point=tuple(s + d0 * np.asarray(n)))
+    placed = dataclasses.replace(indenter, axis_xy=(0.0, 0.0), surface_z=0.0, axis_direction=n, contact_point=_point3("contact_point", contact_point))
+    d0 = float(np.min(placed.touch_depth(p[nodes])))
+    if d0 < -1e-9 * scale:
+        raise BoundaryConditionError(f"at contact_point {list(placed.contact_point)} m the indenter already penetrates the surface by {-d0:.3g} m at depth 0")
+    return placed
 
 
 @dataclasses.dataclass(frozen=True)
@@ -295,7 +533,8 @@ class ContactModel(ElasticModel):
         return 0.5 * jnp.sum(self._kappa(material) * jnp.maximum(p, 0.0) ** 2)
 
     def reaction_force(self, x, material: Material):
-        """Force [N] the tissue exerts on the indenter along +z (positive compressive).
+        """Force [N] the tissue exerts on the indenter against its approach direction (along +z
+        on a flat top; positive compressive).
 
         ``dE_contact / d depth`` at fixed nodes: the sum of the penalty forces' axial parts.
         """
@@ -303,8 +542,7 @@ class ContactModel(ElasticModel):
 
     def contact_radius(self, x):
         """Largest distance [m] from the axis of a node in contact at positions ``x``."""
-        pts = x[self.contact_nodes]
-        r = jnp.hypot(pts[:, 0] - self.indenter.axis_xy[0], pts[:, 1] - self.indenter.axis_xy[1])
+        r = self.indenter.distance_from_axis(x[self.contact_nodes])
         return jnp.max(jnp.where(self.penetrations(x) > 0, r, 0.0))
 
 

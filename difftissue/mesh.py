@@ -47,6 +47,7 @@ __all__ = [
     "Specimen",
     "Finding",
     "block",
+    "curved_top",
     "structured_grid",
     "graded_axis",
     "refined_axis",
@@ -588,6 +589,40 @@ def block(size, resolution, *, origin=(0.0, 0.0, 0.0), region_name: str = "tissu
     n = _as3(resolution, "resolution", int)
     o = np.asarray(origin, dtype=float).reshape(3)
     return structured_grid(*(o[a] + np.linspace(0.0, L[a], n[a] + 1) for a in range(3)), region_names=(region_name,))
+
+
+def curved_top(mesh: TetMesh, radius: float, *, shape: str = "sphere", center=(0.0, 0.0)) -> TetMesh:
+    """A block whose flat top ``z = max z`` is bent onto a convex sphere or cylinder of ``radius`` [m].
+
+    Each node moves along z by the sag of the curved top above it times its height fraction,
+    ``z' = z + s(x, y) (z - z_min) / (z_max - z_min)``, with ``s = sqrt(R^2 - rho^2) - R`` and
+    ``rho`` the distance from the vertical axis through ``center`` [m] (``shape="sphere"``: a
+    dome whose apex is at ``(center, z_max)``) or from the vertical plane ``y = center[1]``
+    (``shape="cylinder"``: a cylinder along x, its crest the line ``y = center[1]``). The base
+    stays flat and the topology, regions and fields are kept. Meant for curved test specimens
+    (a dome or a cylinder's outer face on a block, e.g. from :func:`block` or
+    :func:`~difftissue.scenarios.indentation_block`).
+
+    Raises:
+        MeshError: the top reaches beyond the sphere or cylinder (``rho >= R``) or the sag is
+            not smaller than the block's height (the cells would fold).
+    """
+    R = float(radius)
+    if not np.isfinite(R) or R <= 0:
+        raise MeshError(f"curved_top radius must be a positive finite number [m], got {radius!r}")
+    if shape not in ("sphere", "cylinder"):
+        raise MeshError(f"curved_top shape must be 'sphere' or 'cylinder', got {shape!r}")
+    p = np.array(mesh.points, dtype=float)
+    cx, cy = (float(v) for v in center)
+    rho = np.hypot(p[:, 0] - cx, p[:, 1] - cy) if shape == "sphere" else np.abs(p[:, 1] - cy)
+    if np.any(rho >= R):
+        raise MeshError(f"the top reaches {rho.max():.6g} m from the {shape}'s axis, beyond its radius {R:.6g} m")
+    z0, z1 = p[:, 2].min(), p[:, 2].max()
+    sag = np.sqrt(R * R - rho * rho) - R
+    if np.min(sag) <= -(z1 - z0):
+        raise MeshError(f"the sag of the curved top ({-np.min(sag):.6g} m) must be smaller than the block's height ({z1 - z0:.6g} m)")
+    p[:, 2] = p[:, 2] + sag * (p[:, 2] - z0) / (z1 - z0)
+    return TetMesh(p, mesh.tets, mesh.region_ids, mesh.region_names, point_data=mesh.point_data, cell_data=mesh.cell_data)
 
 
 def default_skin_layers() -> list[tuple[str, float, Material]]:

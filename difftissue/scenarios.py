@@ -40,7 +40,8 @@ import numpy as np
 
 from . import analytic
 from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_free_rigid_modes
-from .contact import ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, top_surface_nodes
+from .contact import (ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, facing_surface_nodes, place_indenter,
+                      top_surface_nodes)
 from .energies.volume import tet_signed_volume
 from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError, SelectorError
 from .materials import Material
@@ -720,6 +721,10 @@ class Indentation(eqx.Module):
         base: str = "bonded",
         symmetry: str = "none",
         axis_xy=None,
+        surface: str = "top",
+        axis_point=None,
+        axis_direction=None,
+        contact_point=None,
         rollers: Sequence = (),
         penalty: float = 100.0,
         sigma=None,
@@ -738,7 +743,18 @@ class Indentation(eqx.Module):
             base: ``"bonded"`` or ``"sliding"``.
             symmetry: ``"quarter"`` or ``"none"`` (see the class docstring).
             axis_xy: indenter axis [m]; default (0, 0) with quarter symmetry, else the centre of
-                the top surface.
+                the top surface (with ``surface="boundary"``: of the nodes facing the indenter).
+            surface: ``"top"`` (the plane ``z = max z``, indented along -z) or ``"boundary"``
+                (any boundary: a dome, a cylinder, a mesh from file; sphere and cone only). With
+                ``"boundary"`` the candidate contact nodes are the boundary nodes whose outward
+                normal faces the indenter (:func:`~difftissue.contact.facing_surface_nodes`),
+                and the depth is measured along the axis from the first contact
+                (:func:`~difftissue.contact.place_indenter`).
+            axis_point: a point [m] on the indenter axis (``surface="boundary"``; default
+                ``(axis_xy, max z)``).
+            axis_direction: the approach direction (``surface="boundary"``; default ``(0, 0, -1)``).
+            contact_point: the tip's position [m] at depth 0 (``surface="boundary"``; default: the
+                first contact along the axis).
             rollers: roller supports (:class:`~difftissue.boundary.Roller` or their data forms
                 ``"x-max"`` / ``{"set": selector, "components": "x"}``): the listed displacement
                 components held at zero, e.g. frictionless walls confining the sides. They add
@@ -768,13 +784,34 @@ class Indentation(eqx.Module):
         tol = 1e-9 * float(np.linalg.norm(hi - lo))
         if symmetry not in ("quarter", "none"):
             raise ConfigError(f"symmetry must be 'quarter' or 'none', got {symmetry!r}")
+        if surface not in ("top", "boundary"):
+            raise ConfigError(f"surface must be 'top' or 'boundary', got {surface!r}")
+        curved = surface == "boundary"
+        if not curved and not (axis_point is None and axis_direction is None and contact_point is None):
+            raise ConfigError("axis_point, axis_direction and contact_point place an indenter on surface='boundary'; the flat top takes axis_xy")
+        if curved and indenter not in ("sphere", "cone"):
+            raise ConfigError(f"surface='boundary' supports the sphere and the cone (penalty contact), got indenter={indenter!r}")
+        direction = (0.0, 0.0, -1.0) if axis_direction is None else tuple(float(v) for v in np.asarray(axis_direction, dtype=float).reshape(-1))
+        mirror = ("x-min", "y-min") if symmetry == "quarter" else ()
         if symmetry == "quarter":
             if abs(lo[0]) > tol or abs(lo[1]) > tol:
                 raise BoundaryConditionError("quarter symmetry needs the mesh's x >= 0, y >= 0 quarter with the axis at x = y = 0 (see indentation_block)")
             axis = (0.0, 0.0)
+            if curved and (axis_point is not None or contact_point is not None or not np.allclose(direction, (0.0, 0.0, -1.0), rtol=0, atol=1e-12)):
+                raise ConfigError("quarter symmetry indents along -z on the axis x = y = 0: leave axis_point, axis_direction and contact_point unset")
+        elif curved:
+            top = facing_surface_nodes(mesh, direction)
+            if top.size == 0:
+                raise BoundaryConditionError(f"no boundary node faces an indenter approaching along {list(direction)}")
+            axis = tuple(float(v) for v in (0.5 * (p[top, :2].min(axis=0) + p[top, :2].max(axis=0)) if axis_xy is None else axis_xy))
         else:
             top = top_surface_nodes(mesh)
             axis = tuple(float(v) for v in (0.5 * (p[top, :2].min(axis=0) + p[top, :2].max(axis=0)) if axis_xy is None else axis_xy))
+        candidates = facing_surface_nodes(mesh, direction, mirror_planes=mirror) if curved else None
+        if curved and axis_point is None and contact_point is None:
+            if not np.allclose(direction, (0.0, 0.0, -1.0), rtol=0, atol=1e-12):
+                raise ConfigError("an indenter axis_direction other than (0, 0, -1) needs axis_point or contact_point [m]")
+            axis_point = (axis[0], axis[1], float(hi[2]))
         self.symmetry = symmetry
         self.force_multiplier = 4.0 if symmetry == "quarter" else 1.0
         bc = BoundaryConditions.free(mesh)
@@ -790,6 +827,8 @@ class Indentation(eqx.Module):
             loaded = np.zeros((mesh.n_nodes, 3), dtype=bool)
             if indenter == "flat_punch" and radius is not None:
                 loaded[FlatPunch(float(radius), axis_xy=axis, bonded=bonded_punch).nodes(mesh)] = True if bonded_punch else [False, False, True]
+            elif curved:
+                loaded[candidates] = np.abs(np.asarray(direction)) > 0  # the components the indenter's push has
             else:
                 loaded[top_surface_nodes(mesh), 2] = True
             bc = apply_rollers(bc, mesh, rollers, loaded=loaded)
@@ -810,12 +849,28 @@ class Indentation(eqx.Module):
                 if half_angle is None:
                     raise ConfigError("a cone indenter needs half_angle [rad]")
                 geom = ConeIndenter(float(half_angle), axis_xy=axis, surface_z=float(hi[2]))
+            if curved:
+                geom = place_indenter(geom, mesh, axis_point=axis_point, axis_direction=direction, contact_point=contact_point,
+                                      nodes=candidates, mirror_planes=mirror)
+            if indenter == "cone":
                 # a top node exactly at the apex: held on the axis, the axisymmetric solution (class docstring)
-                top = top_surface_nodes(mesh)
-                apex = top[np.hypot(p[top, 0] - axis[0], p[top, 1] - axis[1]) <= tol]
-                if apex.size:
-                    bc = bc.fix(mesh, apex, "xy")
-            self.model = ContactModel(base_model, geom, mesh, penalty=penalty, mirror_planes=("x-min", "y-min") if symmetry == "quarter" else ())
+                if curved:
+                    t_touch = geom.touch_depth(p[candidates])
+                    on_axis = np.asarray(geom.distance_from_axis(p[candidates])) <= tol
+                    apex = candidates[on_axis & (np.abs(t_touch) <= tol)]
+                    if apex.size:
+                        n = np.asarray(geom.axis_direction)
+                        along = np.flatnonzero(np.abs(n) > 1e-12)
+                        if along.size != 1:
+                            raise ConfigError("a node lies under the cone's apex on an axis that is not along x, y or z: it cannot be held on the axis; "
+                                              "move the axis off the node or align it with a coordinate axis")
+                        bc = bc.fix(mesh, apex, "".join(c for k, c in enumerate("xyz") if k != along[0]))
+                else:
+                    top = top_surface_nodes(mesh)
+                    apex = top[np.hypot(p[top, 0] - axis[0], p[top, 1] - axis[1]) <= tol]
+                    if apex.size:
+                        bc = bc.fix(mesh, apex, "xy")
+            self.model = ContactModel(base_model, geom, mesh, nodes=candidates, penalty=penalty, mirror_planes=mirror)
             self.punch_mask = None
             self.punch = None
         elif indenter == "flat_punch":
@@ -923,6 +978,8 @@ class Indentation(eqx.Module):
         rec["model"] = str(self.model.kind) or None
         if self.punch is None:
             rec["penalty"] = float(self.model.penalty)
+            if not self.model.indenter.on_flat_top:
+                rec["surface"] = "boundary"
         return _with_depths(rec, self.abscissa, every=True)
 
 

@@ -86,10 +86,12 @@ def _indenter(e, path, curve, kind):
     p = _join(path, "indenter")
     if "indenter" not in e:
         _fail(p, "missing (required): e.g. { shape = \"sphere\", radius = 27.5e-6 }")
-    t = _table(e["indenter"], p, ("shape", "radius", "half_angle_deg", "bonded", "length_unit"), ("shape",))
+    placement = ("surface", "axis_point", "axis_direction", "contact_point") if kind == "indentation" else ()
+    t = _table(e["indenter"], p, ("shape", "radius", "half_angle_deg", "bonded", "length_unit") + placement, ("shape",))
     shape = _choice(t["shape"], _join(p, "shape"), ("sphere", "flat_punch", "cone"))
     unit = _unit_of(t, p)
     kw: dict[str, Any] = {"indenter": shape}
+    kw.update(_placement(t, p, unit, shape))
     if shape == "cone":
         for k in ("radius", "bonded"):
             if k in t:
@@ -115,6 +117,37 @@ def _indenter(e, path, curve, kind):
             if shape != "flat_punch" or kind != "indentation":
                 _fail(_join(p, "bonded"), "only a simulated flat punch (scenario \"indentation\") can be bonded")
             kw["bonded_punch"] = _bool(t["bonded"], _join(p, "bonded"))
+    return kw
+
+
+def _vector(value, path: str, what: str, factor: float = 1.0) -> tuple[float, float, float]:
+    if not isinstance(value, list) or len(value) != 3:
+        _fail(path, f"must be {what} (a list of 3 numbers), got {value!r}")
+    return tuple(_number(v, _join(path, i)) * factor for i, v in enumerate(value))  # type: ignore[return-value]
+
+
+def _placement(t, p, unit, shape) -> dict:
+    """The indenter on a curved surface: ``surface = "boundary"`` with ``axis_point`` and
+    ``contact_point`` (coordinates in the table's length unit) and ``axis_direction``."""
+    kw: dict[str, Any] = {}
+    if "surface" not in t:
+        for k in ("axis_point", "axis_direction", "contact_point"):
+            if k in t:
+                _fail(_join(p, k), "places the indenter on a curved surface: needs surface = \"boundary\"")
+        return kw
+    kw["surface"] = _choice(t["surface"], _join(p, "surface"), ("top", "boundary"))
+    if kw["surface"] == "boundary" and shape == "flat_punch":
+        _fail(_join(p, "surface"), "a flat punch indents the flat top only (\"boundary\" takes a sphere or a cone)")
+    for k in ("axis_point", "contact_point"):
+        if k in t:
+            kw[k] = _vector(t[k], _join(p, k), f"a point [x, y, z] in {unit[0]}", unit[1])
+    if "axis_direction" in t:
+        d = _vector(t["axis_direction"], _join(p, "axis_direction"), "a direction [dx, dy, dz]")
+        if not any(d):
+            _fail(_join(p, "axis_direction"), "must not be zero")
+        kw["axis_direction"] = d
+    if kw["surface"] == "top" and len(kw) > 1:
+        _fail(p, "axis_point, axis_direction and contact_point need surface = \"boundary\"")
     return kw
 
 
