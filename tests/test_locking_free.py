@@ -153,6 +153,6 @@ def test_bonded_block_does_not_lock_at_nu_0_499(bonded_moduli, kind, locks):
     """From nu = 0.49 to 0.499 (lambda/mu 49 -> 499) the continuum's apparent modulus grows by
     a bounded factor (the incompressible limit is finite); locking tets grow with lambda.
     Measured on this coarse mesh: standard 4.29 -> 15.98 (x 3.7), nodal 3.30 -> 4.04 (x 1.22);
-    the mesh-converged ratio (experiments/locking_free.py) is RATIO_NOTE."""
+    the mesh-converged ratio (Richardson, experiments/locking_free.py) is 3.51 / 2.97 = 1.18."""
     ratio = bonded_moduli[kind, 0.499] / bonded_moduli[kind, 0.49]
     assert (ratio > 2.5) if locks else (ratio < 1.5)
