@@ -45,6 +45,7 @@ __all__ = [
     "TetMesh",
     "CubeLattice",
     "Specimen",
+    "node_patches",
     "Finding",
     "block",
     "curved_top",
@@ -572,6 +573,58 @@ def refined_axis(length: float, cells: int, center: float, first: float, *, core
     x = np.concatenate([left, right[1:]])
     x[0], x[-1] = 0.0, L
     return x
+
+
+def node_patches(tets: np.ndarray, tet_regions: np.ndarray):
+    """The node patches of the nodal volumetric term: one per (node, region) pair.
+
+    A patch is the set of tets of one region around one node; its nodes are those tets' nodes.
+    Patches are padded to fixed widths: extra node slots repeat the patch's own node, extra
+    tet slots point to tet 0 with ``valid = False``.
+
+    Args:
+        tets: ``(M, 4)`` tetrahedra; tet_regions: ``(M,)`` region of each.
+
+    Returns:
+        ``(nodes (P, k), tet_ids (P, T), local_tets (P, T, 4), valid (P, T), regions (P,))``:
+        patch node indices (the patch's own node first), the global tet of each slot, its
+        nodes as indices into the patch's nodes, whether the slot is a real tet, the region.
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    reg = np.asarray(tet_regions, dtype=np.int64)
+    M = tets.shape[0]
+    R = int(reg.max()) + 1 if M else 1
+    node = tets.reshape(-1)
+    tet = np.repeat(np.arange(M), 4)
+    key = node * R + reg[tet]
+    order = np.argsort(key, kind="stable")
+    key, tet = key[order], tet[order]
+    patch_keys, start, count = np.unique(key, return_index=True, return_counts=True)
+    P, T = patch_keys.size, int(count.max())
+    slot = np.arange(key.size) - np.repeat(start, count)
+    pid = np.repeat(np.arange(P), count)
+    tet_ids = np.zeros((P, T), dtype=np.int64)
+    valid = np.zeros((P, T), dtype=bool)
+    tet_ids[pid, slot], valid[pid, slot] = tet, True
+    own = patch_keys // R
+    cand = tets[tet_ids]  # (P, T, 4)
+    cand = np.where(valid[:, :, None], cand, own[:, None, None]).reshape(P, 4 * T)
+    cand = np.where(cand == own[:, None], -1, cand)  # the own node sorts first
+    srt = np.sort(cand, axis=1)
+    new = np.ones_like(srt, dtype=bool)
+    new[:, 1:] = srt[:, 1:] != srt[:, :-1]
+    k = int(new.sum(axis=1).max())
+    col = np.cumsum(new, axis=1) - 1
+    nodes = np.repeat(own[:, None], k, axis=1)
+    rows = np.nonzero(new)
+    vals = srt[rows]
+    nodes[rows[0], col[rows]] = np.where(vals < 0, own[rows[0]], vals)
+    # local index of every candidate: its rank among the row's distinct values
+    pos = np.empty_like(col)
+    np.put_along_axis(pos, np.argsort(cand, axis=1, kind="stable"), col, axis=1)
+    local = pos.reshape(P, T, 4)
+    local = np.where(valid[:, :, None], local, 0)
+    return nodes.astype(np.int32), tet_ids.astype(np.int32), local.astype(np.int32), valid, (patch_keys % R).astype(np.int32)
 
 
 def block(size, resolution, *, origin=(0.0, 0.0, 0.0), region_name: str = "tissue") -> TetMesh:

@@ -10,7 +10,10 @@ Four models share one interface (``energy(x, material)``, ``terms(material)``):
 - ``"stable_neo_hookean"`` (:class:`StableNeoHookeanModel`): Macklin & Müller (2021) with
   ``lambda' = lambda + mu``, the energy XPBD's stable neo-Hookean constraints minimise.
 - ``"fem_linear"`` and ``"fem_neo_hookean"`` (:class:`FEMModel`): the reference FEM on
-  linear tetrahedra.
+  linear tetrahedra. ``"fem_linear_nodal"`` and ``"fem_neo_hookean_nodal"`` are the same
+  energies with the ``lambda`` term evaluated on node patches (nodal-averaged dilatation,
+  Bonet & Burton 1998): locking-free for nearly incompressible materials (nu -> 1/2), see
+  ``docs/materials.md``.
 
 ``material`` is a :class:`~difftissue.materials.Material` whose fields are scalars (one
 material) or arrays of shape ``(n_regions,)`` (one value per region, see
@@ -36,15 +39,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .energies.fem import linear_elastic_energy_density, neo_hookean_energy_density
+from .energies.fem import linear_elastic_energy_density, neo_hookean_energy_density, nodal_dilatation_energy, nodal_volume_energy
 from .energies.neo_hookean import deformation_gradient, det3, rest_shape, stable_neo_hookean_energy_density
 from .energies.springs import cubic_spring_energy, cubic_spring_hessian
 from .errors import InvertedElementError, MaterialError, ModelError, ModelRangeError
 from .materials import Material, _is_concrete, explicit_pre_stretch_y, lame_parameters, material_fields
-from .mesh import _CUBE_DIAGONALS, _CUBE_EDGES, _CUBE_CORNERS, TetMesh
+from .mesh import _CUBE_DIAGONALS, _CUBE_EDGES, _CUBE_CORNERS, TetMesh, node_patches
 
 __all__ = [
     "MODELS",
+    "NODAL_FEM_MODELS",
     "ElementTerm",
     "ElasticModel",
     "SpringVolumeModel",
@@ -58,6 +62,9 @@ __all__ = [
 
 #: Model names accepted by :func:`make_model`.
 MODELS = ("springs_volume", "stable_neo_hookean", "fem_linear", "fem_neo_hookean")
+#: The FEM models with a node-based volumetric term (:class:`FEMModel` with
+#: ``volumetric="nodal"``), also accepted by :func:`make_model`.
+NODAL_FEM_MODELS = ("fem_linear_nodal", "fem_neo_hookean_nodal")
 
 
 class ElementTerm(eqx.Module):
@@ -200,6 +207,16 @@ def _fem_linear_energy(x, Dm_inv, V0, lam, mu):
 
 def _fem_neo_hookean_energy(x, Dm_inv, V0, lam, mu):
     return V0 * neo_hookean_energy_density(deformation_gradient(x, Dm_inv), lam, mu)
+
+
+def _fem_linear_shear_energy(x, Dm_inv, V0, mu):
+    """``V0 mu eps:eps`` [J]: the linear tet energy without its ``lambda`` term."""
+    return V0 * linear_elastic_energy_density(deformation_gradient(x, Dm_inv), 0.0, mu)
+
+
+def _fem_neo_hookean_shear_energy(x, Dm_inv, V0, mu):
+    """``V0 mu/2 (I1 - 3 - 2 ln J)`` [J]: the neo-Hookean tet energy without its ``lambda`` term."""
+    return V0 * neo_hookean_energy_density(deformation_gradient(x, Dm_inv), 0.0, mu)
 
 
 def _stable_neo_hookean_energy(x, Dm_inv, V0, mu, lam_shift):
@@ -378,21 +395,59 @@ def _base_fields(mesh: TetMesh, kind: str, nu_min: float) -> dict:
 
 class FEMModel(ElasticModel):
     """Reference FEM on linear tets: ``sum_e V0_e Psi(F_e)`` with the linear (small-strain) or
-    compressible neo-Hookean ``Psi = mu/2 (I1 - 3 - 2 ln J) + lambda/2 (ln J)^2`` density."""
+    compressible neo-Hookean ``Psi = mu/2 (I1 - 3 - 2 ln J) + lambda/2 (ln J)^2`` density.
 
-    def __init__(self, mesh: TetMesh, kind: str = "fem_linear"):
+    ``volumetric="element"`` (default) evaluates the whole density per tet. Linear tets then
+    *lock* for nearly incompressible materials (nu >= ~0.45: every tet must keep its volume,
+    more constraints than the mesh has degrees of freedom), so displacements converge slowly
+    and from the stiff side. ``volumetric="nodal"`` keeps the ``lambda``-free part per tet
+    (``mu eps:eps``, resp. ``mu/2 (I1 - 3 - 2 ln J_e)``) and evaluates the ``lambda`` term per
+    node patch on the patch's volume-averaged dilatation (``lambda/2 theta_n^2`` resp.
+    ``lambda/2 (ln J_n)^2``, :func:`nodal_volume_energy`; one patch per node and region, so a
+    pressure may jump across a material interface): one volume constraint per node instead of
+    per tet, no locking. Under a homogeneous deformation both give exactly the same energy
+    (any strain), so the continuum law is unchanged; only the discretisation differs.
+
+    Attributes (besides :class:`ElasticModel`'s):
+        volumetric: ``"element"`` or ``"nodal"``.
+        patch_nodes, patch_tets, patch_local_tets, patch_valid, patch_regions: the node patches
+            of :func:`node_patches` (``None`` for ``volumetric="element"``).
+    """
+
+    volumetric: str = eqx.field(static=True)
+    patch_nodes: np.ndarray | None
+    patch_tets: np.ndarray | None
+    patch_local_tets: np.ndarray | None
+    patch_valid: np.ndarray | None
+    patch_regions: np.ndarray | None
+
+    def __init__(self, mesh: TetMesh, kind: str = "fem_linear", *, volumetric: str = "element"):
         if kind not in ("fem_linear", "fem_neo_hookean"):
             raise ModelError(f"FEMModel kind must be 'fem_linear' or 'fem_neo_hookean', got {kind!r}")
+        if volumetric not in ("element", "nodal"):
+            raise ModelError(f"volumetric must be 'element' (per-tet energy) or 'nodal' (nodal-averaged dilatation), got {volumetric!r}")
         for k, v in _base_fields(mesh, kind, -1.0).items():
             setattr(self, k, v)
+        self.volumetric = volumetric
+        patches = node_patches(self.tets, self.tet_regions) if volumetric == "nodal" else (None,) * 5
+        self.patch_nodes, self.patch_tets, self.patch_local_tets, self.patch_valid, self.patch_regions = patches
 
     def terms(self, material):
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = self.tet_regions
         Dm_inv, V0 = self.stress_free_tets(p["pre_stretch"], p.get("pre_stretch_y"))
-        fn = _fem_linear_energy if self.kind == "fem_linear" else _fem_neo_hookean_energy
-        return (ElementTerm("tets", self.tets, fn, (Dm_inv, V0, lam[r], mu[r])),)
+        if self.volumetric == "element":
+            fn = _fem_linear_energy if self.kind == "fem_linear" else _fem_neo_hookean_energy
+            return (ElementTerm("tets", self.tets, fn, (Dm_inv, V0, lam[r], mu[r])),)
+        shear = _fem_linear_shear_energy if self.kind == "fem_linear" else _fem_neo_hookean_shear_energy
+        volume = nodal_dilatation_energy if self.kind == "fem_linear" else nodal_volume_energy
+        ids = self.patch_tets
+        weights = jnp.where(self.patch_valid, V0[ids] / 4.0, 0.0)
+        return (
+            ElementTerm("tets", self.tets, shear, (Dm_inv, V0, mu[r])),
+            ElementTerm("node_volume", self.patch_nodes, volume, (self.patch_local_tets, Dm_inv[ids], weights, lam[self.patch_regions])),
+        )
 
 
 class StableNeoHookeanModel(ElasticModel):
@@ -709,11 +764,15 @@ class SpringVolumeModel(ElasticModel):
 
 
 def make_model(mesh: TetMesh, kind: str = "springs_volume") -> ElasticModel:
-    """Build a model of ``mesh``: one of :data:`MODELS`."""
+    """Build a model of ``mesh``: one of :data:`MODELS` or :data:`NODAL_FEM_MODELS`
+    (``"fem_linear_nodal"`` is ``FEMModel(mesh, "fem_linear", volumetric="nodal")``, its
+    ``kind`` is ``"fem_linear"``: the same continuum law)."""
+    if kind in NODAL_FEM_MODELS:
+        return FEMModel(mesh, kind.removesuffix("_nodal"), volumetric="nodal")
     if kind == "springs_volume":
         return SpringVolumeModel(mesh)
     if kind == "stable_neo_hookean":
         return StableNeoHookeanModel(mesh)
     if kind in ("fem_linear", "fem_neo_hookean"):
         return FEMModel(mesh, kind)
-    raise ModelError(f"unknown model {kind!r}; choose one of {MODELS}")
+    raise ModelError(f"unknown model {kind!r}; choose one of {MODELS + NODAL_FEM_MODELS}")

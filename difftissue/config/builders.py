@@ -22,7 +22,7 @@ from ..errors import DifftissueError
 from ..incision import Incision, IncisionOptions
 from ..materials import Material
 from ..mesh import Specimen, block, layered_skin, read_mesh
-from ..models import MODELS
+from ..models import MODELS, NODAL_FEM_MODELS
 from ..scenarios import AnalyticIndentation, Compression, FEMField, Indentation, SolverOptions, cylinder, indentation_block, indentation_specimen_for
 from ..selectors import selector_from_dict
 from .estimates import _compression_estimate, _compression_plausibility, _indentation_estimate, _plausibility
@@ -71,7 +71,7 @@ def _solver_options(e: Mapping, path: str):
 
 
 def _model(e: Mapping, path: str, default: str) -> str:
-    return _choice(e.get("model", default), _join(path, "model"), MODELS)
+    return _choice(e.get("model", default), _join(path, "model"), MODELS + NODAL_FEM_MODELS)
 
 
 def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path, *, material=None) -> Experiment:

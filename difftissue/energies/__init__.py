@@ -4,7 +4,8 @@
 - :mod:`~difftissue.energies.volume` -- tet volume constraint ``V - V0`` and its energy.
 - :mod:`~difftissue.energies.neo_hookean` -- deformation gradient, stable neo-Hookean
   constraints and energy (Macklin & Müller 2021, with the ``lambda' = lambda + mu`` shift).
-- :mod:`~difftissue.energies.fem` -- linear and compressible neo-Hookean tet FEM energies.
+- :mod:`~difftissue.energies.fem` -- linear and compressible neo-Hookean tet FEM energies and
+  their node-patch volumetric terms (nodal-averaged dilatation).
 
 Every kernel is a pure function of arrays, differentiable to second order, and broadcasts
 over leading batch dimensions (so it also works under ``jax.vmap``). Units are SI.
@@ -15,6 +16,8 @@ from .fem import (
     fem_energy,
     linear_elastic_energy_density,
     neo_hookean_energy_density,
+    nodal_dilatation_energy,
+    nodal_volume_energy,
     rest_shapes,
     tet_energy,
 )
@@ -55,4 +58,6 @@ __all__ = [
     "rest_shapes",
     "fem_energy",
     "ENERGY_DENSITIES",
+    "nodal_dilatation_energy",
+    "nodal_volume_energy",
 ]

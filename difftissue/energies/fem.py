@@ -21,6 +21,8 @@ __all__ = [
     "rest_shapes",
     "fem_energy",
     "ENERGY_DENSITIES",
+    "nodal_dilatation_energy",
+    "nodal_volume_energy",
 ]
 
 
@@ -136,3 +138,47 @@ def fem_energy(points, tets, Dm_inv, V0, lam, mu, *, kind="linear"):
         raise DifftissueError(f"unknown FEM energy kind {kind!r}; choose one of {sorted(ENERGY_DENSITIES)}") from None
     x = jnp.asarray(points)[jnp.asarray(tets)]
     return jnp.sum(tet_energy(x, Dm_inv, V0, density, lam, mu))
+
+
+def _patch_strains(x, local_tets, Dm_inv):
+    """``H = F - I`` of the tets of a node patch: ``x (k, 3)`` patch nodes [m], ``local_tets
+    (T, 4)`` patch-local node indices, ``Dm_inv (T, 3, 3)`` [1/m] -> ``(T, 3, 3)``."""
+    return deformation_gradient(x[local_tets], Dm_inv) - jnp.eye(3, dtype=x.dtype)
+
+
+def nodal_dilatation_energy(x, local_tets, Dm_inv, weights, lam):
+    """Small-strain volumetric energy of a node patch, ``V_n lam/2 theta_n^2`` [J].
+
+    ``theta_n = sum_e w_e tr(eps_e) / V_n`` is the patch's volume-averaged dilatation
+    (``w_e = V0_e / 4``: each tet gives a quarter of its rest volume to each of its nodes;
+    ``V_n = sum_e w_e``). With ``V0_e mu eps:eps`` per tet (:func:`linear_elastic_energy_density` with ``lam = 0``) it is ``fem_linear`` with
+    the ``lambda`` term moved from the tets to the nodes.
+
+    Args:
+        x: ``(k, 3)`` positions of the patch's nodes [m] (padding repeats a node).
+        local_tets: ``(T, 4)`` the patch's tets as indices into ``x`` (padding: any).
+        Dm_inv: ``(T, 3, 3)`` their stress-free inverse edge matrices [1/m].
+        weights: ``(T,)`` ``V0_e / 4`` [m^3], 0 for padding tets.
+        lam: Lamé's first constant of the patch [Pa].
+    """
+    H = _patch_strains(x, local_tets, Dm_inv)
+    volume = jnp.sum(weights)
+    theta = jnp.sum(weights * (H[:, 0, 0] + H[:, 1, 1] + H[:, 2, 2])) / volume
+    return 0.5 * lam * volume * theta * theta
+
+
+def nodal_volume_energy(x, local_tets, Dm_inv, weights, lam):
+    """Finite-strain volumetric energy of a node patch, ``V_n lam/2 (ln J_n)^2`` [J].
+
+    ``J_n = sum_e w_e J_e / V_n`` is the patch's current volume over its rest volume (each tet
+    gives a quarter of its volume to each of its nodes, ``w_e = V0_e / 4``, ``V_n = sum_e w_e``;
+    Bonet & Burton 1998). With ``V0_e mu/2 (I1 - 3 - 2 ln J_e)`` per tet (:func:`neo_hookean_energy_density` with ``lam = 0``) it is
+    ``fem_neo_hookean`` with the ``lambda (ln J)^2 / 2`` term moved from the tets to the nodes.
+    ``+inf`` when ``J_n <= 0``. Arguments as :func:`nodal_dilatation_energy`.
+    """
+    H = _patch_strains(x, local_tets, Dm_inv)
+    volume = jnp.sum(weights)
+    jm1 = jnp.sum(weights * det3_minus_one(H)) / volume  # J_n - 1, accurate at small strain
+    ok = jm1 > -1.0
+    log_j = jnp.log1p(jnp.where(ok, jm1, 0.0))
+    return jnp.where(ok, 0.5 * lam * volume * log_j * log_j, jnp.inf)
