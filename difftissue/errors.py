@@ -378,3 +378,32 @@ class PointsOutsideMeshError(MeshError):
     def __init__(self, message: str, indices=(), distances=()):
         super().__init__(message, indices)
         self.distances = tuple(float(d) for d in distances)
+
+
+# ===================================================================== budget calibration
+# (appended block: calibration of a real-time XPBD budget over a set of loads)
+__all__ += ["BudgetSaturationError", "BudgetRangeError", "BudgetExtrapolationWarning"]
+
+
+class BudgetSaturationError(ConvergenceError):
+    """The budgeted XPBD response is saturated: the iteration budget at this time step cannot
+    carry the load, the force hardly depends on the stiffness (``d log F / d log E`` below the
+    threshold) and no effective material exists. ``sensitivity``: the measured
+    ``d log F / d log E`` per load; ``proposal``: the :class:`~difftissue.budget.BudgetProposal`
+    of the measured search for a budget that carries the load (None when not searched)."""
+
+    def __init__(self, message: str, sensitivity=(), proposal=None):
+        super().__init__(message)
+        self.sensitivity = tuple(float(s) for s in sensitivity)
+        self.proposal = proposal
+
+
+class BudgetRangeError(ConfigError):
+    """A budget card is used outside the range it was calibrated over (another setting or
+    mesh, an indenter shape, depth or stiffness outside the calibrated set). The message names
+    the quantity, the value and the calibrated range."""
+
+
+class BudgetExtrapolationWarning(DifftissueWarning):
+    """A budget card is used outside its calibrated depth or stiffness range because the caller
+    asked for it (``extrapolate=True``): the effective material's error there is unmeasured."""
