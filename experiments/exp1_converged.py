@@ -304,10 +304,15 @@ def run_fits(models, cell_sizes):
     for h in cell_sizes:
         for model in models:
             out = RESULTS / f"exp1_converged_fit_{model}_h{h * 1e3:g}mm.json"
-            if out.exists():
+            claim = out.with_suffix(".running")  # another process fits this level: skip it
+            if out.exists() or claim.exists():
                 continue
-            row = fit_one(model, h, force)
-            out.write_text(json.dumps(row, indent=2))
+            claim.write_text("")
+            try:
+                row = fit_one(model, h, force)
+                out.write_text(json.dumps(row, indent=2))
+            finally:
+                claim.unlink()
             print(json.dumps(row), flush=True)
 
 
