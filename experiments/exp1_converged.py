@@ -329,18 +329,25 @@ def report():
     if not fits:
         return
     summary = {}
-    print("\n| model | h [mm] | cells per half-width | nodes | E error | nu error | force error at truth | steps | CPU [s] |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("\n| model | h [mm] | cells per half-width | nodes | E error | order (E) | nu error | order (nu) | force error at truth | steps | CPU [s] |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    slope = lambda a, b, ha, hb: np.log(abs(a) / abs(b)) / np.log(ha / hb) if a * b > 0 else float("nan")  # noqa: E731
     for model in ("springs_volume", "fem_linear", "stable_neo_hookean"):
         rows = sorted((f for f in fits if f["model"] == model), key=lambda f: -f["cell_size_m"])
-        for f in rows:
-            print(f"| {model} | {f['cell_size_m'] * 1e3:g} | {f['cells_per_half_width']:g} | {f['nodes']:,} | {100 * f['E_error']:+.2f} % | {f['nu_error']:+.4f} | {100 * f['force_error_at_true_material']:+.2f} % | {f['steps']} | {f['cpu_seconds']:.0f} |")
+        for i, f in enumerate(rows):
+            # local order: log-log slope of |error| against h from the previous (coarser) level
+            oE = on = "–"
+            if i:
+                g = rows[i - 1]
+                oE = f"{slope(g['E_error'], f['E_error'], g['cell_size_m'], f['cell_size_m']):.2f}"
+                on = f"{slope(g['nu_error'], f['nu_error'], g['cell_size_m'], f['cell_size_m']):.2f}"
+            print(f"| {model} | {f['cell_size_m'] * 1e3:g} | {f['cells_per_half_width']:g} | {f['nodes']:,} | {100 * f['E_error']:+.2f} % | {oE} | {f['nu_error']:+.4f} | {on} | {100 * f['force_error_at_true_material']:+.2f} % | {f['steps']} | {f['cpu_seconds']:.0f} |")
         if len(rows) >= 3:
             hs = [f["cell_size_m"] for f in rows]
             pE, E0, _ = richardson(hs, [f["E"] for f in rows])
             pn, n0, _ = richardson(hs, [f["nu"] for f in rows])
             summary[model] = {"E_order": pE, "E_limit": E0, "nu_order": pn, "nu_limit": n0}
-    print("\n| model | observed order in E | extrapolated E [kPa] | observed order in nu | extrapolated nu |")
+    print("\n| model | Richardson order in E (3 finest) | extrapolated E [kPa] | Richardson order in nu | extrapolated nu |")
     print("|---|---|---|---|---|")
     for model, s in summary.items():
         fmt = lambda v, spec: "–" if v is None else format(v, spec)  # noqa: E731
