@@ -30,10 +30,11 @@ def test_straight_line_matches_ordinary_least_squares():
     s2 = float(sse[0]) / (x.size - 2)
     se = np.sqrt(s2 * np.diag(np.linalg.inv(X.T @ X)))
     assert res.converged and res.dof == 13
-    np.testing.assert_allclose([res.values["intercept"], res.values["slope"]], beta, rtol=1e-9)
+    # the engine stops once the step left is below 1e-4 standard errors (engine.STATIONARY_STEP)
+    np.testing.assert_allclose([res.values["intercept"], res.values["slope"]], beta, rtol=0, atol=1e-4 * se.min())
     np.testing.assert_allclose([res.standard_errors["intercept"], res.standard_errors["slope"]], se, rtol=1e-7)
-    np.testing.assert_allclose(res.residuals, X @ beta - y, atol=1e-9)
-    np.testing.assert_allclose(res.predictions, X @ beta, atol=1e-9)
+    np.testing.assert_allclose(res.residuals, X @ beta - y, atol=3e-4 * se.max())
+    np.testing.assert_allclose(res.predictions, X @ beta, atol=3e-4 * se.max())
     np.testing.assert_allclose(res.loss, 0.5 * float(sse[0]), rtol=1e-8)
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from .._enumerations import result_code as _result_code
 from .._enumerations import result_message as _result_message
+from .marquardt import ScaledLevenbergMarquardt
 from .problem import FitProblem
 
 
@@ -89,7 +90,9 @@ class Engine:
             import optimistix as optx
 
             self._optx = optx
-            cls = optx.LevenbergMarquardt if method == "levenberg_marquardt" else optx.GaussNewton
+            # Levenberg--Marquardt damps with Marquardt's scaling (lambda diag(J^T J), not
+            # optimistix's lambda I): see :mod:`difftissue.fit.marquardt`.
+            cls = ScaledLevenbergMarquardt if method == "levenberg_marquardt" else optx.GaussNewton
             self.solver = cls(rtol=self.rtol, atol=self.atol)
             # The predictions ride along as the solver's aux: with the residual and Jacobian
             # the solver keeps at the accepted point, they give the fit's final evaluation
@@ -246,7 +249,13 @@ class Engine:
                 trial = state_new.y_eval - u_new
                 rejected = state_new.num_steps_since_acceptance > 0
                 negligible = rejected & (jnp.linalg.norm(trial) <= atol + rtol * jnp.linalg.norm(u_new))
-                finished = term | (status != 0) | negligible
+                # And stop when the accepted point is stationary to within a statistically
+                # negligible step: the Gauss--Newton step that is left moves the parameters by
+                # less than STATIONARY_STEP standard errors (Bates & Watts' relative-offset
+                # criterion). On noisy data the x tolerance rtol |u| can sit below the
+                # forward model's own precision, and the fit would crawl at a constant loss
+                # until max_steps.
+                finished = term | (status != 0) | negligible | _stationary(state_new.f_info.jac.as_matrix(), r)
                 u_out = jnp.where(done, u, u_new)
                 dyn_out = _tree_where(done, dyn, dyn_new)
                 return u_out, dyn_out, done | finished, jnp.where(done, 0, status), loss
@@ -307,6 +316,26 @@ class Engine:
             msg = _result_message(self._optx.RESULTS, code).strip().split("\n")[0]
             return f"optimistix: {msg}"
         return f"status {code}"
+
+
+#: A fit stops when the Gauss--Newton step left at the accepted point is smaller than this many
+#: standard errors of the parameters (see :func:`_stationary`).
+STATIONARY_STEP = 1e-4
+
+
+def _stationary(J, r):
+    """Whether the Gauss--Newton step ``delta = -J^+ r`` left at a point with residuals ``r``
+    (n,) and Jacobian ``J`` (n, p) is below :data:`STATIONARY_STEP` standard errors:
+    ``delta^T J^T J delta / s^2 <= STATIONARY_STEP^2`` with ``s^2 = |r|^2 / (n - p)``, i.e.
+    the predicted loss decrease ``|J delta|^2 / 2`` at most ``STATIONARY_STEP^2 loss / (n - p)``.
+    Never true where ``n <= p`` (no residual variance) or the loss is 0."""
+    n, p = J.shape
+    if n <= p:
+        return jnp.asarray(False)
+    delta = jnp.linalg.lstsq(J, r)[0]
+    predicted = 0.5 * jnp.sum((J @ delta) ** 2)
+    loss = 0.5 * jnp.sum(r * r)
+    return jnp.all(jnp.isfinite(J)) & (loss > 0) & (predicted <= STATIONARY_STEP**2 * loss / (n - p))
 
 
 #: Adam: the most halvings of a step whose trial point has a non-finite loss (a failed static

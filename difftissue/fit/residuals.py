@@ -230,7 +230,7 @@ def least_squares(
     if stopped:
         reason = "stopped: target reached"
     elif converged:
-        reason = "step and residual change below rtol/atol"
+        reason = "step and residual change below rtol/atol, or the remaining step below 1e-4 standard errors"
     elif status != 0:
         reason = f"failed: {engine.status_message(status)}"
     else:
