@@ -414,9 +414,10 @@ reaction = {{ set = "punch", components = "z", force = [{force!r}] }}
 
 
 def test_an_unusable_fit_writes_its_outputs_and_exits_3(tmp_path, capsys):
-    """Not converged (max_steps = 1) or E outside fit.plausible: the answer is unusable."""
+    """Not converged (max_steps = 1 from the config's E = 100 Pa, far from the data) or E outside
+    fit.plausible: the answer is unusable."""
     base = _AFM.read_text().replace('path = "data/', f'path = "{_AFM.parent}/data/')
-    for extra, flag in (("max_steps = 1", "not_converged"), ("plausible = { youngs_modulus = [1e3, 1e9] }", "implausible_value")):
+    for extra, flag in (("max_steps = 1\nstart = \"material\"", "not_converged"), ("plausible = { youngs_modulus = [1e3, 1e9] }", "implausible_value")):
         cfg = tmp_path / f"{flag}.toml"
         cfg.write_text(base.replace('method = "levenberg_marquardt"', 'method = "levenberg_marquardt"\n' + extra))
         rc = main(["fit", str(cfg), "--out", str(tmp_path / flag)])
