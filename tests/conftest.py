@@ -61,6 +61,20 @@ if LoadFileScheduling is not None:
     class _LoadFileSchedulingRerunsCrashed(LoadFileScheduling):
         """``--dist loadfile`` whose crashed test is re-run by pytest-rerunfailures."""
 
+        def _reschedule(self, node) -> None:
+            super()._reschedule(node)
+            # A worker runs a test only once it knows the next one (or is told to shut down), so a
+            # node left with fewer than two pending tests never reports a completion, and the
+            # scheduler reschedules only on completions. The replacement of a crashed worker gets
+            # ONE work unit (xdist gives two only in the initial distribution); when that unit is
+            # the crashed test alone, the run deadlocked at the end (reproduced with a synthetic
+            # crash in the last test of a file). Give such a node more work, or shut it down.
+            while not node.shutting_down and node in self.assigned_work and self._pending_of(self.assigned_work[node]) < 2:
+                if not self.workqueue:
+                    node.shutdown()
+                    break
+                self._assign_work_unit(node)
+
         def mark_test_pending(self, item: str) -> None:
             # remove_node() (called before this, when the worker went down) has put the whole
             # work unit of the crashed worker back into the queue, ``item`` included and not
