@@ -25,7 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .boundary import BoundaryConditions
-from .errors import ConfigError, ConvergenceError, DifftissueWarning, ModelError
+from .errors import (BudgetExtrapolationWarning, BudgetRangeError, BudgetSaturationError, ConfigError, ConvergenceError, DifftissueWarning,
+                     ModelError)
 from .fit.residuals import ResidualProblem, least_squares
 from .materials import MATERIAL_FIELDS, Identity, Material, ScaledLogit
 from .mesh import signed_volumes
@@ -756,7 +757,6 @@ class LoadSetCalibration:
         Warns:
             BudgetExtrapolationWarning: depth or modulus outside the range with ``extrapolate=True``.
         """
-        from .errors import BudgetExtrapolationWarning, BudgetRangeError
 
         v = self.validity
         if settings is not None:
@@ -874,7 +874,6 @@ def calibrate_for_load_set(
         BudgetSaturationError: the budget cannot carry a load of the set (``.proposal``).
         ConvergenceError: a reference or budgeted solve did not come to rest.
     """
-    from .errors import BudgetSaturationError
 
     if not isinstance(settings, XPBDSettings):
         raise ConfigError(f"settings must be an XPBDSettings, got {type(settings).__name__}")
