@@ -44,7 +44,7 @@ from .constitutive import surface_tension as _model_surface_tension
 from .materials import Material, explicit_pre_stretch_y
 from .mesh import Specimen, signed_volumes, write_mesh
 from .models import make_model, stack_materials
-from .solvers.static import solve_static
+from .solvers.static import prediction_rtol, solve_static
 
 __all__ = [
     "QUANTITIES",
@@ -99,6 +99,12 @@ class IncisionOptions:
             raise ConfigError(f"failure must be 'raise' or 'nan', got {self.failure!r}")
         if self.atol is not None and not self.atol >= 0:
             raise ConfigError(f"atol must be >= 0 N, got {self.atol!r}")
+
+    @property
+    def prediction_rtol(self) -> float:
+        """Relative precision [-] of an opening width computed with these options
+        (:func:`~difftissue.solvers.static.prediction_rtol`)."""
+        return prediction_rtol(self.rtol, self.xtol)
 
 
 class IncisionResult(NamedTuple):
@@ -517,6 +523,11 @@ class Incision(eqx.Module):
 
     def _predict(self, material):
         return self._observable(self._solve_cut(material).opening)
+
+    @property
+    def prediction_rtol(self) -> float:
+        """Relative precision [-] of the predictions (from the solver options)."""
+        return self.options.prediction_rtol
 
     def predict(self, material: Material):
         """The ``quantity`` after the cut, shape ``observed.shape`` (its unit)."""

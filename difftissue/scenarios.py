@@ -9,7 +9,9 @@ can fit any of them, alone or jointly. Every scenario has:
 - ``name``; ``observed`` ``(n,)`` and ``sigma`` ``(n,)`` (the measurement scale used as
   the weight ``1/sigma``) in the unit of the prediction;
 - ``abscissa`` ``(n,)`` with ``x_label`` / ``y_label`` (units included) for plots;
-- ``predict(material) -> (n,)``.
+- ``predict(material) -> (n,)``;
+- optionally ``prediction_rtol``: the relative precision [-] of the predictions (simulated
+  scenarios: from their solver tolerances); a fit stops once its residuals are within it.
 
 Scenarios:
 
@@ -50,7 +52,7 @@ from .interpolation import interpolation_operator
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
-from .solvers.static import solve_static
+from .solvers.static import prediction_rtol, solve_static
 from .structure_keys import data_leaf_indices, hash_scenario_leaves
 
 __all__ = [
@@ -430,6 +432,12 @@ class SolverOptions:
     def __post_init__(self):
         if self.failure not in ("raise", "nan"):
             raise ConfigError(f"solver failure must be 'raise' or 'nan', got {self.failure!r}")
+
+    @property
+    def prediction_rtol(self) -> float:
+        """Relative precision [-] of a prediction computed with these options
+        (:func:`~difftissue.solvers.static.prediction_rtol`)."""
+        return prediction_rtol(self.rtol, self.xtol)
 
 
 _JITTED: dict[int, tuple[Any, Any]] = {}
@@ -938,6 +946,11 @@ class Indentation(eqx.Module):
         _, (forces, us) = jax.lax.scan(step, _history(u0), jnp.asarray(depths, dtype=u0.dtype))
         return forces, us
 
+    @property
+    def prediction_rtol(self) -> float:
+        """Relative precision [-] of the predictions (from the solver options)."""
+        return self.options.prediction_rtol
+
     def predict(self, material: Material, contact_offset=0.0):
         """Indentation force [N] at each depth (positive compressive); ``contact_offset`` [m]
         shifts every depth (see :meth:`solve`)."""
@@ -1112,6 +1125,11 @@ class Compression(eqx.Module):
         u0 = jnp.zeros_like(self.bc.displacement)
         _, (stress, us) = jax.lax.scan(step, _history(u0), jnp.asarray(nominal, dtype=u0.dtype))
         return stress, us
+
+    @property
+    def prediction_rtol(self) -> float:
+        """Relative precision [-] of the predictions (from the solver options)."""
+        return self.options.prediction_rtol
 
     def predict(self, material: Material):
         """Stress [Pa] at each strain (compression positive)."""
@@ -1345,6 +1363,11 @@ class FEMField(eqx.Module):
                     f"reaction is the force the supports exert on the prescribed nodes, summed over reaction.set: negative along "
                     f"an axis the nodes are pushed into the specimen (a punch pressed down in -{c} gives a negative {c} reaction). "
                     f"Give reaction.force = [{-o:.6g}] (N), or flip the sign of the reference's reaction field")
+
+    @property
+    def prediction_rtol(self) -> float:
+        """Relative precision [-] of the predictions (from the solver options)."""
+        return self.options.prediction_rtol
 
     def predict(self, material: Material):
         sol = self.solve(material)

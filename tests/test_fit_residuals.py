@@ -99,3 +99,48 @@ def test_bad_problems_raise():
         least_squares(bad, [1.0])
     with pytest.raises(FitError, match="method"):
         least_squares(_line_problem(np.zeros(3), np.zeros(3)), [0.0, 0.0], method="newton")
+
+
+def test_exact_data_stop_when_the_gauss_newton_step_left_is_below_the_x_tolerance(monkeypatch):
+    """Noise-free data: the loss left at the optimum is round-off, which a step can still halve,
+    so the statistical stop never holds and the damped steps crawl below the x tolerance. The
+    engine stops at the first accepted point whose Gauss--Newton step is below ``atol + rtol
+    |u|``: fewer steps than with the statistical stop alone, at the same point to that tolerance.
+    """
+    from difftissue.fit import engine
+
+    t = np.linspace(0.0, 3.0, 12)
+    y = 2.0 * np.exp(-0.8 * t)
+    new = least_squares(_decay_problem(t, y), [1.0, 1.0])
+    assert new.converged
+    np.testing.assert_allclose([new.values["amplitude"], new.values["rate"]], [2.0, 0.8], rtol=1e-8)
+
+    statistical = engine._stationary
+
+    def statistical_only(J, r, u, rtol, atol):
+        return statistical(J, r, u, 0.0, 0.0) & jnp.any(r != 0)  # x test off: |delta| < 0 never holds
+
+    monkeypatch.setattr(engine, "_stationary", statistical_only)
+    old = least_squares(_decay_problem(t, y), [1.0, 1.0])  # a new problem: compiled again with the patch
+    assert new.steps < old.steps
+    u_new = np.log([new.values["amplitude"], new.values["rate"]])
+    u_old = np.log([old.values["amplitude"], old.values["rate"]])
+    np.testing.assert_allclose(u_new, u_old, rtol=1e-8, atol=1e-10)
+
+
+def test_stationary_tests_the_gauss_newton_step_left():
+    from difftissue.fit.engine import STATIONARY_STEP, _stationary
+
+    J = jnp.array([[1.0, 0.0], [0.0, 2.0], [1.0, 1.0]])
+    u = jnp.array([1.0, -3.0])
+    # residual in the range of J: delta = J^+ r = (1e-9, -2e-9) is all fit, none of it scatter
+    r = J @ jnp.array([1e-9, -2e-9])
+    assert bool(_stationary(J, r, u, 1e-8, 1e-10))  # below atol + rtol |u| = (1.01e-8, 3.01e-8)
+    assert not bool(_stationary(J, 100.0 * r, u, 1e-8, 1e-10))  # 100x: above it, and no scatter
+    # the same step with a little scatter orthogonal to J's range: still far above 1e-4
+    # standard errors; with large scatter the step is statistically negligible
+    scatter = jnp.cross(J[:, 0], J[:, 1])
+    assert not bool(_stationary(J, 100.0 * r + 1e-6 * scatter, u, 1e-8, 1e-10))
+    assert bool(_stationary(J, 100.0 * r + scatter, u, 0.0, 0.0))
+    tiny_fit = (STATIONARY_STEP / 10) * jnp.linalg.norm(scatter) * J @ jnp.array([1.0, 0.0]) / jnp.linalg.norm(J @ jnp.array([1.0, 0.0]))
+    assert bool(_stationary(J, scatter + tiny_fit, u, 0.0, 0.0))

@@ -176,6 +176,8 @@ class SeparatelyCompiled:
         self.calls = {"value": 0, "value_and_tangents": 0}
         for k in ("name", "observed", "sigma", "abscissa", "x_label", "y_label"):
             setattr(self, k, getattr(scenario, k))
+        #: relative precision [-] of the inner scenario's predictions (0: none stated)
+        self.prediction_rtol = float(getattr(scenario, "prediction_rtol", 0.0))
         n = int(np.asarray(scenario.observed).size)
         self._leaves = _MATERIAL_LEAVES + (("pre_stretch_y",) if pre_stretch_y else ())
         n_leaves = len(self._leaves)

@@ -254,8 +254,14 @@ class Engine:
                 # less than STATIONARY_STEP standard errors (Bates & Watts' relative-offset
                 # criterion). On noisy data the x tolerance rtol |u| can sit below the
                 # forward model's own precision, and the fit would crawl at a constant loss
-                # until max_steps.
-                finished = term | (status != 0) | negligible | _stationary(state_new.f_info.jac.as_matrix(), r)
+                # until max_steps. Or when that Gauss--Newton step is below the x tolerance:
+                # on exact (noise-free) data the point is then converged, and the damped steps
+                # left would only move it below the tolerance (see :func:`_stationary`).
+                # And when the residuals are within the forward models' own precision of the data
+                # (FitProblem.precision_floor: simulated, noise-free data): the steps after that
+                # fit round-off, whose Gauss--Newton step can stay above the x tolerance.
+                at_floor = jnp.linalg.norm(r) <= template.with_data(data).precision_floor()
+                finished = term | (status != 0) | negligible | at_floor | _stationary(state_new.f_info.jac.as_matrix(), r, u_new, rtol, atol)
                 u_out = jnp.where(done, u, u_new)
                 dyn_out = _tree_where(done, dyn, dyn_new)
                 return u_out, dyn_out, done | finished, jnp.where(done, 0, status), loss
@@ -323,19 +329,29 @@ class Engine:
 STATIONARY_STEP = 1e-4
 
 
-def _stationary(J, r):
-    """Whether the Gauss--Newton step ``delta = -J^+ r`` left at a point with residuals ``r``
-    (n,) and Jacobian ``J`` (n, p) is below :data:`STATIONARY_STEP` standard errors:
-    ``delta^T J^T J delta / s^2 <= STATIONARY_STEP^2`` with ``s^2 = |r|^2 / (n - p)``, i.e.
-    the predicted loss decrease ``|J delta|^2 / 2`` at most ``STATIONARY_STEP^2 loss / (n - p)``.
-    Never true where ``n <= p`` (no residual variance) or the loss is 0."""
+def _stationary(J, r, u, rtol, atol):
+    """Whether the accepted point ``u`` (p,) with residuals ``r`` (n,) and Jacobian ``J`` (n, p)
+    is converged by the Gauss--Newton step left there, ``delta = -J^+ r``:
+
+    - statistically: ``delta`` is below :data:`STATIONARY_STEP` standard errors,
+      ``delta^T J^T J delta / s^2 <= STATIONARY_STEP^2`` with ``s^2 = |r|^2 / (n - p)``, i.e. the
+      predicted loss decrease ``|J delta|^2 / 2`` is at most ``STATIONARY_STEP^2 loss / (n - p)``
+      (never where ``n <= p``: no residual variance; or where the loss is 0);
+    - or numerically: every component of ``delta`` is below the x tolerance,
+      ``|delta_i| < atol + rtol |u_i|`` (the test optimistix applies to an accepted step, here
+      applied to the step still to go). On exact, noise-free data the first test cannot hold
+      (the loss left is the forward model's round-off, which a step can still halve), and the
+      damped steps after a converged point would only move it below this tolerance.
+    """
     n, p = J.shape
-    if n <= p:
-        return jnp.asarray(False)
+    finite = jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(r))
     delta = jnp.linalg.lstsq(J, r)[0]
+    small = jnp.all(jnp.abs(delta) < atol + rtol * jnp.abs(u))
+    if n <= p:
+        return finite & small
     predicted = 0.5 * jnp.sum((J @ delta) ** 2)
     loss = 0.5 * jnp.sum(r * r)
-    return jnp.all(jnp.isfinite(J)) & (loss > 0) & (predicted <= STATIONARY_STEP**2 * loss / (n - p))
+    return finite & (small | ((loss > 0) & (predicted <= STATIONARY_STEP**2 * loss / (n - p))))
 
 
 #: Adam: the most halvings of a step whose trial point has a non-finite loss (a failed static

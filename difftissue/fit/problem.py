@@ -104,7 +104,7 @@ class FitProblem:
         if not scenarios:
             raise FitError("no scenario to fit")
         names = []
-        observed, sigma = [], []
+        observed, sigma, precision = [], [], []
         for i, sc in enumerate(scenarios):
             name = getattr(sc, "name", None)
             if not isinstance(name, str) or not name:
@@ -123,9 +123,13 @@ class FitProblem:
                 raise FitError(f"scenario {name!r}: observed holds {int(np.sum(~np.isfinite(obs)))} non-finite value(s)")
             if not (np.all(np.isfinite(sig)) and np.all(sig > 0)):
                 raise FitError(f"scenario {name!r}: every sigma must be finite and > 0 (same unit as observed)")
+            eps = getattr(sc, "prediction_rtol", 0.0)
+            if not (isinstance(eps, (int, float, np.floating)) and math.isfinite(eps) and 0.0 <= eps < 1.0):
+                raise FitError(f"scenario {name!r}: prediction_rtol must be a number in [0, 1), got {eps!r}")
             names.append(name)
             observed.append(obs)
             sigma.append(sig)
+            precision.append(float(eps))
         self.scenarios = scenarios
         self.names = tuple(names)
         self.parameterization = parameterization
@@ -135,6 +139,7 @@ class FitProblem:
         self.f_scale = float(f_scale)
         self._observed = tuple(observed)
         self._sigma = tuple(sigma)
+        self.prediction_rtol = tuple(precision)
         self.sizes = tuple(o.size for o in observed)
         self.n_residuals = int(sum(self.sizes))
         self.n_parameters = len(self.fields)
@@ -232,6 +237,14 @@ class FitProblem:
 
     def _scaled(self, preds) -> jax.Array:
         return jnp.concatenate([(p - obs) / sig for p, obs, sig in zip(preds, self._observed, self._sigma)])
+
+    def precision_floor(self) -> jax.Array:
+        """The 2-norm of the scaled residuals [-] within which the predictions reproduce the data
+        to the forward models' own precision: ``|eps_k observed_k / sigma_k|_2`` over all rows,
+        ``eps_k`` the ``prediction_rtol`` of row k's scenario (0 where a scenario states none,
+        e.g. closed forms). Below it the steps fit the models' round-off (noise-free,
+        simulated data), and the fit engine stops (see :mod:`difftissue.fit.engine`)."""
+        return jnp.sqrt(sum(jnp.sum((eps * obs / sig) ** 2) for eps, obs, sig in zip(self.prediction_rtol, self._observed, self._sigma)))
 
     def scaled_residuals_of(self, material: Material) -> jax.Array:
         """``(predict - observed) / sigma`` of all scenarios, concatenated, shape ``(n,)`` [-]."""

@@ -84,6 +84,11 @@ class ResidualProblem:
         new._data = data
         return new
 
+    def precision_floor(self) -> jax.Array:
+        """0: a residual function states no precision of its own (the engine's x tests and
+        statistical stop end such fits; see :meth:`FitProblem.precision_floor`)."""
+        return jnp.asarray(0.0)
+
     def structure_key(self) -> tuple:
         shapes = tuple((np.shape(a), np.result_type(a).str) for a in jax.tree_util.tree_leaves(self._data))
         own = ("key", self.key) if self.key is not None else ("function", id(self.residual_fn))
@@ -230,7 +235,7 @@ def least_squares(
     if stopped:
         reason = "stopped: target reached"
     elif converged:
-        reason = "step and residual change below rtol/atol, or the remaining step below 1e-4 standard errors"
+        reason = "step and residual change below rtol/atol, the remaining step below 1e-4 standard errors or rtol/atol, or residuals within the model's precision"
     elif status != 0:
         reason = f"failed: {engine.status_message(status)}"
     else:

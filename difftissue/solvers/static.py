@@ -614,6 +614,15 @@ LINEAR_SOLVERS = ("multigrid", "sparse", "dense", "cg")
 AUTO_DENSE_MAX = 3_000
 
 
+def prediction_rtol(rtol: float, xtol: float) -> float:
+    """Relative precision [-] claimed for a quantity (a force, a displacement, an opening width)
+    computed from static solves converged to the residual tolerance ``rtol`` and the Newton
+    correction tolerance ``xtol`` of :func:`solve_static`: ``max(rtol, xtol)``. A fit treats
+    residuals within this precision of the data as the forward model's round-off (it stops
+    there: :meth:`difftissue.fit.problem.FitProblem.precision_floor`)."""
+    return max(float(rtol), float(xtol))
+
+
 def auto_linear_solver(n_unknowns: int, *, concrete: bool = True) -> str:
     """The linear solver ``linear_solver="auto"`` uses for ``n_unknowns`` (3 x nodes).
 
