@@ -1,6 +1,7 @@
 """ONE optimiser engine and ONE step loop for :func:`~difftissue.fit.fit` and
 :func:`~difftissue.fit.fit_batch`: the tolerance defaults, the vmapped single-start step of
-each method (optimistix Levenberg--Marquardt / Gauss--Newton, optax Adam / L-BFGS), the
+each method (Levenberg--Marquardt / Gauss--Newton on optimistix's public extension points,
+:mod:`difftissue.fit.gauss_newton`; optax Adam / L-BFGS), the
 compiled-engine cache and the Python loop that calls the step.
 """
 
