@@ -1,6 +1,7 @@
 """ONE optimiser engine and ONE step loop for :func:`~difftissue.fit.fit` and
 :func:`~difftissue.fit.fit_batch`: the tolerance defaults, the vmapped single-start step of
-each method (optimistix Levenberg--Marquardt / Gauss--Newton, optax Adam / L-BFGS), the
+each method (Levenberg--Marquardt / Gauss--Newton on optimistix's public extension points,
+:mod:`difftissue.fit.gauss_newton`; optax Adam / L-BFGS), the
 compiled-engine cache and the Python loop that calls the step.
 """
 
@@ -15,6 +16,7 @@ import numpy as np
 
 from .._enumerations import result_code as _result_code
 from .._enumerations import result_message as _result_message
+from .gauss_newton import GaussNewton, GaussNewtonState
 from .marquardt import ScaledLevenbergMarquardt
 from .problem import FitProblem
 
@@ -91,8 +93,12 @@ class Engine:
 
             self._optx = optx
             # Levenberg--Marquardt damps with Marquardt's scaling (lambda diag(J^T J), not
-            # optimistix's lambda I): see :mod:`difftissue.fit.marquardt`.
-            cls = ScaledLevenbergMarquardt if method == "levenberg_marquardt" else optx.GaussNewton
+            # optimistix's lambda I): see :mod:`difftissue.fit.marquardt`. Both solvers are
+            # difftissue's (:mod:`difftissue.fit.gauss_newton`: optimistix's Gauss--Newton
+            # algorithm on its public extension points), so the state the engine reads below
+            # -- residual, Jacobian and aux at the accepted point, the next trial point -- is
+            # difftissue's :class:`GaussNewtonState`, not a private optimistix class.
+            cls = ScaledLevenbergMarquardt if method == "levenberg_marquardt" else GaussNewton
             self.solver = cls(rtol=self.rtol, atol=self.atol)
             # The predictions ride along as the solver's aux: with the residual and Jacobian
             # the solver keeps at the accepted point, they give the fit's final evaluation
@@ -192,7 +198,7 @@ class Engine:
                     return jnp.stack([vals[f] for f in fields])
 
                 def one(u, d):
-                    state = eqx.combine(d, static)
+                    state: GaussNewtonState = eqx.combine(d, static)
                     Ju = state.f_info.jac.as_matrix()
                     dvdu = jax.jacfwd(values_of)(u)
                     Jv = jnp.linalg.solve(dvdu.T, Ju.T).T  # Ju = Jv dv/du
@@ -233,7 +239,7 @@ class Engine:
             solver, fn, options, tags, static = self.solver, self._fn, self._options, self._tags, self._static
 
             def one(u, dyn, done, data):
-                state = eqx.combine(dyn, static)
+                state: GaussNewtonState = eqx.combine(dyn, static)
                 u_new, state_new, _ = solver.step(fn, u, data, options, state, tags)
                 term, result = solver.terminate(fn, u_new, data, options, state_new, tags)
                 dyn_new = eqx.partition(state_new, eqx.is_array)[0]

@@ -12,9 +12,10 @@ the Jacobian (their running maximum over the steps, as MINPACK's ``lmder``): the
     min_delta |J delta + r|^2 + lambda |D delta|^2
 
 is then the same whatever units the parameters are in. This module is that descent
-(:class:`ScaledDampedNewtonDescent`) and the solver built from it with optimistix's trust
-region (:class:`ScaledLevenbergMarquardt`), through optimistix's documented extension points
-(``AbstractDescent``, ``AbstractGaussNewton``).
+(:class:`ScaledDampedNewtonDescent`, on optimistix's public ``AbstractDescent``) and the
+solver built from it with optimistix's trust region (:class:`ScaledLevenbergMarquardt`, on
+difftissue's :class:`~difftissue.fit.gauss_newton.AbstractGaussNewtonFamily`, whose state
+the fit engine reads).
 """
 
 from __future__ import annotations
@@ -26,6 +27,8 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import optimistix as optx
+
+from .gauss_newton import AbstractGaussNewtonFamily
 
 __all__ = ["ScaledDampedNewtonDescent", "ScaledLevenbergMarquardt", "INITIAL_DAMPING"]
 
@@ -85,14 +88,11 @@ class ScaledDampedNewtonDescent(optx.AbstractDescent):
         return -solution.value, optx.RESULTS.promote(solution.result)
 
 
-def _no_verbose(**kwargs) -> None:
-    del kwargs
-
-
-class ScaledLevenbergMarquardt(optx.AbstractGaussNewton):
-    """Levenberg--Marquardt with Marquardt's scaling (see the module docstring): optimistix's
-    Gauss--Newton machinery, its classical trust region and Cauchy termination, with the
-    :class:`ScaledDampedNewtonDescent` step.
+class ScaledLevenbergMarquardt(AbstractGaussNewtonFamily):
+    """Levenberg--Marquardt with Marquardt's scaling (see the module docstring): the
+    Gauss--Newton machinery of :class:`~difftissue.fit.gauss_newton.AbstractGaussNewtonFamily`
+    (optimistix's algorithm, with difftissue's state), optimistix's classical trust region and
+    the Cauchy termination, with the :class:`ScaledDampedNewtonDescent` step.
 
     Attributes:
         rtol, atol: termination tolerances (as :class:`optimistix.LevenbergMarquardt`).
@@ -106,4 +106,3 @@ class ScaledLevenbergMarquardt(optx.AbstractGaussNewton):
     norm: Callable = optx.max_norm
     descent: ScaledDampedNewtonDescent = ScaledDampedNewtonDescent()
     search: optx.ClassicalTrustRegion = optx.ClassicalTrustRegion()
-    verbose: Callable = _no_verbose
