@@ -354,7 +354,7 @@ class _SurfaceGeometry:
                 k = int(bad[0])
                 raise CutError(f"scalpel path point {k} {np.round(path.points[k], 9).tolist()} m is {dist[k]:.3g} m off the specimen's boundary surface "
                                f"(3-D points of a path on surface='boundary' must lie on it, within {tol:.3g} m)")
-            v_pts = np.einsum("qk,qkj->qj", v_bary, tri[v_face])
+            v_pts = self._on_face(v_face, v_bary[:, 1], v_bary[:, 2])
         v_nrm = self._normals(v_face, v_bary)
         # 2. each segment: samples every quarter cell, projected; one frame where it is straight
         poly, nrm_at, straight_of = [v_pts[:1]], [v_nrm[:1]], []
@@ -446,8 +446,16 @@ class _SurfaceGeometry:
                            "(no boundary face under this path point faces out along the projection)")
         uu, vv = u[r, f], v[r, f]
         bary = np.column_stack([1 - uu - vv, uu, vv])
-        pts = origins + t[r, f][:, None] * np.broadcast_to(direction, origins.shape)
+        pts = self._on_face(f, uu, vv)
+        if first:  # a vertical projection keeps the given x, y
+            pts[:, :2] = origins[:, :2]
         return pts, f, bary
+
+    def _on_face(self, f, u, v):
+        """The point ``a + u (b - a) + v (c - a)`` of boundary triangle ``f`` (exactly in the
+        plane of a triangle whose corners share a coordinate, e.g. the flat top's z)."""
+        tri = self._tri[f]
+        return tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
 
     def patch(self):
         """The boundary faces of the path's surface patch: reached from the face under the path's
