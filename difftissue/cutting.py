@@ -13,7 +13,9 @@ created. The result is a
 (:class:`CutClosureModel`), so sweeping ``s`` never recompiles.
 
 Coordinates are metres. The specimen's top surface is the plane ``z = max z`` of the mesh; the
-depth ``h`` of a point is ``z_top - z``. See ``docs/cutting.md`` ("Cut topology").
+depth ``h`` of a point is ``z_top - z``. A path with ``surface="boundary"`` lies on a (curved)
+boundary surface instead: the depth is measured along the surface normal
+(:class:`_SurfaceGeometry`). See ``docs/cutting.md`` ("Cut topology", "Cuts on curved surfaces").
 """
 
 from __future__ import annotations

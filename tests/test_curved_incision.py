@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 from difftissue.boundary import BoundaryConditions
 from difftissue.cutting import ScalpelPath, _prepare, cut_specimen, opening_width
 from difftissue.errors import ConfigError, CutError
-from difftissue.incision import Incision, IncisionOptions
+from difftissue.incision import Incision, IncisionOptions, plot_incision
 from difftissue.materials import Material
 from difftissue.mesh import Specimen, TetMesh, block, curved_top, signed_volumes
 
@@ -103,7 +103,7 @@ def dome():
     return curved_top(block((8 * MM, 8 * MM, H_DOME), (16, 16, 6), origin=(-4 * MM, -4 * MM, 0.0)), R_DOME)
 
 
-def test_cut_on_a_dome_follows_the_surface(dome):
+def test_cut_on_a_dome_follows_the_surface(dome, tmp_path):
     """A straight path in plan on a dome (R = 10 mm, 0.5 mm cells): the cut follows the sphere
     (its length is the arc's, to the faceting's 1e-3), the surface pairs' nodes lie on the
     sphere within the faceting's chord error e^2 / 8R (e the longest boundary edge), every
@@ -145,6 +145,8 @@ def test_cut_on_a_dome_follows_the_surface(dome):
     # the opening is measured across the blade
     op = opening_width(cut, X)
     assert float(op.max_width) == pytest.approx(0.0, abs=1e-15)
+    # the picture shows the curved top
+    assert plot_incision(cut, np.zeros_like(X), tmp_path / "dome.png").stat().st_size > 0
     # element removal works on the dome as well
     removed = cut_specimen(dome, path, method="remove")
     assert removed.quality.n_removed > 0 and removed.surface_pairs.size > 0
