@@ -13,7 +13,9 @@ created. The result is a
 (:class:`CutClosureModel`), so sweeping ``s`` never recompiles.
 
 Coordinates are metres. The specimen's top surface is the plane ``z = max z`` of the mesh; the
-depth ``h`` of a point is ``z_top - z``. See ``docs/cutting.md`` ("Cut topology").
+depth ``h`` of a point is ``z_top - z``. A path with ``surface="boundary"`` lies on a (curved)
+boundary surface instead: the depth is measured along the surface normal
+(:class:`_SurfaceGeometry`). See ``docs/cutting.md`` ("Cut topology", "Cuts on curved surfaces").
 """
 
 from __future__ import annotations
@@ -69,12 +71,22 @@ class ScalpelPath:
             cuts the plane through the path whose normal is the horizontal path normal tilted
             by ``tilt``: at depth ``h`` the cut lies ``h tan(tilt)`` to the left of the path.
             Only straight (two-point) paths may be tilted; ``|tilt| <= 60 deg``.
+        surface: ``"top"`` (the flat plane ``z = max z``; depth measured vertically) or
+            ``"boundary"``: the path lies on the specimen's boundary surface, which may be
+            curved (a dome, a cylinder, a block in any orientation). ``(K, 2)`` points are
+            projected vertically (along -z) onto the surface below them, ``(K, 3)`` points must
+            lie on the surface (within ``1e-6`` of the mesh size). The path follows the surface
+            between its points, the depth is measured along the surface normal and the blade
+            lies in the plane through the path and the normal (see ``docs/cutting.md``, "Cuts
+            on curved surfaces"). A tilted blade needs a path along a straight line of the
+            surface (a plane, a cylinder's generator).
     """
 
     points: Any
     depth: float | None = None
     through: bool = False
     tilt: float = 0.0
+    surface: str = "top"
 
     def __post_init__(self):
         p = np.asarray(self.points, dtype=float)
@@ -84,7 +96,11 @@ class ScalpelPath:
             raise CutError(f"a scalpel path needs at least 2 points, got {len(p)}")
         if not np.all(np.isfinite(p)):
             raise CutError("scalpel path points contain NaN or infinite values")
-        seg = np.linalg.norm(np.diff(p[:, :2], axis=0), axis=1)
+        if self.surface not in ("top", "boundary"):
+            raise CutError(f"surface must be 'top' or 'boundary', got {self.surface!r}")
+        # A path on the boundary given in 3-D is checked in 3-D (its xy projection may be degenerate).
+        q = p if (self.surface == "boundary" and p.shape[1] == 3) else p[:, :2]
+        seg = np.linalg.norm(np.diff(q, axis=0), axis=1)
         if seg.sum() <= 0:
             raise CutError("the scalpel path has zero length (all points coincide)")
         rep = np.flatnonzero(seg <= 1e-12 * seg.sum())
@@ -106,12 +122,12 @@ class ScalpelPath:
             raise CutError("a tilted blade is supported on straight (two-point) paths only; split the cut or use tilt=0")
         object.__setattr__(self, "tilt", t)
         object.__setattr__(self, "through", bool(self.through))
-        tang = np.diff(p[:, :2], axis=0) / seg[:, None]
+        tang = np.diff(q, axis=0) / seg[:, None]
         cosang = np.einsum("ij,ij->i", tang[:-1], tang[1:])
         sharp = np.flatnonzero(cosang < 0.0)
         if sharp.size:
             raise CutError(f"the scalpel path turns by more than 90 degrees at point(s) {_cite(sharp + 1)}; such turns are not supported (cut in two pieces)")
-        bad = _self_intersections(p[:, :2])
+        bad = _self_intersections(_plane_coordinates(q) if q.shape[1] == 3 else q)
         if bad:
             raise CutError(f"the scalpel path intersects itself (segments {bad[0]} and {bad[1]}); self-intersecting cuts are not supported")
 
@@ -121,8 +137,19 @@ class ScalpelPath:
 
     @property
     def length(self) -> float:
-        """Path length [m] (horizontal)."""
-        return float(np.linalg.norm(np.diff(self.xy, axis=0), axis=1).sum())
+        """Length [m] of the polyline through the points: horizontal on the flat top (and for
+        ``(K, 2)`` points on the boundary), 3-D for ``(K, 3)`` points on the boundary (the cut's
+        length along a curved surface is :attr:`Cut.length`)."""
+        q = self.points if (self.surface == "boundary" and self.points.shape[1] == 3) else self.xy
+        return float(np.linalg.norm(np.diff(q, axis=0), axis=1).sum())
+
+
+def _plane_coordinates(p: np.ndarray) -> np.ndarray:
+    """2-D coordinates of 3-D points in the plane of their two main directions (for the
+    self-intersection test of a path on a surface)."""
+    c = p - p.mean(axis=0)
+    _, _, vt = np.linalg.svd(c, full_matrices=False)
+    return c @ vt[:2].T
 
 
 def _self_intersections(p: np.ndarray):
@@ -209,6 +236,332 @@ class _Geometry:
         nz = np.full(len(k), self.tan_tilt)
         v = np.concatenate([self.normal[k], nz[:, None]], axis=1)
         return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+#: Feature angle of the cut's surface patch [rad]: boundary faces whose normals differ by more
+#: than this across a shared edge (a block's top edge, 90 degrees) belong to different patches.
+FEATURE_ANGLE = float(np.deg2rad(30.0))
+
+
+def _ray_hits(origins: np.ndarray, direction: np.ndarray, tri: np.ndarray, *, facing: int, eps: float = 1e-9):
+    """Intersections of the lines ``origins + t direction`` (``(Q, 3)`` points, ``(Q, 3)`` or
+    ``(3,)`` directions) with the triangles ``tri`` ``(T, 3, 3)`` (Moller-Trumbore, barycentric
+    tolerance ``eps``): ``(t, u, v)`` arrays ``(Q, T)``, ``t = nan`` where the line misses.
+    ``facing=-1`` keeps the triangles whose (outward) normal is against the direction (entry
+    faces), ``+1`` those along it (exit faces)."""
+    d = np.broadcast_to(np.asarray(direction, dtype=float), origins.shape)
+    a = tri[:, 0]
+    e1, e2 = tri[:, 1] - a, tri[:, 2] - a
+    normal = np.cross(e1, e2)
+    out_t = np.full((len(origins), len(tri)), np.nan)
+    out_u = np.zeros_like(out_t)
+    out_v = np.zeros_like(out_t)
+    for i, (c, n) in enumerate(zip(origins, d)):
+        side = normal @ n
+        h = np.cross(n, e2)
+        det = np.einsum("ij,ij->i", e1, h)
+        ok = (facing * side > 0) & (np.abs(det) > 0)
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        sv = c - a
+        u = inv * np.einsum("ij,ij->i", sv, h)
+        q = np.cross(sv, e1)
+        v = inv * (q @ n)
+        t = inv * np.einsum("ij,ij->i", e2, q)
+        hit = ok & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
+        out_t[i] = np.where(hit, t, np.nan)
+        out_u[i], out_v[i] = u, v
+    return out_t, out_u, out_v
+
+
+def _closest_on_triangles(x: np.ndarray, tri: np.ndarray):
+    """Closest point of the triangles ``tri`` ``(T, 3, 3)`` to each point ``x`` ``(Q, 3)``:
+    ``(distance (Q,), triangle (Q,), barycentric (Q, 3))`` (Ericson's region test)."""
+    a, b, c = tri[:, 0], tri[:, 1], tri[:, 2]
+    ab, ac = b - a, c - a
+    dist = np.empty(len(x))
+    face = np.empty(len(x), dtype=np.int64)
+    bary = np.empty((len(x), 3))
+    for i, p in enumerate(x):
+        ap, bp, cp = p - a, p - b, p - c
+        d1, d2 = np.einsum("ij,ij->i", ab, ap), np.einsum("ij,ij->i", ac, ap)
+        d3, d4 = np.einsum("ij,ij->i", ab, bp), np.einsum("ij,ij->i", ac, bp)
+        d5, d6 = np.einsum("ij,ij->i", ab, cp), np.einsum("ij,ij->i", ac, cp)
+        va, vb, vc = d3 * d6 - d5 * d4, d5 * d2 - d1 * d6, d1 * d4 - d3 * d2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            den = va + vb + vc
+            w = np.stack([va / den, vb / den, vc / den], axis=1)  # interior: barycentric (a, b, c)
+            # regions (checked in order; later ones only where no earlier one applies)
+            vw = d1 / (d1 - d3)
+            ww = d2 / (d2 - d6)
+            uw = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        cand = [
+            ((d1 <= 0) & (d2 <= 0), np.array([1.0, 0, 0])),
+            ((d3 >= 0) & (d4 <= d3), np.array([0, 1.0, 0])),
+            ((d6 >= 0) & (d5 <= d6), np.array([0, 0, 1.0])),
+        ]
+        done = np.zeros(len(tri), dtype=bool)
+        for m, val in cand:
+            m = m & ~done
+            w[m] = val
+            done |= m
+        m = (vc <= 0) & (d1 >= 0) & (d3 <= 0) & ~done
+        w[m] = np.stack([1 - vw[m], vw[m], np.zeros(m.sum())], axis=1)
+        done |= m
+        m = (vb <= 0) & (d2 >= 0) & (d6 <= 0) & ~done
+        w[m] = np.stack([1 - ww[m], np.zeros(m.sum()), ww[m]], axis=1)
+        done |= m
+        m = (va <= 0) & ((d4 - d3) >= 0) & ((d5 - d6) >= 0) & ~done
+        w[m] = np.stack([np.zeros(m.sum()), 1 - uw[m], uw[m]], axis=1)
+        q = w[:, :1] * a + w[:, 1:2] * b + w[:, 2:] * c
+        dd = np.linalg.norm(q - p, axis=1)
+        k = int(np.nanargmin(dd))
+        dist[i], face[i], bary[i] = dd[k], k, w[k]
+    return dist, face, bary
+
+
+class _SurfaceGeometry:
+    """Cut-aligned coordinates ``(s, n, h)`` for a path on the (possibly curved) boundary
+    surface: ``s`` the arc length of the closest point ``p(s)`` on the path (a polyline on the
+    surface, end segments extended), ``n = (x - p(s)) . m`` the signed distance from the blade
+    (``m = tau x b``, to the left of the path seen from outside), ``h = (x - p(s)) . b`` the depth
+    along ``b``, the inward surface normal made orthogonal to the path tangent ``tau``. Straight
+    segments of the path along a straight line of the surface have one frame (the blade is the
+    plane through the path and the normal); elsewhere the path is sampled every quarter cell
+    and projected onto the surface, and frames blend at the vertices as the flat
+    :class:`_Geometry`'s normals do. A tilted blade (straight paths only) shears the blade:
+    at depth ``h`` it lies ``h tan(tilt)`` along ``m``.
+    """
+
+    def __init__(self, path: "ScalpelPath", points: np.ndarray, bfaces: np.ndarray, ell: float, scale: float):
+        self.tan_tilt = float(np.tan(path.tilt))
+        tri = points[bfaces]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        fn = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
+        self.bfaces, self.face_normals = bfaces, fn
+        self._tri, self._cross, self._points = tri, cross, points
+        # node -> incident boundary faces
+        flat = bfaces.reshape(-1)
+        order = np.argsort(flat, kind="stable")
+        self._ptr = np.searchsorted(flat[order], np.arange(len(points) + 1))
+        self._face_of = order // 3
+        tol = 1e-6 * scale
+        # 1. vertices of the path on the surface
+        if path.points.shape[1] == 2:
+            starts = np.column_stack([path.xy, np.full(len(path.xy), points[:, 2].max() + scale)])
+            v_pts, v_face, v_bary = self._project(starts, np.array([0.0, 0.0, -1.0]), what="point", first=True)
+        else:
+            dist, v_face, v_bary = _closest_on_triangles(path.points, tri)
+            bad = np.flatnonzero(dist > tol)
+            if bad.size:
+                k = int(bad[0])
+                raise CutError(f"scalpel path point {k} {np.round(path.points[k], 9).tolist()} m is {dist[k]:.3g} m off the specimen's boundary surface "
+                               f"(3-D points of a path on surface='boundary' must lie on it, within {tol:.3g} m)")
+            v_pts = self._on_face(v_face, v_bary[:, 1], v_bary[:, 2])
+        v_nrm = self._normals(v_face, v_bary)
+        # 2. each segment: samples every quarter cell, projected; one frame where it is straight
+        poly, nrm_at, straight_of = [v_pts[:1]], [v_nrm[:1]], []
+        faces_hit = [v_face[:1]]
+        for k in range(len(v_pts) - 1):
+            a, b = v_pts[k], v_pts[k + 1]
+            m = max(2, int(np.ceil(np.linalg.norm(b - a) / (0.25 * ell))) + 1)
+            t = np.linspace(0.0, 1.0, m)[1:-1]
+            if path.points.shape[1] == 2:
+                xy = path.xy[k] + t[:, None] * (path.xy[k + 1] - path.xy[k])
+                starts = np.column_stack([xy, np.full(len(xy), points[:, 2].max() + scale)])
+                sp, sf, sb = self._project(starts, np.array([0.0, 0.0, -1.0]), what="point", first=True)
+            else:
+                mean = v_nrm[k] + v_nrm[k + 1]
+                mean /= np.linalg.norm(mean)
+                sp, sf, sb = self._project(a + t[:, None] * (b - a), -mean, what="point", first=False)
+            sn = self._normals(sf, sb)
+            chord = b - a
+            rel = sp - a
+            off = rel - np.outer(rel @ chord / (chord @ chord), chord)
+            straight = bool(np.all(np.linalg.norm(off, axis=1) <= 1e-6 * ell))
+            if straight:
+                poly.append(v_pts[k + 1 : k + 2])
+                nn = np.concatenate([v_nrm[k : k + 2], sn]).mean(axis=0)
+                nrm_at.append(v_nrm[k + 1 : k + 2])
+                straight_of.append(nn / np.linalg.norm(nn))
+            else:
+                poly += [sp, v_pts[k + 1 : k + 2]]
+                nrm_at += [sn, v_nrm[k + 1 : k + 2]]
+                straight_of += [None] * (len(sp) + 1)
+            faces_hit += [sf, v_face[k + 1 : k + 2]]
+        self.p = np.concatenate(poly)
+        nodal = np.concatenate(nrm_at)
+        self.faces_hit = np.concatenate(faces_hit)
+        d = np.diff(self.p, axis=0)
+        self.seg_len = np.linalg.norm(d, axis=1)
+        if np.any(self.seg_len <= 1e-12 * scale):
+            raise CutError("two points of the scalpel path project onto the same surface point; remove one")
+        self.tang = d / self.seg_len[:, None]
+        nu = np.array([sn if sn is not None else nodal[i] + nodal[i + 1] for i, sn in enumerate(straight_of)])
+        nu -= np.einsum("ij,ij->i", nu, self.tang)[:, None] * self.tang
+        nlen = np.linalg.norm(nu, axis=1)
+        if np.any(nlen < 1e-6):
+            raise CutError("the scalpel path runs along the surface normal (it leaves the surface)")
+        self.b = -nu / nlen[:, None]
+        self.normal = np.cross(self.tang, self.b)  # m: the blade normal, to the + side
+        self.cum = np.concatenate([[0.0], np.cumsum(self.seg_len)])
+        self.length = float(self.cum[-1])
+        if len(self.seg_len) > 1:
+            cosang = np.einsum("ij,ij->i", self.tang[:-1], self.tang[1:])
+            if np.any(cosang < 0):
+                raise CutError("the scalpel path, projected onto the surface, turns by more than 90 degrees")
+            if self.tan_tilt != 0.0:
+                raise CutError("a tilted blade on surface='boundary' needs a path along a straight line of the surface "
+                               "(a plane, a cylinder's generator); this path follows a curved surface: use tilt=0")
+
+    # ------------------------------------------------------------- surface helpers
+    def _normals(self, face, bary):
+        """Smooth outward normals at surface points (triangle ``face``, barycentric ``bary``):
+        the barycentric mean of the vertex normals, each the area-weighted mean normal of the
+        vertex's boundary faces within :data:`FEATURE_ANGLE` of the hit face (a patch's edge
+        does not tilt it)."""
+        out = np.empty((len(face), 3))
+        cos_f = np.cos(FEATURE_ANGLE)
+        for i, (f, w) in enumerate(zip(face, bary)):
+            acc = np.zeros(3)
+            for k, v in enumerate(self.bfaces[f]):
+                inc = self._face_of[self._ptr[v] : self._ptr[v + 1]]
+                keep = inc[self.face_normals[inc] @ self.face_normals[f] > cos_f]
+                vn = self._cross[keep].sum(axis=0)
+                acc += w[k] * vn / np.linalg.norm(vn)
+            out[i] = acc / np.linalg.norm(acc)
+        return out
+
+    def _project(self, origins, direction, *, what: str, first: bool):
+        """Surface points on the lines through ``origins`` along ``direction`` (entry faces):
+        the first hit (``first``) or the nearest to the origin. Returns points, faces, barycentric."""
+        t, u, v = _ray_hits(origins, direction, self._tri, facing=-1)
+        if first:
+            key = np.where(np.isnan(t), np.inf, t)
+        else:
+            key = np.where(np.isnan(t), np.inf, np.abs(t))
+        f = np.argmin(key, axis=1)
+        r = np.arange(len(origins))
+        miss = ~np.isfinite(key[r, f])
+        if np.any(miss):
+            k = int(np.flatnonzero(miss)[0])
+            raise CutError(f"the scalpel path leaves the specimen's boundary surface near {np.round(origins[k], 9).tolist()} m "
+                           "(no boundary face under this path point faces out along the projection)")
+        uu, vv = u[r, f], v[r, f]
+        bary = np.column_stack([1 - uu - vv, uu, vv])
+        pts = self._on_face(f, uu, vv)
+        if first:  # a vertical projection keeps the given x, y
+            pts[:, :2] = origins[:, :2]
+        return pts, f, bary
+
+    def _on_face(self, f, u, v):
+        """The point ``a + u (b - a) + v (c - a)`` of boundary triangle ``f`` (exactly in the
+        plane of a triangle whose corners share a coordinate, e.g. the flat top's z)."""
+        tri = self._tri[f]
+        return tri[:, 0] + u[:, None] * (tri[:, 1] - tri[:, 0]) + v[:, None] * (tri[:, 2] - tri[:, 0])
+
+    def patch(self):
+        """The boundary faces of the path's surface patch: reached from the face under the path's
+        start across edges whose faces' normals differ by less than :data:`FEATURE_ANGLE`.
+        Raises :class:`CutError` when the path crosses onto another patch."""
+        e = self.bfaces[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2)
+        key = np.sort(e, axis=1)
+        _, inv = np.unique(key, axis=0, return_inverse=True)
+        inv = inv.reshape(-1)
+        owner = np.repeat(np.arange(len(self.bfaces)), 3)
+        order = np.argsort(inv, kind="stable")
+        inv_s = inv[order]
+        first = order[:-1][inv_s[:-1] == inv_s[1:]]
+        second = order[1:][inv_s[:-1] == inv_s[1:]]
+        fa, fb = owner[first], owner[second]
+        smooth = np.einsum("ij,ij->i", self.face_normals[fa], self.face_normals[fb]) > np.cos(FEATURE_ANGLE)
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components as cc
+
+        nf = len(self.bfaces)
+        g = coo_matrix((np.ones(int(smooth.sum())), (fa[smooth], fb[smooth])), shape=(nf, nf))
+        _, label = cc(g, directed=False)
+        patch = label == label[self.faces_hit[0]]
+        off = ~patch[self.faces_hit]
+        if np.any(off):
+            k = int(np.flatnonzero(off)[0])
+            raise CutError(f"the scalpel path crosses an edge of the specimen's surface (boundary faces meeting at more than "
+                           f"{np.rad2deg(FEATURE_ANGLE):.0f} degrees) near {np.round(self.p[min(k, len(self.p) - 1)], 9).tolist()} m; "
+                           "a cut must stay on one smooth surface")
+        return patch
+
+    # ------------------------------------------------------------- the interface of _Geometry
+    def coords(self, x: np.ndarray):
+        x = np.asarray(x, dtype=float)
+        out = [self._coords(x[i : i + 2048]) for i in range(0, len(x), 2048)]
+        if not out:
+            return np.zeros(0), np.zeros(0), np.zeros(0)
+        return tuple(np.concatenate([o[j] for o in out]) for j in range(3))
+
+    def _coords(self, x):
+        nseg = len(self.seg_len)
+        if self.tan_tilt != 0.0:  # one segment: remove the shear first
+            h0 = (x - self.p[0]) @ self.b[0]
+            q = x - (h0 * self.tan_tilt)[:, None] * self.normal[0]
+        else:
+            q = x
+        rel = q[:, None, :] - self.p[None, :-1, :]  # (n, S, 3)
+        t = np.einsum("nsk,sk->ns", rel, self.tang)
+        lo = np.zeros(nseg)
+        hi = self.seg_len.copy()
+        lo[0] = -np.inf
+        hi[-1] = np.inf
+        tc = np.clip(t, lo, hi)
+        closest = self.p[None, :-1, :] + tc[..., None] * self.tang[None]
+        dist = np.linalg.norm(q[:, None, :] - closest, axis=2)
+        k = np.argmin(dist, axis=1)
+        r = np.arange(len(x))
+        s = self.cum[k] + tc[r, k]
+        off = q - closest[r, k]
+        m = self.normal[k].copy()
+        b = self.b[k].copy()
+        at_vertex = tc[r, k] != t[r, k]
+        if nseg > 1 and np.any(at_vertex):
+            kk = k[at_vertex]
+            nxt = np.where(tc[r, k][at_vertex] <= 0, np.maximum(kk - 1, 0), np.minimum(kk + 1, nseg - 1))
+            mm = self.normal[kk] + self.normal[nxt]
+            bb = self.b[kk] + self.b[nxt]
+            m[at_vertex] = mm / np.linalg.norm(mm, axis=1, keepdims=True)
+            b[at_vertex] = bb / np.linalg.norm(bb, axis=1, keepdims=True)
+        h = np.einsum("ij,ij->i", off, b)
+        n = np.einsum("ij,ij->i", off, m)
+        if nseg > 1 and np.any(at_vertex):
+            # at a vertex: the distance from the blade's vertex line, signed by the mean normal
+            rest = off[at_vertex] - h[at_vertex, None] * b[at_vertex]
+            n[at_vertex] = np.where(n[at_vertex] >= 0, 1.0, -1.0) * np.linalg.norm(rest, axis=1)
+        if self.tan_tilt != 0.0:
+            h = h0
+        return s, n, h
+
+    def segment_of(self, s):
+        return np.clip(np.searchsorted(self.cum, s, side="right") - 1, 0, len(self.seg_len) - 1)
+
+    def surface_point(self, s, h):
+        """The blade's point [m] at arc length ``s`` and depth ``h`` (``(Q, 3)``)."""
+        s, h = np.asarray(s, dtype=float), np.asarray(h, dtype=float)
+        k = self.segment_of(s)
+        return self.p[k] + (s - self.cum[k])[:, None] * self.tang[k] + h[:, None] * (self.b[k] + self.tan_tilt * self.normal[k])
+
+    def unit_normal(self, s):
+        """Unit normal of the blade at ``s``, pointing to the ``+`` side."""
+        k = self.segment_of(s)
+        v = self.normal[k] - self.tan_tilt * self.b[k]
+        return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+    def thickness(self, scale: float):
+        """Depth [m] along the blade from each path vertex to the far side of the specimen (the
+        first exit through the boundary)."""
+        d = self.b + self.tan_tilt * self.normal
+        dirs = np.concatenate([d, d[-1:]])
+        t, _, _ = _ray_hits(self.p, dirs, self._tri, facing=+1)
+        t = np.where(t > 1e-9 * scale, t, np.nan)
+        with np.errstate(all="ignore"):
+            out = np.nanmin(np.where(np.isnan(t), np.inf, t), axis=1)
+        return out
 
 
 # ======================================================================== the result
@@ -475,7 +828,7 @@ class _Prepared(NamedTuple):
     mesh: TetMesh
     materials: Any
     points: np.ndarray
-    geom: _Geometry
+    geom: Any  # _Geometry (flat top) or _SurfaceGeometry (surface="boundary")
     depth: float
     through: bool
     open_start: bool
@@ -484,12 +837,67 @@ class _Prepared(NamedTuple):
     vert: np.ndarray
     struct_edges: np.ndarray
     scale: float
+    #: surface="boundary" only: the nodes of the cut's surface patch (depth 0 by definition) and
+    #: the boundary faces of the patch (a node on them may move along the curved surface).
+    patch_nodes: np.ndarray | None = None
+    patch_faces: np.ndarray | None = None
+
+
+def _outline_distance(x: np.ndarray, faces: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """3-D distance of points ``x`` to the outline of a set of boundary ``faces`` (edges of one face)."""
+    e = np.sort(faces[:, [[0, 1], [1, 2], [2, 0]]].reshape(-1, 2), axis=1)
+    uniq, cnt = np.unique(e, axis=0, return_counts=True)
+    outline = uniq[cnt == 1]
+    if len(outline) == 0:
+        return np.full(len(x), np.inf)
+    a, b = points[outline[:, 0]], points[outline[:, 1]]
+    ab = b - a
+    L2 = np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300)
+    out = np.empty(len(x))
+    for i, q in enumerate(x):
+        t = np.clip(np.einsum("ij,ij->i", q - a, ab) / L2, 0.0, 1.0)
+        out[i] = np.min(np.linalg.norm(a + t[:, None] * ab - q, axis=1))
+    return out
+
+
+def _prepare_surface(mesh: TetMesh, materials, path: ScalpelPath) -> _Prepared:
+    """:func:`_prepare` for a path on the boundary surface (``surface="boundary"``)."""
+    pts = np.asarray(mesh.points, dtype=float)
+    scale = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
+    lat, vert, struct = _node_lengths(mesh, pts)
+    ell = float(np.median(lat))
+    geom = _SurfaceGeometry(path, pts, mesh.boundary_faces, ell, scale)
+    patch = geom.patch()
+    thick = geom.thickness(scale)
+    if not np.all(np.isfinite(thick)):
+        k = int(np.flatnonzero(~np.isfinite(thick))[0])
+        raise CutError(f"the blade at {np.round(geom.p[k], 9).tolist()} m finds no far side of the specimen along the surface normal")
+    if path.through:
+        depth = float(thick.max())
+        if path.depth is not None and path.depth > depth * (1 + 1e-9):
+            raise CutError(f"cut depth {path.depth:.6g} m exceeds the specimen thickness under the path, {depth:.6g} m along the surface normal")
+    else:
+        k = int(np.argmin(thick))
+        if path.depth >= thick[k] * (1 - 1e-9):
+            raise CutError(
+                f"cut depth {path.depth:.6g} m reaches or exceeds the specimen thickness {thick[k]:.6g} m (along the blade from the surface "
+                f"at {np.round(geom.p[k], 9).tolist()} m); a cut through the whole thickness must be asked for with through=True"
+            )
+        depth = float(path.depth)
+    faces = mesh.boundary_faces[patch]
+    ends = _outline_distance(geom.p[[0, -1]], faces, pts)
+    open_start, open_end = bool(ends[0] <= 1e-6 * ell), bool(ends[1] <= 1e-6 * ell)
+    nodes = np.zeros(len(pts), dtype=bool)
+    nodes[faces.reshape(-1)] = True
+    return _Prepared(mesh, materials, pts, geom, depth, path.through, open_start, open_end, lat, vert, struct, scale, nodes, patch)
 
 
 def _prepare(specimen, path: ScalpelPath) -> _Prepared:
     if not isinstance(path, ScalpelPath):
         raise CutError(f"path must be a ScalpelPath, got {type(path).__name__}")
     mesh, materials = _as_mesh(specimen)
+    if path.surface == "boundary":
+        return _prepare_surface(mesh, materials, path)
     pts = np.asarray(mesh.points, dtype=float)
     lo, hi = pts.min(axis=0), pts.max(axis=0)
     scale = float(np.linalg.norm(hi - lo))
@@ -554,8 +962,10 @@ class _Mover:
     quality ``guard`` (or invert it), or move a boundary node off its boundary faces (the
     specimen's shape and volume never change)."""
 
-    def __init__(self, pts, tets, guard, bfaces):
+    def __init__(self, pts, tets, guard, bfaces, free_faces=None):
         self.pts, self.tets, self.guard = pts, tets, guard
+        # boundary faces whose normals do not constrain a move (a curved surface patch)
+        self.free_faces = free_faces
         order = np.argsort(tets.reshape(-1), kind="stable")
         self.ptr = np.searchsorted(tets.reshape(-1)[order], np.arange(len(pts) + 1))
         self.tet_of = order // 4
@@ -571,8 +981,11 @@ class _Mover:
         return self.tet_of[self.ptr[v] : self.ptr[v + 1]]
 
     def normals(self, v):
-        """Distinct unit normals of the boundary faces at node ``v``."""
-        nv = self.bnormals[self.bface_of[self.bptr[v] : self.bptr[v + 1]]]
+        """Distinct unit normals of the boundary faces at node ``v`` (the free faces left out)."""
+        fv = self.bface_of[self.bptr[v] : self.bptr[v + 1]]
+        if self.free_faces is not None:
+            fv = fv[~self.free_faces[fv]]
+        nv = self.bnormals[fv]
         out: list[np.ndarray] = []
         for n in nv:
             if not any(abs(float(n @ m)) > 1 - 1e-9 for m in out):
@@ -607,7 +1020,10 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
     lat, vert = prep.lat, prep.vert
     L = g.length
     tol = 1e-9 * lat
-    mover = _Mover(pts0.copy(), prep.mesh.tets, guard, prep.mesh.boundary_faces)
+    curved = prep.patch_nodes is not None
+    if curved:
+        h[prep.patch_nodes] = 0.0  # the nodes of the cut's surface lie at depth 0
+    mover = _Mover(pts0.copy(), prep.mesh.tets, guard, prep.mesh.boundary_faces, free_faces=prep.patch_faces)
     s_lo = np.zeros(len(pts0)) if prep.open_start else -0.5 * lat
     s_hi = np.full(len(pts0), L) if prep.open_end else L + 0.5 * lat
     depth_ok = h < d + 0.5 * vert if not prep.through else np.ones(len(pts0), dtype=bool)
@@ -618,7 +1034,40 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
     # endpoints cannot move is left (a bridge across the open part of the cut is refused later
     # by _check_bridges).
 
+    def snap_to_curved(v, reach) -> bool:
+        # A node of the surface patch goes to the path point (it stays on the surface, to the
+        # path's chord accuracy), any other to the blade point at its own depth; a node on
+        # another boundary face (a side face) slides along it, normal to the depth direction.
+        target = g.surface_point(s[v : v + 1], h[v : v + 1])[0]
+        if np.linalg.norm(target - pts0[v]) <= 1e-12 * lat[v]:
+            target = pts0[v]  # already on the blade (round-off): not a move
+        if not mover.tangential(v, target - pts0[v]):
+            k = g.segment_of(s[v : v + 1])[0]
+            side = [m for m in mover.normals(v) if abs(float(m @ g.b[k])) < 1 - 1e-9]
+            if len(side) != 1:
+                return False
+            dvec = np.cross(-g.b[k], side[0])
+            dvec /= np.linalg.norm(dvec)
+            rate = float(dvec @ g.normal[k])
+            if abs(rate) < 0.3 or abs(n[v] / rate) > reach:
+                return False
+            target = pts0[v] - (n[v] / rate) * dvec
+            s_t, n_t, _ = g.coords(target[None])
+            if abs(n_t[0]) > 1e-9 * lat[v]:
+                return False
+            if mover.try_move(v, target):
+                s[v] = s_t[0]
+                snapped[v] = True
+                return True
+            return False
+        if mover.try_move(v, target):
+            snapped[v] = True
+            return True
+        return False
+
     def snap_to_surface(v, reach) -> bool:
+        if curved:
+            return snap_to_curved(v, reach)
         target = np.array([*g.surface_xy(s[v : v + 1], h[v : v + 1])[0], pts0[v, 2]])
         if not mover.tangential(v, target - pts0[v]):
             # A node on a side face slides along it (horizontally) onto the cutting surface.
@@ -676,8 +1125,14 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
     s_new, h_new = s.copy(), h.copy()
 
     def place(v, sv, hv) -> bool:
-        xy = g.surface_xy(np.array([sv]), np.array([hv]))[0]
-        if mover.try_move(v, np.array([xy[0], xy[1], g.z_top - hv])):
+        if curved:
+            target = g.surface_point(np.array([sv]), np.array([hv]))[0]
+            if np.linalg.norm(target - mover.pts[v]) <= 1e-12 * lat[v]:
+                target = mover.pts[v].copy()
+        else:
+            xy = g.surface_xy(np.array([sv]), np.array([hv]))[0]
+            target = np.array([xy[0], xy[1], g.z_top - hv])
+        if mover.try_move(v, target):
             s_new[v], h_new[v] = sv, hv
             return True
         return False
@@ -1096,6 +1551,8 @@ def staircase_cut(specimen, path: ScalpelPath, *, allow_disconnect: bool = False
     lattice = _build_lattice(new_cubes, all_pts, mesh.lattice.cube_region_ids)
     lattice = eqx.tree_at(lambda lt: lt.cell_size, lattice, mesh.lattice.cell_size)
     s, n, h = g.coords(pts)
+    if prep.patch_nodes is not None:
+        h[prep.patch_nodes] = 0.0
     quality = _quality(
         pts, pts, tets, threshold=quality_threshold, min_quality=0.0, moved=np.zeros(N, dtype=bool), lat=prep.lat,
         lattice_before=cubes, lattice_after=cubes, n_dup=D.size,
@@ -1134,6 +1591,8 @@ def remove_elements(specimen, path: ScalpelPath, *, allow_disconnect: bool = Fal
     n_before = _n_components(mesh)
     pts = prep.points
     s, n, h = g.coords(pts)
+    if prep.patch_nodes is not None:
+        h[prep.patch_nodes] = 0.0
     tol = 1e-9 * prep.lat
     plus = n >= -tol
     e = mesh.edges

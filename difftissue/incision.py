@@ -560,11 +560,12 @@ def _jitted(obj, method: str):
 
 # ============================================================================ pictures
 def _top_faces(mesh):
+    """The boundary faces facing up (outward normal with a positive z component): the flat top
+    of a block, the whole curved top of a dome or a cylinder."""
     faces = np.asarray(mesh.boundary_faces)
     p = np.asarray(mesh.points)
-    z_top = p[:, 2].max()
-    tol = 1e-9 * float(np.ptp(p, axis=0).max())
-    return faces[np.all(np.abs(p[faces, 2] - z_top) <= tol, axis=1)]
+    nrm = np.cross(p[faces[:, 1]] - p[faces[:, 0]], p[faces[:, 2]] - p[faces[:, 0]])
+    return faces[nrm[:, 2] > 1e-9 * np.linalg.norm(nrm, axis=1)]
 
 
 def plot_incision(cut: Cut, displacement, path, *, s_section: float | None = None, title: str | None = None, overwrite: bool = False) -> Path:

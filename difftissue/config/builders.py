@@ -653,7 +653,7 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     cp = _join(path, "cut")
     if "cut" not in e:
         _fail(cp, "missing (required): e.g. { path = [[3, 6], [9, 6]], depth = 2 } (lengths in length_unit)")
-    c = _table(e["cut"], cp, ("path", "depth", "through", "tilt_deg", "method"), ("path",))
+    c = _table(e["cut"], cp, ("path", "depth", "through", "tilt_deg", "method", "surface"), ("path",))
     pts = c["path"]
     if not isinstance(pts, list) or len(pts) < 2 or not all(isinstance(q, list) and len(q) in (2, 3) for q in pts):
         _fail(_join(cp, "path"), f"must be a list of >= 2 points [x, y] on the top surface in {unit[0]}, got {_show(pts)}")
@@ -662,8 +662,9 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     through = _bool(c.get("through", False), _join(cp, "through"))
     tilt = math.radians(_number(c.get("tilt_deg", 0.0), _join(cp, "tilt_deg"), what="an angle in degrees"))
     method = _choice(c.get("method", "snap"), _join(cp, "method"), ("snap", "staircase", "remove"))
+    surface = _choice(c.get("surface", "top"), _join(cp, "surface"), ("top", "boundary"))
     try:
-        scalpel = ScalpelPath(pts, depth=depth, through=through, tilt=tilt)
+        scalpel = ScalpelPath(pts, depth=depth, through=through, tilt=tilt, surface=surface)
     except DifftissueError as err:
         _reraise(cp, err)
     try:
