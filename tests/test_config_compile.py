@@ -53,7 +53,7 @@ STRAINS = [0.05, 0.1, 0.15, 0.2]
 MATERIAL = Material(2.0e4, 0.45, cubic_coefficient=0.5)
 
 
-def _config(tmp_path, *, scale=1.0, size=0.01, strains=STRAINS, model="springs_volume", name="cube", platens="frictionless"):
+def _config(tmp_path, *, scale=1.0, size=0.01, strains=STRAINS, model="springs_volume", name="cube", platens="frictionless", cells=1):
     """A one-cube compression config; ``scale`` multiplies the measured stresses (other data,
     same specimen and protocol)."""
     stress = [scale * 2.0e4 * e for e in strains]
@@ -66,7 +66,7 @@ def _config(tmp_path, *, scale=1.0, size=0.01, strains=STRAINS, model="springs_v
             "name": name, "scenario": "compression", "model": model, "platens": platens, "points": "all", "sigma": {"relative": 0.01},
             "data": {"format": "table", "path": csv.name,
                      "columns": {"strain": {"name": "strain", "unit": "-"}, "stress": {"name": "stress", "unit": "Pa"}}},
-            "specimen": {"size": [size] * 3, "cells": [1, 1, 1]},
+            "specimen": {"size": [size] * 3, "cells": [cells] * 3},
         }],
     }
     return parse_config(raw, base_dir=tmp_path)
@@ -270,3 +270,26 @@ def test_the_compile_cache_and_the_fit_engine_key_scenarios_by_one_formula(tmp_p
         assert h.hexdigest() == digest, tag
     obj = object()
     assert hash_scenario_leaves(hashlib.sha256(), [obj, 1.0], ()) == [id(obj)]  # not an array: by identity
+
+
+# ------------------------------------------------------------ compiler options of small models
+def test_small_models_are_compiled_at_low_optimisation_with_the_same_numbers(first, tmp_path, monkeypatch):
+    """A model of at most SMALL_MODEL_NODES nodes (the one cube: 8) gets
+    SMALL_MODEL_COMPILER_OPTIONS (compiles faster); its prediction and Jacobian agree with the
+    program compiled at XLA's defaults to 1e-12 (measured ~1e-15); a larger specimen (125
+    nodes) keeps the defaults. The options are part of the program's key."""
+    from difftissue.config import compile as cc
+
+    sc, (y, jac) = first
+    assert sc.inner.model.n_nodes == 8
+    assert cc._compiler_options(sc.inner) == cc.SMALL_MODEL_COMPILER_OPTIONS
+    monkeypatch.setattr(cc, "SMALL_MODEL_NODES", 0)
+    assert cc._compiler_options(sc.inner) is None
+    default = _wrapped(_config(tmp_path))
+    y0, jac0, c = _value_and_tangents(default)
+    assert c.compiled == 1 and c.hits == 0  # its own program: the options are in the key
+    np.testing.assert_allclose(y, y0, rtol=1e-12, atol=0)
+    np.testing.assert_allclose(jac, jac0, rtol=1e-12, atol=1e-12 * np.max(np.abs(jac0)))
+    monkeypatch.undo()
+    big = _wrapped(_config(tmp_path, cells=4)).inner
+    assert big.model.n_nodes == 125 and cc._compiler_options(big) is None
