@@ -297,9 +297,24 @@ def solve_condensed_contact(model: "CondensedContactModel", params: "CondensedPa
     The same problem and stopping rule as :func:`~difftissue.solvers.static.solve_static` on
     that model (Newton with the exact Hessian, dense LU of the ``3k x 3k`` system, Armijo
     backtracking; converged when ``|grad|_free <= max(atol, rtol |grad at u = 0|)`` or a full
-    Newton step below ``xtol |u|``, then one more Newton step, kept if it lowers the residual), written for this small dense problem only: its compiled
-    program is a fraction of the general solver's, which dominated the compile time of a
-    condensed fit. Derivatives with respect to ``params`` (and the depth) are implicit (one
+    Newton step below ``xtol |u|``, then one more Newton step, kept if it lowers the residual),
+    written for this small dense problem only: its compiled program is a fraction of the
+    general solver's, which dominated the compile time of a condensed fit.
+
+    Two checks keep it from reporting convergence where there is no stable equilibrium:
+
+    * The small-step exit also needs ``|grad|_free <= max(tol, xtol |grad at u = 0|)``: the
+      residual within the precision the solve claims (``prediction_rtol = max(rtol, xtol)``)
+      of the force scale. A round-off stall of a smooth problem meets it (the Newton step
+      ``H^-1 g`` is small because ``g`` is); at a kink of the energy the step is small because
+      the curvature is huge (a node on a cone's axis: the curvature of the distance to the axis
+      is ``1/r``, about ``1e77 /m`` inside the ``1e-77 m`` core of its regularisation) while the
+      residual is not.
+    * The returned state must have a positive definite Hessian (the last step is solved by
+      Cholesky): a stationary point that is not a minimum is an unstable equilibrium, which
+      the full solve leaves at round-off (a node balanced on a sharp frictionless tip: the
+      residual there is at round-off by symmetry, but 1e-20 m off the axis the tip pushes the
+      node out with its full contact force). ``converged`` is False there. Derivatives with respect to ``params`` (and the depth) are implicit (one
     dense solve per tangent), never through the iterations.
 
     Args:
