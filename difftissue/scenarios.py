@@ -51,7 +51,8 @@ from .interpolation import interpolation_operator
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
-from .solvers.static import solve_static, solver_setup
+from .solvers.static import solve_static
+from .solvers.static import solver_setup
 from .structure_keys import data_leaf_indices, hash_scenario_leaves
 
 __all__ = [
