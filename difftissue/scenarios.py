@@ -50,9 +50,9 @@ from .mesh import TetMesh, graded_axis, structured_grid
 from .interpolation import interpolation_operator
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
+from .solvers import solver_setup
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
 from .solvers.static import solve_static
-from .solvers.static import solver_setup
 from .structure_keys import data_leaf_indices, hash_scenario_leaves
 
 __all__ = [
