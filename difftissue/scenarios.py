@@ -440,9 +440,10 @@ _JITTED: dict[int, tuple[Any, Any]] = {}
 #: dropped first); each keeps the scenario it was compiled for (and its mesh) alive.
 SHARED_SOLVES_SIZE = 8
 
-#: Only scenarios whose arrays hold at most this many bytes share their compiled protocol: a
-#: large mesh's program embeds its arrays (GBs at 10^5 unknowns, docs/dev/solver-design.md),
-#: which must go with the scenario, not stay in a cache.
+#: Only closed-over scenarios (the condensed indentation, see :func:`_jitted_solve`) whose
+#: arrays hold at most this many bytes share their compiled protocol: a large mesh's program
+#: embeds its arrays (GBs at 10^5 unknowns, docs/dev/solver-design.md), which must go with the
+#: scenario, not stay in a cache. Programs taking the arrays as arguments share at any size.
 SHARED_SOLVES_MAX_BYTES = 16 * 2**20
 
 #: ``{structure key: (scenario, _SharedSolve)}`` (see :func:`_structure_key`), most recent last.
