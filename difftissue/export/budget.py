@@ -35,14 +35,17 @@ against the card's model (:func:`card_reference_field`, :func:`field_error`), an
 
 from __future__ import annotations
 
+import dataclasses
 import math
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import jax.numpy as jnp
 import numpy as np
 
 from ..boundary import BoundaryConditions
+from ..budget import BudgetLoad, LoadSetCalibration, calibrate_for_load_set
 from ..errors import ExportError
+from ..materials import lame_parameters
 from ..models import MODELS, make_model
 from ..scenarios import recover_lattice
 from ..solvers.static import solve_static
@@ -50,7 +53,8 @@ from ..solvers.xpbd import StableNeoHookeanConstraints, XPBDSettings, xpbd_quasi
 from .pypbd_runner import run_pbd_budget, scaled_scene
 
 __all__ = ["MAX_BUDGET_ERROR", "BUDGET_STATES", "MIN_SENSITIVITY", "PBD_BUDGETS", "load_fractions", "card_reference_reactions",
-           "card_reference_field", "field_error", "calibrate_factor", "pbd_budget_calibration", "xpbd_document_constraints", "xpbd_budget_reactions", "xpbd_budget_calibration"]
+           "card_reference_field", "field_error", "calibrate_factor", "pbd_budget_calibration", "xpbd_document_constraints", "xpbd_budget_reactions", "xpbd_budget_calibration",
+           "ExportLoadSet", "export_load_set", "load_set_calibration", "xpbd_load_set_calibration"]
 
 
 #: Largest |signed error| per load state a budget recalibration accepts.
@@ -472,3 +476,135 @@ def xpbd_budget_calibration(doc: dict, reference: np.ndarray, fixed, prescribed,
                                  "observable": "summed reaction of the moved / reaction-set nodes along their prescribed displacement "
                                                "[N], XPBD's multiplier impulses / h^2, at the rest state of the budget"}
     return doc
+
+
+# ============================================================================ load sets
+@dataclasses.dataclass(frozen=True)
+class ExportLoadSet:
+    """The set of loads a real-time simulator meets, for an export calibrated over it
+    (:func:`difftissue.budget.calibrate_for_load_set`) instead of on the file's own specimen.
+
+    Attributes:
+        loads: :class:`~difftissue.budget.BudgetLoad` objects (e.g. from
+            :func:`~difftissue.budget.indentation_load`), all on ``mesh``.
+        mesh: the simulator's mesh the loads are on (its cell size is part of the card's
+            validity); None: the export's own mesh (``mesh=`` or the indentation specimen's).
+            When both are given they must be the same mesh (nodes, tets, cell size), else
+            :class:`~difftissue.errors.BudgetRangeError`.
+        effective_poisson: also fit one effective Poisson ratio for the set.
+        extrapolate: write the card although the exported material's modulus lies outside the
+            set's stiffness range (the end factor, with a
+            :class:`~difftissue.errors.BudgetExtrapolationWarning`); default: refused with
+            :class:`~difftissue.errors.BudgetRangeError`.
+        reference: the reference model kind of every load (default: the card's model).
+        propose: when the budget is saturated, search a budget that carries the set (as for
+            :func:`~difftissue.budget.calibrate_for_load_set`).
+        max_steps: optimiser steps of the joint fit.
+    """
+
+    loads: tuple
+    mesh: Any = None
+    effective_poisson: bool = False
+    extrapolate: bool = False
+    reference: str | None = None
+    propose: Any = True
+    max_steps: int = 20
+
+    def __post_init__(self):
+        loads = (self.loads,) if isinstance(self.loads, BudgetLoad) else tuple(self.loads)
+        if not loads:
+            raise ExportError("load_set: no loads; give at least one BudgetLoad (difftissue.budget.indentation_load)")
+        for i, ld in enumerate(loads):
+            if not isinstance(ld, BudgetLoad):
+                raise ExportError(f"load_set: loads[{i}] must be a difftissue.budget.BudgetLoad, got {type(ld).__name__}")
+        object.__setattr__(self, "loads", loads)
+
+
+def export_load_set(load_set) -> ExportLoadSet | None:
+    """``load_set`` as an :class:`ExportLoadSet`: None, an :class:`ExportLoadSet`, or a sequence of
+    :class:`~difftissue.budget.BudgetLoad` (on the export's mesh, default options)."""
+    if load_set is None or isinstance(load_set, ExportLoadSet):
+        return load_set
+    if isinstance(load_set, BudgetLoad) or isinstance(load_set, (list, tuple)):
+        return ExportLoadSet(load_set)
+    raise ExportError(f"load_set must be an ExportLoadSet or a sequence of BudgetLoad, got {type(load_set).__name__}")
+
+
+def load_set_calibration(card, load_set: ExportLoadSet, settings: XPBDSettings, model_kind: str, *, mesh=None) -> LoadSetCalibration:
+    """The budget card of ``card`` for ``load_set`` at ``settings``: :func:`~difftissue.budget.calibrate_for_load_set`
+    of ``model_kind`` on the set's mesh (or ``mesh``, the export's), the reference the card's
+    model (or ``load_set.reference``), then checked for the export: the same setting, the
+    export's ``mesh`` the set's, and the card's modulus within the set's stiffness range
+    (:meth:`~difftissue.budget.LoadSetCalibration.check`; ``load_set.extrapolate`` warns instead).
+
+    Raises:
+        ExportError: no mesh, or a card model that is no difftissue mesh model.
+        BudgetSaturationError: the budget cannot carry a load of the set (with the proposal).
+        BudgetRangeError: another mesh, or the card's modulus outside the set's range.
+    """
+    calib_mesh = load_set.mesh if load_set.mesh is not None else mesh
+    if calib_mesh is None:
+        raise ExportError("a load-set calibration needs the simulator's mesh: give the export a mesh (or an indentation "
+                          "specimen) or ExportLoadSet(mesh=...)")
+    reference = card.model if load_set.reference is None else load_set.reference
+    if reference not in MODELS:
+        raise ExportError(f"the card's model {reference!r} is no difftissue mesh model {list(MODELS)}: the loads' reference "
+                          "forces cannot be solved; give ExportLoadSet(reference=...)")
+    material = card.material()
+    cal = calibrate_for_load_set(calib_mesh, model_kind, material, load_set.loads, settings, reference=reference,
+                                 effective_poisson=load_set.effective_poisson, propose=load_set.propose,
+                                 max_steps=load_set.max_steps)
+    v = cal.validity
+    cal.check(shape=v["shapes"][0], depth=v["depth_range"][0], youngs_modulus=float(material.youngs_modulus), settings=settings,
+              mesh=mesh, extrapolate=load_set.extrapolate)
+    return cal
+
+
+def xpbd_load_set_calibration(doc: dict, card, load_set: ExportLoadSet, *, mesh=None) -> LoadSetCalibration:
+    """Calibrate an XPBD document (``difftissue-xpbd/1``, stable neo-Hookean constraints) over
+    ``load_set`` at its written budget (:func:`load_set_calibration` with ``model_kind
+    "stable_neo_hookean"``, standard XPBD: multipliers reset every substep, Gauss-Seidel) and
+    write the result into ``doc`` in place: ``lame`` (and ``per_tet``, ``per_unit_volume``,
+    ``gamma``) from the card's effective modulus ``E * f(E)`` at the card's ``E`` (and the
+    effective Poisson ratio), ``lame_card`` (the card's own), ``validity`` and
+    ``budget_calibration`` (``method "load set"``, the factor(s) and the
+    :meth:`~difftissue.budget.LoadSetCalibration.card`)."""
+    st = doc["setting"]
+    settings = XPBDSettings(dt=float(st["dt"]), substeps=int(st["substeps"]), iterations=int(st["iterations"]),
+                            method="gauss_seidel", damping=float("inf"), warm_start=False)
+    cal = load_set_calibration(card, load_set, settings, "stable_neo_hookean", mesh=mesh)
+    E = float(card.material().youngs_modulus)
+    E_eff, nu_eff = cal.effective_youngs_modulus(E), float(cal.poisson_ratio)
+    lam, mu = (float(x) for x in lame_parameters(E_eff, nu_eff))
+    lam_s = lam + mu
+    h = float(st["dt"]) / int(st["substeps"])
+    doc["lame_card"] = dict(doc["lame"])
+    doc["lame"] = {"mu": mu, "lambda": lam, "lambda_shifted": lam_s}
+    doc["gamma"] = 1.0 + mu / lam_s
+    doc["per_unit_volume"] = {**doc["per_unit_volume"], "deviatoric_compliance": 1.0 / mu, "hydrostatic_compliance": 1.0 / lam_s}
+    if "per_tet" in doc:
+        V0 = np.asarray(doc["per_tet"]["rest_volume"], dtype=float)
+        doc["per_tet"].update({"deviatoric_compliance": (1.0 / (mu * V0)).tolist(), "hydrostatic_compliance": (1.0 / (lam_s * V0)).tolist(),
+                               "deviatoric_alpha_tilde": (1.0 / (mu * V0) / h**2).tolist(),
+                               "hydrostatic_alpha_tilde": (1.0 / (lam_s * V0) / h**2).tolist()})
+    v = cal.validity
+    lo, hi = v["depth_range"]
+    Elo, Ehi = v["youngs_modulus_range"]
+    doc["validity"] = (f"CALIBRATED OVER A LOAD SET for this budget (dt = {float(st['dt']):.6g} s, {st['substeps']} substep(s), "
+                       f"{st['iterations']} iterations, standard XPBD: multipliers reset every substep, Gauss-Seidel) on cells of "
+                       f"{cal.mesh['cell_size']:.4g} m: E_eff = {E_eff:.6g} Pa ({E_eff / E:.6g} x the card's E), nu = {nu_eff:.6g}; "
+                       f"shapes {', '.join(v['shapes'])}, depths {lo:.4g} ... {hi:.4g} m, tissue moduli {Elo:.4g} ... {Ehi:.4g} Pa; "
+                       f"largest residual force error over the set {100 * cal.max_error:.3g} % against the {cal.reference_kind} "
+                       "reference; valid for this budget, this cell size and these loads only (budget_calibration.card)")
+    doc["setting"]["multipliers"] = "reset every substep (standard XPBD); Gauss-Seidel iterations"
+    doc["budget_calibration"] = {"target": "xpbd", "method": "load set", "setting": dict(cal.setting), "factor": E_eff / E,
+                                 "factors": list(cal.factors), "stiffness_nodes": list(cal.stiffness_nodes),
+                                 "effective_youngs_modulus": E_eff, "poisson_ratio": nu_eff,
+                                 "max_residual_error": cal.max_error, "reference_model": cal.reference_kind,
+                                 "extrapolated": not (Elo * (1 - 1e-9) <= E <= Ehi * (1 + 1e-9)),
+                                 "card": cal.card()}
+    if cal.max_error > MAX_BUDGET_ERROR:
+        doc["notes"].append(f"the load-set card leaves up to {100 * cal.max_error:.3g} % on a load of its set (budget_calibration."
+                            f"card.loads): one card for all its loads is a compromise, above the {100 * MAX_BUDGET_ERROR:g} % a "
+                            "single-experiment recalibration accepts")
+    return cal
