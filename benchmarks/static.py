@@ -8,7 +8,10 @@ own) it measures, in float64:
   ``d F / d (E, nu)`` of the punch force by reverse mode (``value_and_grad`` minus a forward),
   compiled inside ``jit`` with the mesh closed over (as the scenarios do: XLA embeds the
   arrays as constants); ``multigrid-direct``: the same with ``solve_static`` called as a
-  function (its arrays are arguments of its own program);
+  function (its arrays are arguments of its own program); ``multigrid-scenario``: the same
+  punch as an :class:`~difftissue.scenarios.Indentation` (bonded flat punch of radius
+  0.2 L, one depth), ``predict`` cold and warm (the scenario compiles its protocol with
+  the mesh and the solver setup as arguments), no gradient;
 - ``sparse`` (difftissue's sparse direct path: CHOLMOD through cholespy), ``superlu`` (the
   previous default above 3,000 unknowns: SciPy's SuperLU through the same host callback) and
   ``dense`` (Cholesky), where they fit;
@@ -88,7 +91,21 @@ def _child(args):
     def since(t):
         return time.perf_counter() - t[0], time.process_time() - t[1]
 
-    if solver in ("multigrid", "multigrid-direct", "sparse", "dense", "superlu"):
+    if solver == "multigrid-scenario":
+        from difftissue.scenarios import Indentation, SolverOptions
+
+        t = clock()
+        L = 0.02
+        sc = Indentation(mesh, [DEPTH], indenter="flat_punch", radius=0.2 * L, bonded_punch=True, base="bonded", model=kind,
+                         options=SolverOptions(rtol=RTOL, linear_solver="multigrid"))
+        out["build_wall"], out["build_cpu"] = since(t)
+        t = clock()
+        out["force"] = float(sc.predict(Material(1e4, 0.45))[0])
+        out["cold_wall"], out["cold_cpu"] = since(t)
+        t = clock()
+        float(sc.predict(Material(2e4, 0.45))[0])
+        out["warm_wall"], out["warm_cpu"] = since(t)
+    elif solver in ("multigrid", "multigrid-direct", "sparse", "dense", "superlu"):
         linear = {"superlu": "sparse", "multigrid-direct": "multigrid"}.get(solver, solver)
         if solver == "superlu":
             import difftissue.solvers.sparse as sp
@@ -229,6 +246,7 @@ def _plot(rows, path):
     labels = {
         "multigrid": "difftissue multigrid (solve compiled in a closure, as in fits)",
         "multigrid-direct": "difftissue multigrid (solve_static called directly)",
+        "multigrid-scenario": "difftissue multigrid (Indentation.predict)",
         "pyamg": "PyAMG's own solver (solve)",
         "skfem": "scikit-fem assembly + PyAMG setup + solve",
         "sparse": "sparse Cholesky (cholespy)",
@@ -236,7 +254,7 @@ def _plot(rows, path):
     }
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5), sharey=True)
     for ax, model in zip(axes, ("fem_linear", "springs_volume")):
-        for k, (solver, style) in enumerate((("multigrid", "o-"), ("multigrid-direct", "o-."), ("pyamg", "s--"), ("skfem", "^:"), ("sparse", "d-."), ("superlu", "x-."))):
+        for k, (solver, style) in enumerate((("multigrid", "o-"), ("multigrid-direct", "o-."), ("pyamg", "s--"), ("skfem", "^:"), ("sparse", "d-."), ("superlu", "x-."), ("multigrid-scenario", "v-"))):
             pts = sorted((r["unknowns"], cpu(r)) for r in rows if r["model"] == model and r["solver"] == solver and "error" not in r)
             if pts:
                 x, y = np.array(pts).T
@@ -283,7 +301,7 @@ def main():
                 unknowns = 3 * (2 * n + 1) ** 2 * (n + 1)
                 if solver in ("sparse", "superlu", "dense") and unknowns > args.direct_max:
                     continue
-                r = _run(n, model, solver, solver.startswith("multigrid"), args.timeout)
+                r = _run(n, model, solver, solver in ("multigrid", "multigrid-direct"), args.timeout)
                 r["load"] = os.getloadavg()[0]
                 print(json.dumps(r), flush=True)
                 rows = [q for q in rows if (q["size"], q["model"], q["solver"]) != (n, model, solver)] + [r]

@@ -39,7 +39,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .energies.fem import linear_elastic_energy_density, neo_hookean_energy_density, nodal_dilatation_energy, nodal_volume_energy
+from .energies.fem import (
+    linear_elastic_energy_density,
+    neo_hookean_energy_density,
+    nodal_dilatation_energy,
+    nodal_dilatation_hessian,
+    nodal_volume_energy,
+    nodal_volume_hessian,
+)
 from .energies.neo_hookean import deformation_gradient, det3, rest_shape, stable_neo_hookean_energy_density
 from .energies.springs import cubic_spring_energy, cubic_spring_hessian
 from .errors import InvertedElementError, MaterialError, ModelError, ModelRangeError
@@ -441,12 +448,12 @@ class FEMModel(ElasticModel):
             fn = _fem_linear_energy if self.kind == "fem_linear" else _fem_neo_hookean_energy
             return (ElementTerm("tets", self.tets, fn, (Dm_inv, V0, lam[r], mu[r])),)
         shear = _fem_linear_shear_energy if self.kind == "fem_linear" else _fem_neo_hookean_shear_energy
-        volume = nodal_dilatation_energy if self.kind == "fem_linear" else nodal_volume_energy
+        volume, volume_hessian = (nodal_dilatation_energy, nodal_dilatation_hessian) if self.kind == "fem_linear" else (nodal_volume_energy, nodal_volume_hessian)
         ids = self.patch_tets
         weights = jnp.where(self.patch_valid, V0[ids] / 4.0, 0.0)
         return (
             ElementTerm("tets", self.tets, shear, (Dm_inv, V0, mu[r])),
-            ElementTerm("node_volume", self.patch_nodes, volume, (self.patch_local_tets, Dm_inv[ids], weights, lam[self.patch_regions])),
+            ElementTerm("node_volume", self.patch_nodes, volume, (self.patch_local_tets, Dm_inv[ids], weights, lam[self.patch_regions]), hessian=volume_hessian),
         )
 
 

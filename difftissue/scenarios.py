@@ -29,6 +29,7 @@ Scenarios:
 from __future__ import annotations
 
 import collections
+import contextvars
 import dataclasses
 import hashlib
 import math
@@ -51,6 +52,7 @@ from .mesh import TetMesh, graded_axis, structured_grid
 from .interpolation import interpolation_operator
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
+from .solvers import solver_setup
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
 from .solvers.static import prediction_rtol, solve_static
 from .structure_keys import data_leaf_indices, hash_scenario_leaves
@@ -446,9 +448,10 @@ _JITTED: dict[int, tuple[Any, Any]] = {}
 #: dropped first); each keeps the scenario it was compiled for (and its mesh) alive.
 SHARED_SOLVES_SIZE = 8
 
-#: Only scenarios whose arrays hold at most this many bytes share their compiled protocol: a
-#: large mesh's program embeds its arrays (GBs at 10^5 unknowns, docs/dev/solver-design.md),
-#: which must go with the scenario, not stay in a cache.
+#: Only closed-over scenarios (the condensed indentation, see :func:`_jitted_solve`) whose
+#: arrays hold at most this many bytes share their compiled protocol: a large mesh's program
+#: embeds its arrays (GBs at 10^5 unknowns, docs/dev/solver-design.md), which must go with the
+#: scenario, not stay in a cache. Programs taking the arrays as arguments share at any size.
 SHARED_SOLVES_MAX_BYTES = 16 * 2**20
 
 #: ``{structure key: (scenario, _SharedSolve)}`` (see :func:`_structure_key`), most recent last.
@@ -484,7 +487,14 @@ class _SharedSolve:
 
     def __init__(self):
         self._users: list = []
-        self.fn = jax.jit(lambda material, *extra: self._live()._solve_protocol(material, *extra))
+        self.fn = jax.jit(self._trace)
+
+    def _trace(self, material, *extra):
+        token = _SOLVE_SETUP.set(None)  # the solves build their own setup (closed-over mesh)
+        try:
+            return self._live()._solve_protocol(material, *extra)
+        finally:
+            _SOLVE_SETUP.reset(token)
 
     def add(self, scenario) -> None:
         self._users = [r for r in self._users if r() is not None] + [weakref.ref(scenario)]
@@ -497,31 +507,135 @@ class _SharedSolve:
         raise RuntimeError("a scenario's compiled solve outlived every scenario it was compiled for")
 
 
+#: The :class:`~difftissue.solvers.static.SolverSetup` of the protocol being traced by an
+#: :class:`_ArgumentSolve` (None otherwise), read by :func:`_solve`.
+_SOLVE_SETUP: contextvars.ContextVar = contextvars.ContextVar("difftissue_scenario_solver_setup", default=None)
+
+
+def _takes_arguments(scenario, leaves) -> bool:
+    """Whether ``scenario``'s protocol is compiled with its arrays and solver setup as
+    arguments (:class:`_ArgumentSolve`): every static solve of the protocol goes through
+    :func:`_solve` with ``scenario.model`` (or it at another indenter depth) and
+    ``scenario.bc.fixed``, and nothing is traced by an outer transformation. The condensed
+    indentation (:class:`_Condensation`: NumPy index sets at trace time) stays closed over."""
+    if getattr(scenario, "condensation", None) is not None:
+        return False
+    if not all(isinstance(getattr(scenario, a, None), t) for a, t in (("model", ElasticModel), ("bc", BoundaryConditions), ("options", SolverOptions))):
+        return False
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
+
+
+def _argument_key(scenario, leaves, treedef):
+    """The structure key of a protocol compiled with the scenario's arrays as arguments: its
+    type, pytree structure (static configuration) and every leaf that is not an array
+    (Python scalars by value, other objects by identity); arrays by shape and dtype only, so
+    that scenarios of other values with the same shapes (another mesh of the same size, other
+    depths) share the program. None when the static configuration cannot be hashed."""
+    try:
+        hash(treedef)
+    except TypeError:
+        return None
+    h = hashlib.sha256()
+    arrays = tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf))
+    objects = hash_scenario_leaves(h, leaves, arrays, data_tag="arg")
+    return ("arguments", type(scenario), treedef, h.hexdigest(), tuple(objects))
+
+
+class _ArgumentSolve:
+    """One jitted ``_solve_protocol`` that takes the scenario's arrays (the ``eqx.partition``
+    of its array leaves) and the :class:`~difftissue.solvers.static.SolverSetup` of its
+    static solves as arguments: the program holds no mesh-sized constant (a closed-over mesh
+    and multigrid hierarchy are embedded in the executable, GBs at 10^5 unknowns), and
+    scenarios of the same structure share it. It keeps only the non-array part of the
+    scenario it was built for (``static``), which equal scenarios have in common."""
+
+    def __init__(self, static):
+        self.static = static
+        self.fn = jax.jit(self._trace)
+
+    def _trace(self, dynamic, setup, material, *extra):
+        token = _SOLVE_SETUP.set(setup)
+        try:
+            return eqx.combine(dynamic, self.static)._solve_protocol(material, *extra)
+        finally:
+            _SOLVE_SETUP.reset(token)
+
+
+class _ScenarioSolve:
+    """``scenario.solve``'s compiled protocol for one scenario: the shared
+    :class:`_ArgumentSolve` (``program``) called with this scenario's arrays and its solver
+    setup, built on the first call per material structure (a concrete mesh; the multigrid
+    hierarchy for a traced material, as inside the program: ``SolverOptions.preconditioner_material``
+    or E = 1 Pa, nu = 0.45)."""
+
+    def __init__(self, program: _ArgumentSolve, scenario, dynamic):
+        self.program = program
+        self._dynamic = jax.tree_util.tree_map(jnp.asarray, dynamic)  # converted once, not per call
+        model = scenario.model
+        # the reference state of a contact model: the indenter at depth 0 (the depth is traced in the protocol)
+        self._model = model.with_depth(0.0) if isinstance(model, ContactModel) else model
+        self._bc, self._options = scenario.bc, scenario.options
+        self._setups: dict = {}
+
+    def setup(self, material):
+        leaves, treedef = jax.tree_util.tree_flatten(material)
+        key = (treedef, tuple((jnp.shape(v), jnp.result_type(v)) for v in leaves))
+        hit = self._setups.get(key)
+        if hit is None:
+            o = self._options
+            built = []
+            # Built while the material is traced (abstractly, nothing compiled or run but the
+            # reference matrix): the same setup as a solve traced with the mesh closed over,
+            # without evaluating the model's element terms eagerly (op by op).
+            jax.eval_shape(lambda m: built.append(solver_setup(self._model, m, self._bc, linear_solver=o.linear_solver,
+                                                               preconditioner_material=o.preconditioner_material)), material)
+            hit = self._setups[key] = built[0]
+        return hit
+
+    def __call__(self, material, *extra):
+        return self.program.fn(self._dynamic, self.setup(material), material, *extra)
+
+
 def _jitted_solve(scenario):
     """``scenario.solve`` compiled once per scenario, shared by equal scenarios.
 
-    The scenario is closed over (its mesh arrays stay concrete NumPy, which the sparse solver
-    needs for its pattern), so repeated ``predict`` calls reuse one executable; inside an outer
-    ``jit`` (a fit) the call is simply inlined. A new scenario object equal to a recent one
-    (:func:`_structure_key`: same mesh, protocol and settings, e.g. the specimen rebuilt by each
-    export of a card) reuses that one's executable instead of compiling the same program again.
+    Scenarios whose static solves all use the scenario's own model and fixed DOFs
+    (:func:`_takes_arguments`: the full indentation, compression, FEM field) are compiled with
+    their arrays and the solver setup (:func:`~difftissue.solvers.static.solver_setup`, built
+    from the concrete mesh before the call) as arguments (:class:`_ScenarioSolve`): the
+    executable holds no mesh-sized constant, and every scenario of the same structure
+    (:func:`_argument_key`: type, static configuration, scalars, array shapes) shares it.
+    The others (the condensed indentation, a scenario traced by an outer transformation) are
+    closed over (their arrays stay concrete NumPy, which their protocol needs), shared by
+    equal scenarios (:func:`_structure_key`: same mesh, protocol and settings) when small.
+    Inside an outer ``jit`` (a fit) the call is simply inlined.
     """
     key = id(scenario)
     hit = _JITTED.get(key)
     if hit is not None and hit[0]() is scenario:
         return hit[1]
-    shared_key = _structure_key(scenario)
-    entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
-    if entry is None:
-        entry = (scenario, _SharedSolve())
-    entry[1].add(scenario)
+    leaves, treedef = jax.tree_util.tree_flatten(scenario)
+    if _takes_arguments(scenario, leaves):
+        dynamic, static = eqx.partition(scenario, eqx.is_array)
+        shared_key = _argument_key(scenario, leaves, treedef)
+        entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
+        if entry is None:
+            entry = (static, _ArgumentSolve(static))
+        fn = _ScenarioSolve(entry[1], scenario, dynamic)
+    else:
+        shared_key = _structure_key(scenario)
+        entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
+        if entry is None:
+            entry = (scenario, _SharedSolve())
+        entry[1].add(scenario)
+        fn = entry[1].fn
     if shared_key is not None:
         _SHARED[shared_key] = entry  # most recent last
         while len(_SHARED) > SHARED_SOLVES_SIZE:
             _SHARED.popitem(last=False)
     # Only a weak reference to the scenario in its own entry: dropped with the object.
-    _JITTED[key] = (weakref.ref(scenario, lambda _, k=key, cache=_JITTED: cache.pop(k, None)), entry[1].fn)
-    return entry[1].fn
+    _JITTED[key] = (weakref.ref(scenario, lambda _, k=key, cache=_JITTED: cache.pop(k, None)), fn)
+    return fn
 
 
 def _history(u0):
@@ -556,7 +670,7 @@ def _solve(model, material, bc, u0, opts: SolverOptions):
     u0 = None if u0 is None else jax.lax.stop_gradient(u0)
     sol = solve_static(
         model, material, bc, rtol=opts.rtol, xtol=opts.xtol, max_steps=opts.max_steps, linear_solver=opts.linear_solver, initial_displacement=u0,
-        throw=opts.failure == "raise", preconditioner_material=opts.preconditioner_material,
+        throw=opts.failure == "raise", preconditioner_material=opts.preconditioner_material, setup=_SOLVE_SETUP.get(),
     )
     if opts.failure == "nan":
         # A multiplication by NaN, not a ``where``: the primal, its tangents (forward mode) and
@@ -1106,7 +1220,8 @@ class Compression(eqx.Module):
         return _jitted_solve(self)(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material))
 
     def _solve_protocol(self, material: Material):
-        nominal = jnp.asarray(self.abscissa if self.measure == "engineering" else -np.expm1(-self.abscissa))
+        # jnp: the strains are an argument of the compiled protocol (traced)
+        nominal = jnp.asarray(self.abscissa) if self.measure == "engineering" else -jnp.expm1(-jnp.asarray(self.abscissa))
         top = jnp.asarray(self.top_mask)
         x0 = jnp.asarray(self.model.rest_points)
 

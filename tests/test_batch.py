@@ -56,24 +56,58 @@ def cube():
     return small_block()
 
 
-def indentation_specimens(n, seed=0):
-    """``n`` simulated sphere indentations (quarter block of 384 tets, fem_linear, condensed
-    penalty contact, nu = 0.45 known), each with its own E (5-15 kPa), noise and start (0.6 E)."""
+def indentation_scenario(observed=None, sigma=None):
+    """The simulated sphere indentation of :func:`indentation_specimens` (quarter block of 384
+    tets, fem_linear, condensed penalty contact) with the data ``observed`` [N], ``sigma`` [N]."""
     from difftissue.scenarios import Indentation, indentation_block
 
     mesh = indentation_block((4e-3, 4e-3, 1.6e-3), (4, 4, 4), symmetry="quarter")
     depths = np.linspace(0.04, 0.2, 4) * 1e-3
     kw = dict(model="fem_linear", indenter="sphere", radius=1e-3, symmetry="quarter", options=NAN, name="sphere")
-    probe = Indentation(mesh, depths, **kw)
+    return Indentation(mesh, depths, observed, sigma=sigma, **kw)
+
+
+def indentation_specimens(n, seed=0):
+    """``n`` simulated sphere indentations (:func:`indentation_scenario`, nu = 0.45 known), each
+    with its own E (5-15 kPa), noise and start (0.6 E)."""
+    probe = indentation_scenario()
     rng = np.random.default_rng(seed)
     specs, starts = [], []
     for b in range(n):
         E = 5e3 + 1e4 * rng.random()
         f = np.asarray(probe.predict(Material(E, 0.45)))
         noise = 0.01 * f.max()
-        specs.append(Indentation(mesh, depths, f + noise * rng.normal(size=f.size), sigma=noise, **kw))
+        specs.append(indentation_scenario(f + noise * rng.normal(size=f.size), noise))
         starts.append(Material(0.6 * E, 0.45))
     return specs, starts
+
+
+@pytest.fixture(scope="module")
+def indentation_serial():
+    """Five simulated indentations (``indentation_specimens(5, seed=2)``) and their serial loop of
+    fits, computed once for the module: the batched test uses the first three (the same
+    specimens as ``indentation_specimens(3, seed=2)``: one random stream, drawn in order), the
+    sharded child process all five, so the child compiles neither the scenario nor the
+    single-specimen fit."""
+    specs, starts = indentation_specimens(5, seed=2)
+    return specs, starts, [fit(s, P_E, m) for s, m in zip(specs, starts)]
+
+
+def fit_summary(r) -> dict:
+    """What :func:`assert_same_fits` compares of a serial fit, as JSON (exact floats)."""
+    return {"fields": list(r.fields), "values": {f: float(v) for f, v in r.values.items()},
+            "standard_errors": {f: float(v) for f, v in r.standard_errors.items()}, "loss": float(r.loss),
+            "converged": bool(r.converged), "steps": int(r.steps), "best_start": int(r.best_start),
+            "start_losses": np.asarray(r.start_losses).tolist(), "covariance": np.asarray(r.covariance).tolist(),
+            "loss_history": np.asarray(r.loss_history).tolist()}
+
+
+def fit_from_summary(d):
+    """A :func:`fit_summary` read back: the attributes :func:`assert_same_fits` reads."""
+    import types
+
+    arrays = {k: np.asarray(d[k], dtype=float) for k in ("start_losses", "covariance", "loss_history")}
+    return types.SimpleNamespace(**{**d, "fields": tuple(d["fields"]), **arrays})
 
 
 def assert_same_fits(batch, serial, rtol=1e-7, steps_tol=0):
@@ -107,11 +141,10 @@ def test_batched_hertz_fits_equal_the_serial_loop(method):
     assert "| specimen | youngs_modulus |" in batch.table()
 
 
-def test_batched_indentation_fits_equal_the_serial_loop_and_compile_once(caplog):
-    specs, starts = indentation_specimens(3, seed=2)
+def test_batched_indentation_fits_equal_the_serial_loop_and_compile_once(caplog, indentation_serial):
+    specs, starts, serial = (v[:3] for v in indentation_serial)
     batch = fit_batch(specs, P_E, starts)
     assert batch.compilations == 1  # one trace of the batched step for all specimens and steps
-    serial = [fit(s, P_E, m) for s, m in zip(specs, starts)]
     assert_same_fits(batch, serial, rtol=1e-6, steps_tol=2)
     assert all(batch.converged)
     # the serial loop compiled once for the first specimen only: the data are arguments
@@ -227,13 +260,16 @@ CHILD = textwrap.dedent(
     tb.assert_same_fits(sharded, serial)
     out["hertz"] = {{"padding": sharded.padding, "devices": list(sharded.devices), "compilations": sharded.compilations, "warned": per_device(w)}}
     # simulated specimens (384-tet fem_linear sphere indentations): 5 on 4 devices, 3 padded,
-    # two per device (a GSPMD-partitioned batch of this hung in XLA's CPU collectives)
-    specs, starts = tb.indentation_specimens(5, seed=2)
+    # two per device (a GSPMD-partitioned batch of this hung in XLA's CPU collectives). The
+    # specimens' data and their serial fits come from the parent (tb.indentation_serial).
+    given = json.loads(open({given!r}).read())
+    specs = [tb.indentation_scenario(np.asarray(o), s) for o, s in zip(given["observed"], given["sigma"])]
+    starts = [tb.Material(E, 0.45) for E in given["starts"]]
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
         sharded = fit_batch(specs, tb.P_E, starts, devices=4)
     out["indentation_warned"] = per_device(w)
-    serial = [fit(s, tb.P_E, m) for s, m in zip(specs, starts)]
+    serial = [tb.fit_from_summary(d) for d in given["serial"]]
     tb.assert_same_fits(sharded, serial, rtol=1e-6, steps_tol=2)
     out["indentation"] = {{"padding": sharded.padding, "converged": bool(all(sharded.converged)), "devices": list(sharded.devices)}}
     print("RESULT " + json.dumps(out))
@@ -241,9 +277,14 @@ CHILD = textwrap.dedent(
 )
 
 
-def test_sharded_fits_on_four_simulated_devices_equal_the_serial_loop(tmp_path):
+def test_sharded_fits_on_four_simulated_devices_equal_the_serial_loop(tmp_path, indentation_serial):
+    specs, starts, serial = indentation_serial
+    given = tmp_path / "indentation.json"
+    given.write_text(json.dumps({"observed": [np.asarray(s.observed).tolist() for s in specs],
+                                 "sigma": [float(np.asarray(s.sigma).flat[0]) for s in specs],
+                                 "starts": [float(m.youngs_modulus) for m in starts], "serial": [fit_summary(r) for r in serial]}))
     script = tmp_path / "sharded.py"
-    script.write_text(CHILD.format(here=os.path.dirname(os.path.abspath(__file__))))
+    script.write_text(CHILD.format(here=os.path.dirname(os.path.abspath(__file__)), given=str(given)))
     env = dict(os.environ)
     env.pop("XLA_FLAGS", None)
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)

@@ -9,11 +9,12 @@ from jax.test_util import check_grads
 
 from difftissue import errors
 from difftissue.boundary import BoundaryConditions
+from difftissue.contact import ConeIndenter, _PenaltyEnergy
 from difftissue.contact import top_surface_nodes
 from difftissue.materials import Material
 from difftissue.models import make_model
 from difftissue.scenarios import Indentation, SolverOptions, _Condensation, indentation_block
-from difftissue.solvers.condensed import linear_response_columns
+from difftissue.solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
 from difftissue.solvers.static import _dense_hessian
 
 DEPTHS = np.linspace(0.02, 0.2, 5) * 1e-3
@@ -87,7 +88,7 @@ def test_cone_apex_on_a_node_is_held_on_the_axis():
     8 x 8 x 4 export block) while the condensed solve stopped on the axis with a lateral
     residual of 22-39 % of the force and reported convergence (docs/dev/calculix-cone.md).
     Now both are the same equilibrium, the node stays on the axis, and the condensed state is an
-    equilibrium of the full model."""
+    equilibrium of the full model; unheld, the condensed solve reports failure."""
     mesh = indentation_block((3e-3, 3e-3, 1.5e-3), (6, 6, 4), symmetry="none")  # a node on the axis x = y = 0
     kw = dict(model="fem_linear", indenter="cone", half_angle=np.deg2rad(70.0))
     d = np.array([0.05, 0.1]) * 1e-3
@@ -105,6 +106,42 @@ def test_cone_apex_on_a_node_is_held_on_the_axis():
         model = cond.model.with_depth(depth)
         g = np.asarray(jax.grad(lambda x: model.energy(x, m))(jnp.asarray(p + uc[k])))
         assert np.abs(g[free]).max() <= 1e-6 * fc[k]
+    # Without the hold the condensed Newton stayed on the axis, a stationary point of the
+    # (regularised) energy that is not a minimum, and reported convergence (+28 % force): now
+    # it reports failure (solve_condensed_contact's Hessian check).
+    fixed = np.asarray(cond.bc.fixed).copy()
+    fixed[apex, :2] = False
+    unheld = _Condensation(cond.model, BoundaryConditions(fixed, cond.bc.displacement, cond.bc.force), float(d.max()))
+    forces, _ = unheld.solve_protocol(m, jnp.asarray(d), SolverOptions(failure="nan"))
+    assert np.all(np.isnan(np.asarray(forces)))
+
+
+def test_condensed_refuses_a_node_balanced_on_a_cone_tip():
+    """One candidate node under a sharp frictionless cone's apex, springs kx < ky, kz. On the
+    axis it is a stationary point of the energy (by symmetry) but not a minimum: off the axis by
+    any amount the tip pushes it out with kappa p cos(theta). Newton from u = 0 stays on the axis
+    with a residual at round-off, so a residual test alone reported convergence there; the
+    Hessian check reports failure. Started off the axis it converges to the stable state, which
+    slides along the soft x direction (closed form below); held in x, y it converges on the axis."""
+    theta, depth, kappa = np.deg2rad(70.0), 1e-4, 50.0  # [rad], [m], [N/m]
+    kx, ky, kz = 10.0, 30.0, 20.0  # [N/m]
+    cone = ConeIndenter(float(theta), axis_xy=(0.0, 0.0), surface_z=0.0)
+    model = CondensedContactModel(np.zeros((1, 3)), cone, _PenaltyEnergy(cone), depth=depth)
+    params = CondensedParameters(jnp.diag(jnp.array([kx, ky, kz])), jnp.array([kappa]))
+    free = np.ones((1, 3), dtype=bool)
+    s, c = np.sin(theta), np.cos(theta)
+    # on the axis: stationary (zero lateral residual) but unstable
+    u, ok = solve_condensed_contact(model, params, free, np.zeros((1, 3)))
+    assert np.all(np.asarray(u)[0, :2] == 0.0) and not bool(ok)
+    # off the axis: the stable equilibrium (on either side of the axis), k_x r = kappa p cos, k_z u_z = -kappa p sin
+    u, ok = solve_condensed_contact(model, params, free, np.array([[1e-9, 0.0, 0.0]]))
+    p = depth * s / (1.0 + kappa * s**2 / kz + kappa * c**2 / kx)
+    assert bool(ok)
+    np.testing.assert_allclose(np.abs(np.asarray(u)[0]), [kappa * p * c / kx, 0.0, kappa * p * s / kz], rtol=1e-10, atol=1e-18)
+    # held on the axis: converged, k_z u_z = -kappa p sin with p = (u_z + depth) sin
+    u, ok = solve_condensed_contact(model, params, np.array([[False, False, True]]), np.zeros((1, 3)))
+    assert bool(ok)
+    np.testing.assert_allclose(np.asarray(u)[0, 2], -kappa * s**2 * depth / (kz + kappa * s**2), rtol=1e-12)
 
 
 def test_condensed_force_gradients_match_finite_differences(quarter):

@@ -499,27 +499,42 @@ def test_refuses_to_overwrite(tmp_path, mesh):
 
 
 # ------------------------------------------------------------------ CLI
-def _cli(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "difftissue", *args], capture_output=True, text=True, cwd=cwd, timeout=300)
+def _cli(*args, cwd, capsys, monkeypatch):
+    """``difftissue ARGS`` run in this process (``main``, as the console script calls it; that
+    ``python -m difftissue`` reaches ``main`` is tests/test_cli.py's): exit status, stdout, stderr.
+    In-process saves a Python + JAX start and the export's compilations per call."""
+    from difftissue.cli import main
+
+    monkeypatch.chdir(cwd)
+    capsys.readouterr()
+    try:
+        code = main(list(args))
+    except SystemExit as e:  # argparse's usage errors
+        code = e.code
+    out, err = capsys.readouterr()
+    return subprocess.CompletedProcess(["difftissue", *args], code, out, err)
 
 
-def test_cli_export(tmp_path):
+def test_cli_export(tmp_path, capsys, monkeypatch):
+    def _cli_here(*args):
+        return _cli(*args, cwd=tmp_path, capsys=capsys, monkeypatch=monkeypatch)
+
     write_card(make_card(), tmp_path / "material.json")
-    r = _cli("export", "material.json", "--to", "abaqus", "--out", "m.inp", "--specimen", "block:10,10,5:2,2,1", cwd=tmp_path)
+    r = _cli_here("export", "material.json", "--to", "abaqus", "--out", "m.inp", "--specimen", "block:10,10,5:2,2,1")
     assert r.returncode == 0, r.stderr
     assert "*HYPERELASTIC, NEO HOOKE" in (tmp_path / "m.inp").read_text()
-    r = _cli("export", "material.json", "--to", "xpbd", "--out", "x.json", "--dt", "0.01", "--iterations", "10", cwd=tmp_path)
+    r = _cli_here("export", "material.json", "--to", "xpbd", "--out", "x.json", "--dt", "0.01", "--iterations", "10")
     assert r.returncode == 0, r.stderr and (tmp_path / "x.json").is_file()
     # refusal to overwrite, then bad card: one line, exit 1
-    r = _cli("export", "material.json", "--to", "abaqus", "--out", "m.inp", cwd=tmp_path)
+    r = _cli_here("export", "material.json", "--to", "abaqus", "--out", "m.inp")
     assert r.returncode == 1 and "exists" in r.stderr
     doc = make_card().to_dict()
     doc["parameters"]["poisson_ratio"]["value"] = 0.7
     (tmp_path / "bad.json").write_text(json.dumps(doc))
-    r = _cli("export", "bad.json", "--to", "febio", "--out", "b.feb", cwd=tmp_path)
+    r = _cli_here("export", "bad.json", "--to", "febio", "--out", "b.feb")
     assert r.returncode == 1 and len(r.stderr.strip().splitlines()) == 1 and "parameters.poisson_ratio" in r.stderr
     assert not (tmp_path / "b.feb").exists()
-    r = _cli("export", "material.json", "--to", "vtu", "--out", "m.vtu", cwd=tmp_path)
+    r = _cli_here("export", "material.json", "--to", "vtu", "--out", "m.vtu")
     assert r.returncode == 2 and "--specimen" in r.stderr
 
 

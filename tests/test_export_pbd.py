@@ -248,15 +248,20 @@ def test_pbd_refusals(tmp_path):
         read_pbd_scene(tmp_path / "x.json")
 
 
-def test_cli_export_pbd(tmp_path):
+def test_cli_export_pbd(tmp_path, capsys):
+    """The command line's export to pbd (run in this process: ``main`` is what the console
+    script calls; tests/test_cli.py checks that ``python -m difftissue`` reaches it)."""
+    from difftissue.cli import main
+
     card = _card(tmp_path)
     cpath = tmp_path / "material.json"
     write_card(card, cpath)
     out = tmp_path / "scene.json"
-    proc = subprocess.run([sys.executable, "-m", "difftissue", "export", str(cpath), "--to", "pbd", "--out", str(out),
-                           "--specimen", "block:10,10,10:2,2,2", "--dt", "0.002", "--iterations", "15"],
-                          capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr
+    capsys.readouterr()
+    code = main(["export", str(cpath), "--to", "pbd", "--out", str(out),
+                 "--specimen", "block:10,10,10:2,2,2", "--dt", "0.002", "--iterations", "15"])
+    stdout, stderr = capsys.readouterr()
+    assert code == 0, stderr
     scene = read_pbd_scene(out)
     assert scene["setting"]["dt"] == 0.002 and scene["setting"]["iterations"] == 15
-    assert len(scene["particles"]["positions"]) == 27 and "complete specimen" in proc.stdout
+    assert len(scene["particles"]["positions"]) == 27 and "complete specimen" in stdout

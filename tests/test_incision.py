@@ -51,9 +51,12 @@ def reference(cut):
 
 @pytest.fixture(scope="module")
 def compiled(incision):
-    """The physical model's surface widths and their JVP, each compiled once for the module
-    (difftissue.config.SeparatelyCompiled), shared by the gradient test and the fit."""
-    return SeparatelyCompiled(incision)
+    """The physical model's surface widths and their JVP, compiled once for the module
+    (difftissue.config.SeparatelyCompiled), shared by the gradient test and the fit. Its one
+    program pushes two tangents (the fit's two parameters; a primal call runs it with zero
+    tangents): SeparatelyCompiled compiles a program per tangent count, so the gradient test
+    takes its three columns in two-tangent passes too."""
+    return SeparatelyCompiled(incision, n_tangents=2)
 
 
 @pytest.fixture(scope="module")
@@ -119,7 +122,12 @@ def test_opening_gradients_match_central_differences(incision, compiled):
         return np.asarray(incision.solve(material(q)).opening.surface_width) / MM
 
     q0 = jnp.array([1.06, 1.0, 0.45])
-    jac = np.asarray(jax.jacfwd(jvp_widths)(q0))
+    # the Jacobian's columns from two forward passes of two tangents each (the fixture's one
+    # compiled program): d/d(lambda0, E), then d/d(E, nu); the E column of both must agree
+    jac_a = np.asarray(jax.jacfwd(lambda a: jvp_widths(jnp.stack([a[0], a[1], q0[2]])))(q0[:2]))
+    jac_b = np.asarray(jax.jacfwd(lambda b: jvp_widths(jnp.stack([q0[0], b[0], b[1]])))(q0[1:]))
+    np.testing.assert_allclose(jac_b[:, 0], jac_a[:, 1], rtol=1e-12, atol=1e-14 * np.max(np.abs(jac_a)))
+    jac = np.column_stack([jac_a[:, 0], jac_a[:, 1], jac_b[:, 1]])
     np.testing.assert_allclose(np.asarray(jvp_widths(q0)), widths(q0), rtol=1e-9)
     assert np.all(np.abs(jac[:, 0]) > 1.0)  # lambda0 drives the opening
     assert np.all(np.abs(jac[:, 1]) > 1e-3)  # E matters: the fat below is fixed

@@ -174,8 +174,11 @@ def test_equilibrium_gradients_match_central_differences(mesh, models):
         u = solve_static(model, mat, bc).displacement
         return jnp.stack([u[corner, 0], u[corner, 2], u[centre, 2]]) / T
 
+    # jitted: one compiled program for the seven evaluations and one for the Jacobian, instead
+    # of op-by-op dispatch (a compilation per primitive) around the solve
+    output = jax.jit(output)
     q0 = jnp.array([1.04, 2.0, 0.42])
-    jac = np.asarray(jax.jacfwd(output)(q0))
+    jac = np.asarray(jax.jit(jax.jacfwd(output))(q0))
     assert np.all(np.abs(jac[:, 0]) > 1e-3)  # lambda0 moves every output
     h = 1e-6
     for i in range(3):
@@ -193,12 +196,15 @@ def test_kernels_check_grads(mesh, models):
         return eqx.tree_at(lambda m: m.pre_stretch, base, l)
 
     l0 = jnp.array([1.07, 1.02])
-    check_grads(models["fem_linear"].stress_free_tets, (l0,), order=2, modes=("fwd", "rev"))
+    # (jitted: check_grads evaluates each function many times; compiled programs per mode
+    # instead of op-by-op dispatch, the same numbers to round-off)
+    fem = models["fem_linear"]
+    check_grads(jax.jit(lambda l: fem.stress_free_tets(l)), (l0,), order=2, modes=("fwd", "rev"))
     sv = models["springs_volume"]
-    check_grads(lambda l: sv.spring_parameters(with_pre(l)), (l0,), order=1, modes=("fwd", "rev"))
-    check_grads(lambda l: sv.cell_rest_volumes(with_pre(l)), (l0,), order=2, modes=("fwd", "rev"))
+    check_grads(jax.jit(lambda l: sv.spring_parameters(with_pre(l))), (l0,), order=1, modes=("fwd", "rev"))
+    check_grads(jax.jit(lambda l: sv.cell_rest_volumes(with_pre(l))), (l0,), order=2, modes=("fwd", "rev"))
     for kind in ("springs_volume", "fem_neo_hookean"):  # the other tet models share stress_free_tets
-        check_grads(lambda l, m=models[kind]: m.energy(x, with_pre(l)) / (E * T**3), (l0,), order=1, modes=("fwd", "rev"), rtol=1e-6)
+        check_grads(jax.jit(lambda l, m=models[kind]: m.energy(x, with_pre(l)) / (E * T**3)), (l0,), order=1, modes=("fwd", "rev"), rtol=1e-6)
 
 
 # ------------------------------------------------------------------ springs geometry

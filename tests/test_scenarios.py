@@ -284,8 +284,9 @@ def test_failed_solve_gives_nan_values_and_derivatives_in_both_modes(cube):
 def test_an_equal_scenario_rebuilt_reuses_the_compiled_protocol(cube, caplog):
     """A scenario built again from equal inputs (as each export of a card rebuilds its
     specimen) shares the first one's executable, also after the first object is gone, and so
-    does one with other measured data (not part of the protocol); a scenario that differs in
-    anything compiled in (here one strain) gets its own."""
+    does one with other measured data, or other strains of the same count (the arrays are
+    arguments of the program, not constants), with its own correct values; a scenario that
+    differs in anything compiled in (here the number of strains) gets its own."""
     import gc
     import logging
 
@@ -294,18 +295,21 @@ def test_an_equal_scenario_rebuilt_reuses_the_compiled_protocol(cube, caplog):
     mat = Material(16e3, 0.45)
     first = Compression(cube, [1e-3, 1e-2], model="fem_linear")
     expected = np.asarray(first.predict(mat))
-    program = scenarios._jitted_solve(first)
+    program = scenarios._jitted_solve(first).program
     del first
     gc.collect()
     again = Compression(block((0.01, 0.01, 0.01), (2, 2, 2)), [1e-3, 1e-2], model="fem_linear")
-    assert scenarios._jitted_solve(again) is program
+    assert scenarios._jitted_solve(again).program is program
     with jax.log_compiles(), caplog.at_level(logging.WARNING):
         caplog.clear()
         np.testing.assert_allclose(again.predict(mat), expected, rtol=0)
     assert [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()] == []
     measured = Compression(cube, [1e-3, 1e-2], [15.0, 170.0], model="fem_linear")
-    assert scenarios._jitted_solve(measured) is program
+    assert scenarios._jitted_solve(measured).program is program
     np.testing.assert_allclose(measured.predict(mat), expected, rtol=0)
     other = Compression(cube, [1e-3, 2e-2], model="fem_linear")
-    assert scenarios._jitted_solve(other) is not program
+    assert scenarios._jitted_solve(other).program is program
     np.testing.assert_allclose(other.predict(mat), [16.0, 320.0], rtol=1e-9)
+    longer = Compression(cube, [1e-3, 1e-2, 2e-2], model="fem_linear")
+    assert scenarios._jitted_solve(longer).program is not program
+    np.testing.assert_allclose(longer.predict(mat), [16.0, 160.0, 320.0], rtol=1e-9)

@@ -17,7 +17,9 @@ from .fem import (
     linear_elastic_energy_density,
     neo_hookean_energy_density,
     nodal_dilatation_energy,
+    nodal_dilatation_hessian,
     nodal_volume_energy,
+    nodal_volume_hessian,
     rest_shapes,
     tet_energy,
 )
@@ -60,4 +62,6 @@ __all__ = [
     "ENERGY_DENSITIES",
     "nodal_dilatation_energy",
     "nodal_volume_energy",
+    "nodal_dilatation_hessian",
+    "nodal_volume_hessian",
 ]

@@ -13,6 +13,7 @@ import jax.numpy as jnp
 
 from ..errors import DifftissueError
 from .neo_hookean import deformation_gradient, det3_minus_one, first_invariant_minus_three, rest_shape
+from .volume import cross
 
 __all__ = [
     "linear_elastic_energy_density",
@@ -23,6 +24,8 @@ __all__ = [
     "ENERGY_DENSITIES",
     "nodal_dilatation_energy",
     "nodal_volume_energy",
+    "nodal_dilatation_hessian",
+    "nodal_volume_hessian",
 ]
 
 
@@ -182,3 +185,81 @@ def nodal_volume_energy(x, local_tets, Dm_inv, weights, lam):
     ok = jm1 > -1.0
     log_j = jnp.log1p(jnp.where(ok, jm1, 0.0))
     return jnp.where(ok, 0.5 * lam * volume * log_j * log_j, jnp.inf)
+
+
+# ----------------------------------------------------------------- closed-form patch Hessians
+def _shape_gradients(Dm_inv):
+    """Reference gradients ``b_a`` of the 4 linear shape functions of tets, ``(..., 4, 3)``
+    [1/m]: ``F = sum_a x_a b_a^T`` (``b_1..b_3`` are the rows of ``Dm_inv``, ``b_0`` minus their sum)."""
+    return jnp.concatenate([-jnp.sum(Dm_inv, axis=-2, keepdims=True), Dm_inv], axis=-2)
+
+
+def _scatter_patch_vector(local_tets, v, k):
+    """``sum_e v_e`` scattered from tet nodes to patch nodes: ``v (T, 4, 3)`` -> ``(k, 3)``."""
+    return jnp.zeros((k, 3), dtype=v.dtype).at[local_tets].add(v)
+
+
+def _patch_outer(g):
+    """``vec(g) vec(g)^T`` in the node-major layout of an element Hessian: ``(k, 3) -> (3k, 3k)``."""
+    f = g.reshape(-1)
+    return f[:, None] * f[None, :]
+
+
+def nodal_dilatation_hessian(x, local_tets, Dm_inv, weights, lam):
+    """Hessian ``(3k, 3k)`` [J/m^2] of :func:`nodal_dilatation_energy` (node-major rows).
+
+    ``theta_n`` is linear in ``x`` with gradient ``sum_e (w_e / V_n) b_{e,a}`` at patch node
+    ``a`` of tet ``e`` (``b`` the shape-function gradients), so the Hessian is the rank-one,
+    constant ``lam V_n grad(theta_n) grad(theta_n)^T``. Arguments as
+    :func:`nodal_dilatation_energy`.
+    """
+    k = x.shape[0]
+    volume = jnp.sum(weights)
+    b = _shape_gradients(Dm_inv) * (weights / volume)[:, None, None]
+    grad_theta = _scatter_patch_vector(local_tets, b.astype(x.dtype), k)
+    return lam * volume * _patch_outer(grad_theta)
+
+
+def nodal_volume_hessian(x, local_tets, Dm_inv, weights, lam):
+    """Hessian ``(3k, 3k)`` [J/m^2] of :func:`nodal_volume_energy` (node-major rows), in closed form.
+
+    With ``g(J) = (ln J)^2 / 2`` the energy is ``lam V_n g(J_n)``, ``J_n = sum_e (w_e / V_n) J_e``, so
+
+        H = lam V_n [g''(J_n) grad J_n grad J_n^T + g'(J_n) sum_e (w_e / V_n) hess J_e],
+        g' = ln J / J,  g'' = (1 - ln J) / J^2,
+
+    with, for tet ``e`` (``F = sum_a x_a b_a^T``), ``dJ_e/dx_a = cof(F) b_a`` and the 3x3 block
+    ``d^2 J_e / dx_a dx_b = [i, j] -> eps_ijk (F (b_a x b_b))_k``. This is the exact Hessian of the
+    patch energy (not a Gauss-Newton approximation) at a fraction of the memory and time of
+    ``jax.hessian`` (one scatter of ``T`` 12x12 tet blocks instead of ``3k`` reverse passes over
+    the patch). Zero where ``J_n <= 0`` (the energy is ``+inf`` there). Arguments as
+    :func:`nodal_dilatation_energy`.
+    """
+    k = x.shape[0]
+    dtype = x.dtype
+    volume = jnp.sum(weights)
+    c = (weights / volume).astype(dtype)  # (T,)
+    Dm_inv = Dm_inv.astype(dtype)
+    b = _shape_gradients(Dm_inv)  # (T, 4, 3)
+    H = _patch_strains(x, local_tets, Dm_inv)
+    F = H + jnp.eye(3, dtype=dtype)
+    jm1 = jnp.sum(c * det3_minus_one(H))  # J_n - 1
+    # cofactor rows cof[i] = F[i+1] x F[i+2]; dJ/dx_a = cof(F) b_a
+    cof = jnp.stack([cross(F[:, 1], F[:, 2]), cross(F[:, 2], F[:, 0]), cross(F[:, 0], F[:, 1])], axis=-2)  # (T, 3, 3)
+    grad_e = jnp.sum(cof[:, None, :, :] * b[:, :, None, :], axis=-1)  # (T, 4, 3)
+    grad_j = _scatter_patch_vector(local_tets, c[:, None, None] * grad_e, k)  # (k, 3)
+    # hess J_e: v_ab = F (b_a x b_b), block_ab = eps_ijk v_ab,k
+    ab = cross(b[:, :, None, :], b[:, None, :, :])  # (T, 4, 4, 3)
+    v = jnp.sum(F[:, None, None, :, :] * ab[:, :, :, None, :], axis=-1) * c[:, None, None, None]  # (T, 4, 4, 3)
+    zero = jnp.zeros_like(v[..., 0])
+    v0, v1, v2 = v[..., 0], v[..., 1], v[..., 2]
+    blocks = jnp.stack([jnp.stack([zero, v2, -v1], -1), jnp.stack([-v2, zero, v0], -1), jnp.stack([v1, -v0, zero], -1)], -2)  # (T, 4, 4, 3, 3)
+    hess_j = jnp.zeros((k, k, 3, 3), dtype=dtype).at[local_tets[:, :, None], local_tets[:, None, :]].add(blocks)
+    hess_j = hess_j.transpose(0, 2, 1, 3).reshape(3 * k, 3 * k)
+    ok = jm1 > -1.0
+    log_j = jnp.log1p(jnp.where(ok, jm1, 0.0))
+    j = 1.0 + jnp.where(ok, jm1, 0.0)
+    d1 = log_j / j
+    d2 = (1.0 - log_j) / (j * j)
+    hess = lam * volume * (d2 * _patch_outer(grad_j) + d1 * hess_j)
+    return jnp.where(ok, hess, 0.0)

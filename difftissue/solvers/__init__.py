@@ -1,6 +1,6 @@
 """Solvers: static equilibrium (Newton-Krylov, implicit gradients), XPBD, damped dynamics."""
 
-from .static import StaticResult, StaticSolution, solve_static
+from .static import SolverSetup, StaticResult, StaticSolution, solve_static, solver_setup
 from .xpbd import XPBDQuasiStaticSolution, XPBDSettings, XPBDState, xpbd_constraints, xpbd_quasi_static, xpbd_simulate
 
 #: Imported on first use (diffrax's import costs about a second that static fits do not need).
@@ -18,6 +18,8 @@ __all__ = [
     "StaticResult",
     "StaticSolution",
     "solve_static",
+    "SolverSetup",
+    "solver_setup",
     "XPBDSettings",
     "XPBDState",
     "XPBDQuasiStaticSolution",

@@ -26,6 +26,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 import lineax as lx
 import numpy as np
 
@@ -216,7 +217,13 @@ def _condensed_newton(stiffness, kappa, depth, u_init, free, *, rest, indenter, 
     def residual(u):
         return P * grad(u)
 
-    tol = jnp.maximum(atol, rtol * jnp.linalg.norm(residual(jnp.zeros_like(u_init))))
+    g_start = jnp.linalg.norm(residual(jnp.zeros_like(u_init)))
+    tol = jnp.maximum(atol, rtol * g_start)
+    # A "small Newton step" exit is a round-off stall only if the residual is also within the
+    # precision the solve claims (prediction_rtol = max(rtol, xtol)) of the force scale:
+    # at a kink of the energy the Newton step is tiny because the curvature is huge, not
+    # because the residual is at round-off (solve_condensed_contact's docstring).
+    stall_tol = jnp.maximum(tol, xtol * g_start)
 
     def body(state):
         u, g, step, _, _ = state
@@ -232,7 +239,7 @@ def _condensed_newton(stiffness, kappa, depth, u_init, free, *, rest, indenter, 
         u_new = jnp.where(accepted, u + alpha * d, u)
         g_new = residual(u_new)
         rn = jnp.linalg.norm(g_new)
-        small_step = accepted & ~bad & (jnp.linalg.norm(d) <= xtol * jnp.linalg.norm(u_new))
+        small_step = accepted & ~bad & (jnp.linalg.norm(d) <= xtol * jnp.linalg.norm(u_new)) & (rn <= stall_tol)
         ok = jnp.isfinite(rn) & ((rn <= tol) | small_step)
         step = step + 1
         done = ok | ~accepted | ~jnp.isfinite(rn) | (step >= max_steps)
@@ -246,8 +253,15 @@ def _condensed_newton(stiffness, kappa, depth, u_init, free, *, rest, indenter, 
     # One more full Newton step, kept if it lowers the residual: at a converged point it costs
     # one 3k x 3k solve and takes the solution from the tolerance to round-off (so that the
     # implicit derivative, exact at the exact equilibrium, matches the computed function).
+    # The step is solved by Cholesky, which also checks the second-order condition: a stationary
+    # point whose (projected) Hessian is not positive definite is not a minimum of the energy
+    # (an unstable equilibrium, e.g. a node balanced on a cone's tip inside the 1e-77 m core
+    # of the regularised distance to the axis) and is reported as not converged.
     H = hess(u) * P[:, None] * P[None, :] + jnp.diag(1.0 - P)
-    u2 = u + jnp.linalg.solve(H, -g)
+    L = jnp.linalg.cholesky(H)
+    stable = jnp.all(jnp.isfinite(L))
+    ok = ok & stable
+    u2 = u + jax.scipy.linalg.cho_solve((L, True), -g)
     g2 = residual(u2)
     better = ok & jnp.all(jnp.isfinite(u2)) & (jnp.linalg.norm(g2) <= jnp.linalg.norm(g))
     return jnp.where(better, u2, u), ok
@@ -283,9 +297,24 @@ def solve_condensed_contact(model: "CondensedContactModel", params: "CondensedPa
     The same problem and stopping rule as :func:`~difftissue.solvers.static.solve_static` on
     that model (Newton with the exact Hessian, dense LU of the ``3k x 3k`` system, Armijo
     backtracking; converged when ``|grad|_free <= max(atol, rtol |grad at u = 0|)`` or a full
-    Newton step below ``xtol |u|``, then one more Newton step, kept if it lowers the residual), written for this small dense problem only: its compiled
-    program is a fraction of the general solver's, which dominated the compile time of a
-    condensed fit. Derivatives with respect to ``params`` (and the depth) are implicit (one
+    Newton step below ``xtol |u|``, then one more Newton step, kept if it lowers the residual),
+    written for this small dense problem only: its compiled program is a fraction of the
+    general solver's, which dominated the compile time of a condensed fit.
+
+    Two checks keep it from reporting convergence where there is no stable equilibrium:
+
+    * The small-step exit also needs ``|grad|_free <= max(tol, xtol |grad at u = 0|)``: the
+      residual within the precision the solve claims (``prediction_rtol = max(rtol, xtol)``)
+      of the force scale. A round-off stall of a smooth problem meets it (the Newton step
+      ``H^-1 g`` is small because ``g`` is); at a kink of the energy the step is small because
+      the curvature is huge (a node on a cone's axis: the curvature of the distance to the axis
+      is ``1/r``, about ``1e77 /m`` inside the ``1e-77 m`` core of its regularisation) while the
+      residual is not.
+    * The returned state must have a positive definite Hessian (the last step is solved by
+      Cholesky): a stationary point that is not a minimum is an unstable equilibrium, which
+      the full solve leaves at round-off (a node balanced on a sharp frictionless tip: the
+      residual there is at round-off by symmetry, but 1e-20 m off the axis the tip pushes the
+      node out with its full contact force). ``converged`` is False there. Derivatives with respect to ``params`` (and the depth) are implicit (one
     dense solve per tangent), never through the iterations.
 
     Args:

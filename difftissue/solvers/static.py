@@ -34,7 +34,7 @@ from ..models import ElasticModel
 from .multigrid import BlockEllMatrix, JacobiPreconditioner, MultigridPreconditioner, PreconditionedCG, multigrid_cached, multigrid_setup, sparse_layout
 from .sparse import SparseLU, assemble_csr_data, cache_key, sparse_pattern
 
-__all__ = ["StaticSolution", "StaticResult", "solve_static", "element_hessian_operator", "auto_linear_solver", "LINEAR_SOLVERS"]
+__all__ = ["StaticSolution", "StaticResult", "SolverSetup", "solve_static", "solver_setup", "element_hessian_operator", "auto_linear_solver", "LINEAR_SOLVERS"]
 
 
 class StaticResult(enum.IntEnum):
@@ -516,6 +516,7 @@ def solve_static(
     load_steps: int = 1,
     throw: bool = True,
     preconditioner_material: Material | None = None,
+    setup: "SolverSetup | None" = None,
 ) -> StaticSolution:
     """Static equilibrium of ``model`` under ``bc``, differentiable in ``material`` and ``bc``.
 
@@ -541,6 +542,13 @@ def solve_static(
             ``material`` is traced (a fit): the start values are a good choice. Default:
             ``material`` when concrete, else E = 1 Pa, nu = 0.45 (only the convergence speed
             depends on it, never the answer).
+        setup: a :class:`SolverSetup` from :func:`solver_setup` (the linear solver, sparsity
+            pattern, block layout and multigrid hierarchy of this model and these fixed DOFs).
+            Default: built now, which needs the connectivity and ``bc.fixed`` concrete. Pass
+            one built beforehand to call ``solve_static`` inside ``jit`` with the model and
+            the boundary conditions as traced arguments: the compiled program then holds no
+            mesh-sized constants. ``linear_solver`` must then be ``"auto"`` or the setup's;
+            ``preconditioner_material`` is ignored (the setup's hierarchy is used).
         initial_displacement: ``(N, 3)`` starting guess [m] for the free components.
         load_steps: apply the prescribed displacements and forces in this many equal
             increments, each solve starting from the previous one (for large deformations
@@ -554,31 +562,21 @@ def solve_static(
         A :class:`StaticSolution`. ``jax.grad`` / ``jax.jvp`` through ``displacement``,
         ``reaction`` and ``energy`` use one extra linear solve (implicit differentiation).
     """
-    if not isinstance(model, ElasticModel):
-        raise ModelError(f"model must be an ElasticModel (see difftissue.models.make_model), got {type(model).__name__}")
+    if setup is None:
+        setup = solver_setup(model, material, bc, linear_solver=linear_solver, preconditioner_material=preconditioner_material)
+    else:
+        if not isinstance(setup, SolverSetup):
+            raise ModelError(f"setup must be a SolverSetup (see solver_setup), got {type(setup).__name__}")
+        if not isinstance(model, ElasticModel):
+            raise ModelError(f"model must be an ElasticModel (see difftissue.models.make_model), got {type(model).__name__}")
+        if setup.n_nodes != model.n_nodes:
+            raise ModelError(f"setup was built for {setup.n_nodes} nodes, the model has {model.n_nodes}")
+        if linear_solver not in ("auto", setup.linear_solver):
+            raise ModelError(f"linear_solver={linear_solver!r} but the setup was built for {setup.linear_solver!r}")
+        _validate_values(bc, model.n_nodes)
+        model.region_values(material)  # range checks (raise now when concrete)
     n = model.n_nodes
-    _validate_values(bc, n)
-    if not isinstance(bc.fixed, jax.core.Tracer) and not getattr(model, "stiffness_is_definite", False):
-        check_rigid_modes(model.rest_points, bc.fixed)
-    model.region_values(material)  # range checks (raise now when concrete)
-    node_arrays = [t.nodes for t in model.terms(material)]
-    concrete_nodes = not any(isinstance(a, jax.core.Tracer) for a in node_arrays)
-    concrete_fixed = not isinstance(bc.fixed, jax.core.Tracer)
-    if linear_solver == "auto":
-        linear_solver = auto_linear_solver(3 * n, concrete=concrete_nodes and concrete_fixed)
-    if linear_solver not in LINEAR_SOLVERS:
-        raise ModelError(f"linear_solver must be 'auto' or one of {LINEAR_SOLVERS}, got {linear_solver!r}")
-    pattern = layout = hierarchy = None
-    if linear_solver in ("sparse", "multigrid"):
-        if not concrete_nodes or (linear_solver == "multigrid" and not concrete_fixed):
-            raise ModelError(
-                f"linear_solver={linear_solver!r} needs the model's element connectivity and the fixed DOFs as concrete arrays "
-                "(close over the model and boundary mask instead of passing them as traced arguments), or use 'cg'"
-            )
-    if linear_solver == "sparse":
-        pattern = sparse_pattern(node_arrays, n)
-    if linear_solver == "multigrid":
-        layout, hierarchy = _multigrid_for(model, material, bc.fixed, node_arrays, preconditioner_material)
+    linear_solver, pattern, layout, hierarchy = setup.linear_solver, setup.pattern, setup.layout, setup.hierarchy
     default_steps = 500 if linear_solver == "multigrid" else 10 * 3 * n
     options = _Options(float(rtol), float(atol), float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or default_steps), pattern, layout, hierarchy)
     # Python floats would be static under jit (a recompile per value): make every leaf an array.
@@ -606,6 +604,69 @@ def solve_static(
         elif int(code) != 0:
             raise ConvergenceError(f"{_MESSAGES[int(code)]} (steps {int(sol.steps)}, residual {float(sol.residual_norm):.3g} N, min V/V0 {float(sol.min_volume_ratio):.3g})")
     return sol
+
+
+class SolverSetup(eqx.Module):
+    """What :func:`solve_static` derives from a mesh before it solves (:func:`solver_setup`):
+    the linear solver chosen, the CSR pattern (``"sparse"``), the block-ELL layout and the
+    multigrid hierarchy (``"multigrid"``). A pytree of arrays (the pattern is static): passed
+    to a jitted function as an argument it stays an argument, not a constant of the program.
+
+    Attributes:
+        linear_solver: one of :data:`LINEAR_SOLVERS`.
+        n_nodes: nodes of the model it was built for.
+        pattern: the CSR pattern (``"sparse"``; static, hashed by content), else None.
+        layout: the :class:`~difftissue.solvers.multigrid.SparseLayout` (``"multigrid"``), else None.
+        hierarchy: the :class:`~difftissue.solvers.multigrid.MultigridHierarchy` (``"multigrid"``), else None.
+    """
+
+    linear_solver: str = eqx.field(static=True)
+    n_nodes: int = eqx.field(static=True)
+    pattern: Any = eqx.field(static=True, default=None)
+    layout: Any = None
+    hierarchy: Any = None
+
+
+def solver_setup(model: ElasticModel, material: Material, bc: BoundaryConditions, *, linear_solver: str = "auto",
+                 preconditioner_material: Material | None = None, material_is_traced: bool = False) -> SolverSetup:
+    """The :class:`SolverSetup` :func:`solve_static` builds for ``model``, ``material`` and
+    ``bc`` (same arguments), for reuse: ``solve_static(..., setup=solver_setup(...))``.
+
+    The connectivity and ``bc.fixed`` must be concrete for ``"sparse"`` and ``"multigrid"``
+    (:class:`~difftissue.errors.ModelError` otherwise); the rigid-mode check runs here when
+    ``bc.fixed`` is concrete. ``material_is_traced``: build the multigrid hierarchy as
+    ``solve_static`` does for a traced ``material`` (for ``preconditioner_material``, or
+    E = 1 Pa, nu = 0.45 in ``material``'s shape), so that a setup built before a ``jit`` gives
+    the same iterations as one built while tracing it."""
+    if not isinstance(model, ElasticModel):
+        raise ModelError(f"model must be an ElasticModel (see difftissue.models.make_model), got {type(model).__name__}")
+    n = model.n_nodes
+    _validate_values(bc, n)
+    if not isinstance(bc.fixed, jax.core.Tracer) and not getattr(model, "stiffness_is_definite", False):
+        check_rigid_modes(model.rest_points, bc.fixed)
+    if material_is_traced:  # its values are not those of the solves: only its structure is used
+        material = _reference_material(material, preconditioner_material, True)
+    model.region_values(material)  # range checks (raise now when concrete)
+    node_arrays = [t.nodes for t in model.terms(material)]
+    concrete_nodes = not any(isinstance(a, jax.core.Tracer) for a in node_arrays)
+    concrete_fixed = not isinstance(bc.fixed, jax.core.Tracer)
+    if linear_solver == "auto":
+        linear_solver = auto_linear_solver(3 * n, concrete=concrete_nodes and concrete_fixed)
+    if linear_solver not in LINEAR_SOLVERS:
+        raise ModelError(f"linear_solver must be 'auto' or one of {LINEAR_SOLVERS}, got {linear_solver!r}")
+    pattern = layout = hierarchy = None
+    if linear_solver in ("sparse", "multigrid"):
+        if not concrete_nodes or (linear_solver == "multigrid" and not concrete_fixed):
+            raise ModelError(
+                f"linear_solver={linear_solver!r} needs the model's element connectivity and the fixed DOFs as concrete arrays "
+                "(close over the model and boundary mask instead of passing them as traced arguments, or pass a setup "
+                "built beforehand: solver_setup), or use 'cg'"
+            )
+    if linear_solver == "sparse":
+        pattern = sparse_pattern(node_arrays, n)
+    if linear_solver == "multigrid":
+        layout, hierarchy = _multigrid_for(model, material, bc.fixed, node_arrays, preconditioner_material, material_is_traced)
+    return SolverSetup(linear_solver, n, pattern, layout, hierarchy)
 
 
 #: The linear solvers of :func:`solve_static`.
@@ -643,11 +704,11 @@ def auto_linear_solver(n_unknowns: int, *, concrete: bool = True) -> str:
     return "multigrid" if concrete else "cg"
 
 
-def _reference_material(material, preconditioner_material):
+def _reference_material(material, preconditioner_material, material_is_traced=False):
     """The material the multigrid hierarchy is built for, with E normalised to a largest value
     of 1 Pa (the preconditioner rescales to the current stiffness): a new E, the usual change
     in a loop or a fit, then reuses the cached hierarchy."""
-    if any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(material)):
+    if material_is_traced or any(isinstance(v, jax.core.Tracer) for v in jax.tree_util.tree_leaves(material)):
         if preconditioner_material is None:
             shape = jnp.shape(material.youngs_modulus)
             return Material(np.ones(shape), np.full(shape, 0.45), np.zeros(shape), np.full(shape, 1000.0), np.ones(shape))
@@ -656,14 +717,14 @@ def _reference_material(material, preconditioner_material):
     return eqx.tree_at(lambda m: m.youngs_modulus, material, E / np.max(E))
 
 
-def _multigrid_for(model, material, fixed, node_arrays, preconditioner_material):
+def _multigrid_for(model, material, fixed, node_arrays, preconditioner_material, material_is_traced=False):
     """The block-ELL layout (cached per mesh) and the multigrid hierarchy (cached per mesh,
     fixed DOFs and reference material) of ``model``'s projected Hessian."""
     # One hash of the connectivity for both caches (a direct-call loop on a big mesh hashes it per call).
     arrays = [np.asarray(a) for a in node_arrays]
     mesh_key = cache_key(np.asarray(model.n_nodes), *arrays)
     layout = sparse_layout(arrays, model.n_nodes, key=mesh_key)
-    ref = jax.tree_util.tree_map(lambda v: np.asarray(v, dtype=float), _reference_material(material, preconditioner_material))
+    ref = jax.tree_util.tree_map(lambda v: np.asarray(v, dtype=float), _reference_material(material, preconditioner_material, material_is_traced))
     free = 1.0 - np.asarray(fixed, dtype=float).reshape(-1)
     rest = np.asarray(model.rest_points, dtype=float)
     key = cache_key(np.frombuffer(mesh_key.encode(), np.uint8), free, rest, *jax.tree_util.tree_leaves(ref))

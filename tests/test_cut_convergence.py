@@ -1,0 +1,91 @@
+"""The P2 reference of experiments/cut_convergence.py: the pre-stretch convention against the
+exact neo-Hookean plane-stress layer, and the quarter model (two mirror planes, the cut a
+traction-free part of one) against the mirrored whole."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("skfem")
+pytest.importorskip("cholespy")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+
+import cut_convergence as cc  # noqa: E402
+
+
+def test_p2_prestretched_layer_is_the_exact_plane_stress_state():
+    """Uncut, laterals held, base clamped: the pre-stretched dermis thins homogeneously to the
+    neo-Hookean plane-stress stretch (mu (lz^2 - 1) + lam ln(l0^2 lz) = 0), the fat stays put."""
+    from scipy.optimize import brentq
+
+    p, t = cc.quarter_mesh(1)
+    derm = p[t].mean(axis=1)[:, 2] > 4.0
+
+    def fixed(X):
+        f = np.zeros(X.shape, bool)
+        side = (X[:, 0] < 1e-9) | (X[:, 1] < 1e-9) | (X[:, 0] > 6 - 1e-9) | (X[:, 1] > 6 - 1e-9)
+        f[:, 0] |= side
+        f[:, 1] |= side
+        f[X[:, 2] < 1e-9] = True
+        return f
+
+    prob = cc.P2Problem(p, t, np.where(derm, 200.0, 5.0), derm, fixed)
+    l0 = 1.1
+    u, _ = prob.continuation(1.0, l0)
+    nu = cc.NU
+    lam, mu = nu / ((1 + nu) * (1 - 2 * nu)), 1 / (2 * (1 + nu))
+    lz = brentq(lambda z: mu * (z * z - 1) + lam * np.log(l0 * l0 * z), 0.5, 1.0)
+    X = prob.doflocs
+    expected = np.where(X[:, 2] > 4.0, (lz - 1.0) * (X[:, 2] - 4.0), 0.0)
+    assert lz < 0.95  # a real thinning, not the unloaded state
+    np.testing.assert_allclose(u[:, 2], expected, rtol=0, atol=1e-9 * abs(lz - 1.0) * 2.0)
+    np.testing.assert_allclose(u[:, :2], 0.0, atol=1e-12)
+
+
+def _mirrored_whole(n):
+    """The quarter mesh mirrored about x = 0 and y = 0; nodes on the open cut face (y = 0,
+    |x| < 3, z > 4) kept apart per side, every other coincident node merged. The hexes are split
+    with ``flip_x`` so that no tet edge joins two crack-front nodes across the open face (its P2
+    midside node would glue the two sides there)."""
+    p, t = cc.quarter_mesh(n, flip_x=True)
+    pts, tets, keys = [], [], {}
+    for sx in (1, -1):
+        for sy in (1, -1):
+            q = p * np.array([sx, sy, 1.0])
+            ids = np.empty(len(q), int)
+            for i, x in enumerate(q):
+                open_face = abs(x[1]) < 1e-9 and abs(x[0]) < 3 - 1e-9 and x[2] > 4 + 1e-9
+                key = (round(x[0], 9) + 0.0, round(x[1], 9) + 0.0, round(x[2], 9) + 0.0, sy if open_face else 0)
+                if key not in keys:
+                    keys[key] = len(pts)
+                    pts.append(x)
+                ids[i] = keys[key]
+            tets.append(ids[t])
+    return np.array(pts), np.concatenate(tets), keys
+
+
+def test_quarter_model_equals_the_mirrored_whole():
+    n, l0 = 2, 1.05
+    quarter = cc.quarter_problem(n, flip_x=True)
+    uq, _ = quarter.continuation(1.0, l0)
+    wq, _ = cc.quarter_widths(quarter, uq)
+
+    p, t, keys = _mirrored_whole(n)
+    derm = p[t].mean(axis=1)[:, 2] > 4.0
+
+    def fixed(X):
+        f = np.zeros(X.shape, bool)
+        side = (np.abs(X[:, 0]) > 6 - 1e-9) | (np.abs(X[:, 1]) > 6 - 1e-9)
+        f[:, 0] |= side
+        f[:, 1] |= side
+        f[X[:, 2] < 1e-9] = True
+        return f
+
+    whole = cc.P2Problem(p, t, np.where(derm, cc.E_DERMIS * 1e-3, cc.E_FAT * 1e-3), derm, fixed)
+    uw, _ = whole.continuation(1.0, l0)
+    a, b = keys[(0.0, 0.0, 6.0, 1)], keys[(0.0, 0.0, 6.0, -1)]
+    ww = np.linalg.norm(p[a] + uw[a] - p[b] - uw[b])
+    assert wq > 0.5  # mm: the cut opens (about 0.7 mm at this pre-stretch)
+    assert abs(ww / wq - 1.0) < 1e-7
