@@ -35,15 +35,13 @@ against the card's model (:func:`card_reference_field`, :func:`field_error`), an
 
 from __future__ import annotations
 
-import dataclasses
 import math
-from typing import Any, Callable, Sequence
+from typing import Callable, Sequence
 
 import jax.numpy as jnp
 import numpy as np
 
 from ..boundary import BoundaryConditions
-from ..budget import BudgetLoad, LoadSetCalibration, calibrate_for_load_set
 from ..errors import ExportError
 from ..materials import lame_parameters
 from ..models import MODELS, make_model
@@ -54,7 +52,7 @@ from .pypbd_runner import run_pbd_budget, scaled_scene
 
 __all__ = ["MAX_BUDGET_ERROR", "BUDGET_STATES", "MIN_SENSITIVITY", "PBD_BUDGETS", "load_fractions", "card_reference_reactions",
            "card_reference_field", "field_error", "calibrate_factor", "pbd_budget_calibration", "xpbd_document_constraints", "xpbd_budget_reactions", "xpbd_budget_calibration",
-           "ExportLoadSet", "export_load_set", "load_set_calibration", "xpbd_load_set_calibration"]
+           "LOAD_SET_CALIBRATION_API", "check_load_set_calibration", "xpbd_load_set_calibration"]
 
 
 #: Largest |signed error| per load state a budget recalibration accepts.
@@ -479,100 +477,67 @@ def xpbd_budget_calibration(doc: dict, reference: np.ndarray, fixed, prescribed,
 
 
 # ============================================================================ load sets
-@dataclasses.dataclass(frozen=True)
-class ExportLoadSet:
-    """The set of loads a real-time simulator meets, for an export calibrated over it
-    (:func:`difftissue.budget.calibrate_for_load_set`) instead of on the file's own specimen.
-
-    Attributes:
-        loads: :class:`~difftissue.budget.BudgetLoad` objects (e.g. from
-            :func:`~difftissue.budget.indentation_load`), all on ``mesh``.
-        mesh: the simulator's mesh the loads are on (its cell size is part of the card's
-            validity); None: the export's own mesh (``mesh=`` or the indentation specimen's).
-            When both are given they must be the same mesh (nodes, tets, cell size), else
-            :class:`~difftissue.errors.BudgetRangeError`.
-        effective_poisson: also fit one effective Poisson ratio for the set.
-        extrapolate: write the card although the exported material's modulus lies outside the
-            set's stiffness range (the end factor, with a
-            :class:`~difftissue.errors.BudgetExtrapolationWarning`); default: refused with
-            :class:`~difftissue.errors.BudgetRangeError`.
-        reference: the reference model kind of every load (default: the card's model).
-        propose: when the budget is saturated, search a budget that carries the set (as for
-            :func:`~difftissue.budget.calibrate_for_load_set`).
-        max_steps: optimiser steps of the joint fit.
-    """
-
-    loads: tuple
-    mesh: Any = None
-    effective_poisson: bool = False
-    extrapolate: bool = False
-    reference: str | None = None
-    propose: Any = True
-    max_steps: int = 20
-
-    def __post_init__(self):
-        loads = (self.loads,) if isinstance(self.loads, BudgetLoad) else tuple(self.loads)
-        if not loads:
-            raise ExportError("load_set: no loads; give at least one BudgetLoad (difftissue.budget.indentation_load)")
-        for i, ld in enumerate(loads):
-            if not isinstance(ld, BudgetLoad):
-                raise ExportError(f"load_set: loads[{i}] must be a difftissue.budget.BudgetLoad, got {type(ld).__name__}")
-        object.__setattr__(self, "loads", loads)
+#: What the export uses of a load-set calibration (:class:`difftissue.budget.LoadSetCalibration`, duck-typed:
+#: the export layer knows nothing of the fit engine that computes it).
+LOAD_SET_CALIBRATION_API = ("check", "card", "effective_youngs_modulus", "poisson_ratio", "validity", "setting", "model_kind",
+                            "reference_kind", "mesh", "factors", "stiffness_nodes", "max_error")
 
 
-def export_load_set(load_set) -> ExportLoadSet | None:
-    """``load_set`` as an :class:`ExportLoadSet`: None, an :class:`ExportLoadSet`, or a sequence of
-    :class:`~difftissue.budget.BudgetLoad` (on the export's mesh, default options)."""
-    if load_set is None or isinstance(load_set, ExportLoadSet):
-        return load_set
-    if isinstance(load_set, BudgetLoad) or isinstance(load_set, (list, tuple)):
-        return ExportLoadSet(load_set)
-    raise ExportError(f"load_set must be an ExportLoadSet or a sequence of BudgetLoad, got {type(load_set).__name__}")
+def check_load_set_calibration(calibration, card, settings: XPBDSettings, model_kind: str, *, mesh, extrapolate: bool = False) -> None:
+    """Check a load-set calibration the caller computed (the object returned by
+    :func:`difftissue.budget.calibrate_for_load_set`) against what the export writes: ``card``
+    (a :class:`~difftissue.export.card.MaterialCard`) with ``model_kind`` constraints at
+    ``settings`` on ``mesh``.
 
-
-def load_set_calibration(card, load_set: ExportLoadSet, settings: XPBDSettings, model_kind: str, *, mesh=None) -> LoadSetCalibration:
-    """The budget card of ``card`` for ``load_set`` at ``settings``: :func:`~difftissue.budget.calibrate_for_load_set`
-    of ``model_kind`` on the set's mesh (or ``mesh``, the export's), the reference the card's
-    model (or ``load_set.reference``), then checked for the export: the same setting, the
-    export's ``mesh`` the set's, and the card's modulus within the set's stiffness range
-    (:meth:`~difftissue.budget.LoadSetCalibration.check`; ``load_set.extrapolate`` warns instead).
+    The calibration must be for the same XPBD setting (dt, substeps, iterations, method), the
+    same model kind, the export's mesh (nodes, tets, cell size), the card's Poisson ratio and
+    density, and the card's Young's modulus must lie in its stiffness range (the calibration's
+    own ``check``; ``extrapolate``: a :class:`~difftissue.errors.BudgetExtrapolationWarning`
+    instead of the refusal).
 
     Raises:
-        ExportError: no mesh, or a card model that is no difftissue mesh model.
-        BudgetSaturationError: the budget cannot carry a load of the set (with the proposal).
-        BudgetRangeError: another mesh, or the card's modulus outside the set's range.
+        ExportError: an object without the calibration's methods and attributes
+            (:data:`LOAD_SET_CALIBRATION_API`), no mesh, another model kind, Poisson ratio or density.
+        BudgetRangeError: another setting or mesh, or the card's modulus outside the stiffness range.
     """
-    calib_mesh = load_set.mesh if load_set.mesh is not None else mesh
-    if calib_mesh is None:
-        raise ExportError("a load-set calibration needs the simulator's mesh: give the export a mesh (or an indentation "
-                          "specimen) or ExportLoadSet(mesh=...)")
-    reference = card.model if load_set.reference is None else load_set.reference
-    if reference not in MODELS:
-        raise ExportError(f"the card's model {reference!r} is no difftissue mesh model {list(MODELS)}: the loads' reference "
-                          "forces cannot be solved; give ExportLoadSet(reference=...)")
-    material = card.material()
-    cal = calibrate_for_load_set(calib_mesh, model_kind, material, load_set.loads, settings, reference=reference,
-                                 effective_poisson=load_set.effective_poisson, propose=load_set.propose,
-                                 max_steps=load_set.max_steps)
-    v = cal.validity
-    cal.check(shape=v["shapes"][0], depth=v["depth_range"][0], youngs_modulus=float(material.youngs_modulus), settings=settings,
-              mesh=mesh, extrapolate=load_set.extrapolate)
-    return cal
+    missing = [a for a in LOAD_SET_CALIBRATION_API if not hasattr(calibration, a)]
+    if missing:
+        raise ExportError(f"load_set must be the load-set calibration returned by difftissue.budget.calibrate_for_load_set(...) "
+                          f"(computed by the caller at the export's budget, on its mesh); got a {type(calibration).__name__} "
+                          f"without {', '.join(missing)}")
+    if mesh is None:
+        raise ExportError("a load-set calibration is valid on the mesh it was calibrated on: give the export that mesh "
+                          "(mesh=..., or an indentation specimen on it); it is checked against the calibration's")
+    if calibration.model_kind != model_kind:
+        raise ExportError(f"the load-set calibration is for {calibration.model_kind!r} constraints; this file writes "
+                          f"{model_kind!r} ones: calibrate_for_load_set(mesh, {model_kind!r}, ...) at the file's budget")
+    cal_card = calibration.card()
+    mat = card.material()
+    for name, ours, theirs in (("Poisson ratio", float(mat.poisson_ratio), cal_card.get("true_poisson_ratio")),
+                               ("density", float(mat.density), cal_card.get("density"))):
+        if theirs is None or not math.isclose(ours, float(theirs), rel_tol=1e-9):
+            raise ExportError(f"the load-set calibration was computed for a tissue of {name} {theirs!r}; the card's is {ours:.6g}: "
+                              "calibrate with the card's material (calibrate_for_load_set(mesh, ..., card.material(), ...))")
+    v = calibration.validity
+    calibration.check(shape=v["shapes"][0], depth=v["depth_range"][0], youngs_modulus=float(mat.youngs_modulus),
+                      settings=settings, mesh=mesh, extrapolate=extrapolate)
 
 
-def xpbd_load_set_calibration(doc: dict, card, load_set: ExportLoadSet, *, mesh=None) -> LoadSetCalibration:
-    """Calibrate an XPBD document (``difftissue-xpbd/1``, stable neo-Hookean constraints) over
-    ``load_set`` at its written budget (:func:`load_set_calibration` with ``model_kind
-    "stable_neo_hookean"``, standard XPBD: multipliers reset every substep, Gauss-Seidel) and
-    write the result into ``doc`` in place: ``lame`` (and ``per_tet``, ``per_unit_volume``,
-    ``gamma``) from the card's effective modulus ``E * f(E)`` at the card's ``E`` (and the
-    effective Poisson ratio), ``lame_card`` (the card's own), ``validity`` and
-    ``budget_calibration`` (``method "load set"``, the factor(s) and the
-    :meth:`~difftissue.budget.LoadSetCalibration.card`)."""
+def xpbd_load_set_calibration(doc: dict, card, calibration, *, mesh, extrapolate: bool = False):
+    """Write a load-set calibration the caller computed (``calibration``: the object returned by
+    :func:`difftissue.budget.calibrate_for_load_set` with ``model_kind "stable_neo_hookean"`` at
+    the document's budget, standard XPBD: multipliers reset every substep, Gauss-Seidel) into an
+    XPBD document (``difftissue-xpbd/1``) in place, after :func:`check_load_set_calibration`
+    (same setting, model kind, mesh, material; the card's ``E`` in its stiffness range):
+    ``lame`` (and ``per_tet``, ``per_unit_volume``, ``gamma``) from the card's effective modulus
+    ``E * f(E)`` at the card's ``E`` (and the calibration's Poisson ratio), ``lame_card`` (the
+    card's own), ``validity`` and ``budget_calibration`` (``method "load set"``, the factor(s)
+    and the calibration's ``card()``). Returns ``calibration``."""
     st = doc["setting"]
     settings = XPBDSettings(dt=float(st["dt"]), substeps=int(st["substeps"]), iterations=int(st["iterations"]),
                             method="gauss_seidel", damping=float("inf"), warm_start=False)
-    cal = load_set_calibration(card, load_set, settings, "stable_neo_hookean", mesh=mesh)
+    check_load_set_calibration(calibration, card, settings, "stable_neo_hookean", mesh=mesh, extrapolate=extrapolate)
+    cal = calibration
     E = float(card.material().youngs_modulus)
     E_eff, nu_eff = cal.effective_youngs_modulus(E), float(cal.poisson_ratio)
     lam, mu = (float(x) for x in lame_parameters(E_eff, nu_eff))
@@ -603,6 +568,9 @@ def xpbd_load_set_calibration(doc: dict, card, load_set: ExportLoadSet, *, mesh=
                                  "max_residual_error": cal.max_error, "reference_model": cal.reference_kind,
                                  "extrapolated": not (Elo * (1 - 1e-9) <= E <= Ehi * (1 + 1e-9)),
                                  "card": cal.card()}
+    if cal.reference_kind != card.model:
+        doc["notes"].append(f"the load-set calibration's reference is the {cal.reference_kind} model, not the card's {card.model}: "
+                            f"the written compliances reproduce {cal.reference_kind} at the card's values, as the caller chose")
     if cal.max_error > MAX_BUDGET_ERROR:
         doc["notes"].append(f"the load-set card leaves up to {100 * cal.max_error:.3g} % on a load of its set (budget_calibration."
                             f"card.loads): one card for all its loads is a compromise, above the {100 * MAX_BUDGET_ERROR:g} % a "

@@ -30,7 +30,8 @@ TARGETS = ("febio", "sofa", "abaqus", "pbd", "xpbd", "vtu")
 def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
            law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int | None = None,
            displacement: float | None = None, constraints: str = "xpbd", indentation=None, fitted=None,
-           nu: float | None = None, element: str = "C3D4", field_tolerance: float | None = None, load_set=None) -> Path:
+           nu: float | None = None, element: str = "C3D4", field_tolerance: float | None = None, load_set=None,
+           extrapolate: bool = False) -> Path:
     """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``.
 
     ``to="pbd"``: a pypbd scene (:func:`difftissue.export.pypbd.write_pbd`; ``constraints`` ``"xpbd"`` or
@@ -49,8 +50,10 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
     A card whose E is an effective modulus (half-space indentation fit, nu fixed at 0) is
     refused unless ``nu`` converts it or ``approximate`` (:func:`resolve_effective_modulus`).
 
-    ``load_set`` (XPBD only): calibrate the written compliances over the loads a simulator meets
-    (:func:`difftissue.export.xpbd.xpbd_parameters`, :class:`~difftissue.export.budget.ExportLoadSet`)."""
+    ``load_set`` (XPBD only): the load-set calibration the caller computed with
+    :func:`difftissue.budget.calibrate_for_load_set` at the export's budget and mesh, checked and
+    written into the file (:func:`difftissue.export.xpbd.xpbd_parameters`); ``extrapolate``:
+    write it although the card's modulus lies outside its stiffness range (with a warning)."""
     if load_set is not None and (to != "xpbd" or fitted is not None):
         raise ExportError(
             f"load_set: a load-set budget calibration is written for the XPBD JSON (to='xpbd', block or indentation "
@@ -87,7 +90,8 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
             raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")
         return write_xpbd(card, path, dt=dt, iterations=iterations, substeps=1 if substeps is None else substeps, mesh=mesh,
                           approximate=approximate,
-                          displacement=displacement, force=force, indentation=indentation, load_set=load_set)
+                          displacement=displacement, force=force, indentation=indentation, load_set=load_set,
+                          extrapolate=extrapolate)
     if to == "vtu":
         return write_vtu(card, mesh, path, displacement=displacement, force=force, indentation=indentation)
     raise ExportError(f"unknown export target {to!r}; choose one of {list(TARGETS)}")
