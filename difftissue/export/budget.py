@@ -43,6 +43,7 @@ import numpy as np
 
 from ..boundary import BoundaryConditions
 from ..errors import ExportError
+from ..materials import lame_parameters
 from ..models import MODELS, make_model
 from ..scenarios import recover_lattice
 from ..solvers.static import solve_static
@@ -50,7 +51,8 @@ from ..solvers.xpbd import StableNeoHookeanConstraints, XPBDSettings, xpbd_quasi
 from .pypbd_runner import run_pbd_budget, scaled_scene
 
 __all__ = ["MAX_BUDGET_ERROR", "BUDGET_STATES", "MIN_SENSITIVITY", "PBD_BUDGETS", "load_fractions", "card_reference_reactions",
-           "card_reference_field", "field_error", "calibrate_factor", "pbd_budget_calibration", "xpbd_document_constraints", "xpbd_budget_reactions", "xpbd_budget_calibration"]
+           "card_reference_field", "field_error", "calibrate_factor", "pbd_budget_calibration", "xpbd_document_constraints", "xpbd_budget_reactions", "xpbd_budget_calibration",
+           "LOAD_SET_CALIBRATION_API", "check_load_set_calibration", "xpbd_load_set_calibration"]
 
 
 #: Largest |signed error| per load state a budget recalibration accepts.
@@ -472,3 +474,105 @@ def xpbd_budget_calibration(doc: dict, reference: np.ndarray, fixed, prescribed,
                                  "observable": "summed reaction of the moved / reaction-set nodes along their prescribed displacement "
                                                "[N], XPBD's multiplier impulses / h^2, at the rest state of the budget"}
     return doc
+
+
+# ============================================================================ load sets
+#: What the export uses of a load-set calibration (:class:`difftissue.budget.LoadSetCalibration`, duck-typed:
+#: the export layer knows nothing of the fit engine that computes it).
+LOAD_SET_CALIBRATION_API = ("check", "card", "effective_youngs_modulus", "poisson_ratio", "validity", "setting", "model_kind",
+                            "reference_kind", "mesh", "factors", "stiffness_nodes", "max_error")
+
+
+def check_load_set_calibration(calibration, card, settings: XPBDSettings, model_kind: str, *, mesh, extrapolate: bool = False) -> None:
+    """Check a load-set calibration the caller computed (the object returned by
+    :func:`difftissue.budget.calibrate_for_load_set`) against what the export writes: ``card``
+    (a :class:`~difftissue.export.card.MaterialCard`) with ``model_kind`` constraints at
+    ``settings`` on ``mesh``.
+
+    The calibration must be for the same XPBD setting (dt, substeps, iterations, method), the
+    same model kind, the export's mesh (nodes, tets, cell size), the card's Poisson ratio and
+    density, and the card's Young's modulus must lie in its stiffness range (the calibration's
+    own ``check``; ``extrapolate``: a :class:`~difftissue.errors.BudgetExtrapolationWarning`
+    instead of the refusal).
+
+    Raises:
+        ExportError: an object without the calibration's methods and attributes
+            (:data:`LOAD_SET_CALIBRATION_API`), no mesh, another model kind, Poisson ratio or density.
+        BudgetRangeError: another setting or mesh, or the card's modulus outside the stiffness range.
+    """
+    missing = [a for a in LOAD_SET_CALIBRATION_API if not hasattr(calibration, a)]
+    if missing:
+        raise ExportError(f"load_set must be the load-set calibration returned by difftissue.budget.calibrate_for_load_set(...) "
+                          f"(computed by the caller at the export's budget, on its mesh); got a {type(calibration).__name__} "
+                          f"without {', '.join(missing)}")
+    if mesh is None:
+        raise ExportError("a load-set calibration is valid on the mesh it was calibrated on: give the export that mesh "
+                          "(mesh=..., or an indentation specimen on it); it is checked against the calibration's")
+    if calibration.model_kind != model_kind:
+        raise ExportError(f"the load-set calibration is for {calibration.model_kind!r} constraints; this file writes "
+                          f"{model_kind!r} ones: calibrate_for_load_set(mesh, {model_kind!r}, ...) at the file's budget")
+    cal_card = calibration.card()
+    mat = card.material()
+    for name, ours, theirs in (("Poisson ratio", float(mat.poisson_ratio), cal_card.get("true_poisson_ratio")),
+                               ("density", float(mat.density), cal_card.get("density"))):
+        if theirs is None or not math.isclose(ours, float(theirs), rel_tol=1e-9):
+            raise ExportError(f"the load-set calibration was computed for a tissue of {name} {theirs!r}; the card's is {ours:.6g}: "
+                              "calibrate with the card's material (calibrate_for_load_set(mesh, ..., card.material(), ...))")
+    v = calibration.validity
+    calibration.check(shape=v["shapes"][0], depth=v["depth_range"][0], youngs_modulus=float(mat.youngs_modulus),
+                      settings=settings, mesh=mesh, extrapolate=extrapolate)
+
+
+def xpbd_load_set_calibration(doc: dict, card, calibration, *, mesh, extrapolate: bool = False):
+    """Write a load-set calibration the caller computed (``calibration``: the object returned by
+    :func:`difftissue.budget.calibrate_for_load_set` with ``model_kind "stable_neo_hookean"`` at
+    the document's budget, standard XPBD: multipliers reset every substep, Gauss-Seidel) into an
+    XPBD document (``difftissue-xpbd/1``) in place, after :func:`check_load_set_calibration`
+    (same setting, model kind, mesh, material; the card's ``E`` in its stiffness range):
+    ``lame`` (and ``per_tet``, ``per_unit_volume``, ``gamma``) from the card's effective modulus
+    ``E * f(E)`` at the card's ``E`` (and the calibration's Poisson ratio), ``lame_card`` (the
+    card's own), ``validity`` and ``budget_calibration`` (``method "load set"``, the factor(s)
+    and the calibration's ``card()``). Returns ``calibration``."""
+    st = doc["setting"]
+    settings = XPBDSettings(dt=float(st["dt"]), substeps=int(st["substeps"]), iterations=int(st["iterations"]),
+                            method="gauss_seidel", damping=float("inf"), warm_start=False)
+    check_load_set_calibration(calibration, card, settings, "stable_neo_hookean", mesh=mesh, extrapolate=extrapolate)
+    cal = calibration
+    E = float(card.material().youngs_modulus)
+    E_eff, nu_eff = cal.effective_youngs_modulus(E), float(cal.poisson_ratio)
+    lam, mu = (float(x) for x in lame_parameters(E_eff, nu_eff))
+    lam_s = lam + mu
+    h = float(st["dt"]) / int(st["substeps"])
+    doc["lame_card"] = dict(doc["lame"])
+    doc["lame"] = {"mu": mu, "lambda": lam, "lambda_shifted": lam_s}
+    doc["gamma"] = 1.0 + mu / lam_s
+    doc["per_unit_volume"] = {**doc["per_unit_volume"], "deviatoric_compliance": 1.0 / mu, "hydrostatic_compliance": 1.0 / lam_s}
+    if "per_tet" in doc:
+        V0 = np.asarray(doc["per_tet"]["rest_volume"], dtype=float)
+        doc["per_tet"].update({"deviatoric_compliance": (1.0 / (mu * V0)).tolist(), "hydrostatic_compliance": (1.0 / (lam_s * V0)).tolist(),
+                               "deviatoric_alpha_tilde": (1.0 / (mu * V0) / h**2).tolist(),
+                               "hydrostatic_alpha_tilde": (1.0 / (lam_s * V0) / h**2).tolist()})
+    v = cal.validity
+    lo, hi = v["depth_range"]
+    Elo, Ehi = v["youngs_modulus_range"]
+    doc["validity"] = (f"CALIBRATED OVER A LOAD SET for this budget (dt = {float(st['dt']):.6g} s, {st['substeps']} substep(s), "
+                       f"{st['iterations']} iterations, standard XPBD: multipliers reset every substep, Gauss-Seidel) on cells of "
+                       f"{cal.mesh['cell_size']:.4g} m: E_eff = {E_eff:.6g} Pa ({E_eff / E:.6g} x the card's E), nu = {nu_eff:.6g}; "
+                       f"shapes {', '.join(v['shapes'])}, depths {lo:.4g} ... {hi:.4g} m, tissue moduli {Elo:.4g} ... {Ehi:.4g} Pa; "
+                       f"largest residual force error over the set {100 * cal.max_error:.3g} % against the {cal.reference_kind} "
+                       "reference; valid for this budget, this cell size and these loads only (budget_calibration.card)")
+    doc["setting"]["multipliers"] = "reset every substep (standard XPBD); Gauss-Seidel iterations"
+    doc["budget_calibration"] = {"target": "xpbd", "method": "load set", "setting": dict(cal.setting), "factor": E_eff / E,
+                                 "factors": list(cal.factors), "stiffness_nodes": list(cal.stiffness_nodes),
+                                 "effective_youngs_modulus": E_eff, "poisson_ratio": nu_eff,
+                                 "max_residual_error": cal.max_error, "reference_model": cal.reference_kind,
+                                 "extrapolated": not (Elo * (1 - 1e-9) <= E <= Ehi * (1 + 1e-9)),
+                                 "card": cal.card()}
+    if cal.reference_kind != card.model:
+        doc["notes"].append(f"the load-set calibration's reference is the {cal.reference_kind} model, not the card's {card.model}: "
+                            f"the written compliances reproduce {cal.reference_kind} at the card's values, as the caller chose")
+    if cal.max_error > MAX_BUDGET_ERROR:
+        doc["notes"].append(f"the load-set card leaves up to {100 * cal.max_error:.3g} % on a load of its set (budget_calibration."
+                            f"card.loads): one card for all its loads is a compromise, above the {100 * MAX_BUDGET_ERROR:g} % a "
+                            "single-experiment recalibration accepts")
+    return cal

@@ -30,7 +30,8 @@ TARGETS = ("febio", "sofa", "abaqus", "pbd", "xpbd", "vtu")
 def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = False, force: bool = False,
            law: str | None = None, dt: float | None = None, iterations: int | None = None, substeps: int | None = None,
            displacement: float | None = None, constraints: str = "xpbd", indentation=None, fitted=None,
-           nu: float | None = None, element: str = "C3D4", field_tolerance: float | None = None) -> Path:
+           nu: float | None = None, element: str = "C3D4", field_tolerance: float | None = None, load_set=None,
+           extrapolate: bool = False) -> Path:
     """Write ``card`` for target ``to`` (one of :data:`TARGETS`) to ``path``.
 
     ``to="pbd"``: a pypbd scene (:func:`difftissue.export.pypbd.write_pbd`; ``constraints`` ``"xpbd"`` or
@@ -47,7 +48,19 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
     (:data:`ABAQUS_ELEMENTS`; other targets refuse anything but the default C3D4).
 
     A card whose E is an effective modulus (half-space indentation fit, nu fixed at 0) is
-    refused unless ``nu`` converts it or ``approximate`` (:func:`resolve_effective_modulus`)."""
+    refused unless ``nu`` converts it or ``approximate`` (:func:`resolve_effective_modulus`).
+
+    ``load_set`` (XPBD only): the load-set calibration the caller computed with
+    :func:`difftissue.budget.calibrate_for_load_set` at the export's budget and mesh, checked and
+    written into the file (:func:`difftissue.export.xpbd.xpbd_parameters`); ``extrapolate``:
+    write it although the card's modulus lies outside its stiffness range (with a warning)."""
+    if load_set is not None and (to != "xpbd" or fitted is not None):
+        raise ExportError(
+            f"load_set: a load-set budget calibration is written for the XPBD JSON (to='xpbd', block or indentation "
+            f"specimen or no specimen), not for {'a fitted specimen' if fitted is not None and to == 'xpbd' else repr(to)}"
+            + ("; a pypbd scene's budget is calibrated by running pypbd itself (per-tet volume constraints, its own "
+               "iteration order), and the load-set calibration runs difftissue's XPBD solver on difftissue's models: its "
+               "factor would be unmeasured in pypbd, so it is not written there" if to == "pbd" else ""))
     if abaqus_element(element) != "C3D4" and to != "abaqus":
         raise ExportError(f"element = {element!r} is an Abaqus option; {to} is written with linear tets")
     _pbd_only_field_tolerance(to, field_tolerance)
@@ -77,7 +90,8 @@ def export(card: MaterialCard, to: str, path, *, mesh=None, approximate: bool = 
             raise ExportError("an XPBD export needs the time step dt and the iteration count (--dt, --iterations)")
         return write_xpbd(card, path, dt=dt, iterations=iterations, substeps=1 if substeps is None else substeps, mesh=mesh,
                           approximate=approximate,
-                          displacement=displacement, force=force, indentation=indentation)
+                          displacement=displacement, force=force, indentation=indentation, load_set=load_set,
+                          extrapolate=extrapolate)
     if to == "vtu":
         return write_vtu(card, mesh, path, displacement=displacement, force=force, indentation=indentation)
     raise ExportError(f"unknown export target {to!r}; choose one of {list(TARGETS)}")

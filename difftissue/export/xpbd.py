@@ -26,7 +26,8 @@ from ..solvers.static import solve_static
 from ..solvers.xpbd import StableNeoHookeanConstraints, XPBDSettings, xpbd_quasi_static_constraints
 from ._common import UNITS, finite, write_text
 from .approximations import approximation_notes
-from .budget import MAX_BUDGET_ERROR, card_reference_reactions, load_fractions, xpbd_budget_calibration, xpbd_document_constraints
+from .budget import (MAX_BUDGET_ERROR, card_reference_reactions, load_fractions, xpbd_budget_calibration, xpbd_document_constraints,
+                     xpbd_load_set_calibration)
 from .card import MATERIAL_FIELDS, MaterialCard
 from .fitted import FittedSpecimen, load_steps
 from .recalibration import recalibration_fractions
@@ -37,7 +38,8 @@ __all__ = ["xpbd_parameters", "write_xpbd", "run_xpbd_indentation", "xpbd_fitted
 
 
 def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps: int = 1, mesh=None,
-                    approximate: bool = False, displacement: float | None = None, indentation=None, calibrate: bool = True) -> dict:
+                    approximate: bool = False, displacement: float | None = None, indentation=None, calibrate: bool = True,
+                    load_set=None, extrapolate: bool = False) -> dict:
     """Stable neo-Hookean XPBD constraint data (Macklin & Müller 2021) for a stated time step.
 
     Per tetrahedron of rest volume ``V0``: deviatoric constraint ``C_D = sqrt(tr F^T F)`` with
@@ -58,7 +60,27 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
     measured signed error). Without a specimen (or for sphere / cone specimens, which
     difftissue's solver cannot run) the values are the card's converged-limit ones: XPBD with
     a finite iteration count is softer than they imply (``validity`` says so).
+
+    ``load_set``: a load-set calibration the caller computed, the object returned by
+    :func:`difftissue.budget.calibrate_for_load_set` of ``"stable_neo_hookean"`` (the file's
+    constraint pair) at this ``dt`` / ``substeps`` / ``iterations`` (``method="gauss_seidel"``,
+    ``warm_start=False``) on ``mesh`` (or the indentation specimen's mesh) with the card's
+    material. The export checks it against what it writes
+    (:func:`~difftissue.export.budget.check_load_set_calibration`) and writes it
+    (:func:`~difftissue.export.budget.xpbd_load_set_calibration`): the compliances are the
+    card's ``E_eff = E f(E)`` and the file's ``budget_calibration.card`` holds the validity
+    range (shapes, depths, stiffness range, cell size, setting) and every load's residual
+    error. Raises :class:`~difftissue.errors.BudgetRangeError` when the calibration's setting or
+    mesh is not the export's or the card's modulus lies outside its stiffness range
+    (``extrapolate=True``: written with a :class:`~difftissue.errors.BudgetExtrapolationWarning`),
+    :class:`~difftissue.errors.ExportError` for another model kind, Poisson ratio or density, no
+    mesh, or an object that is no such calibration. ``approximate`` does not relax these. (A
+    saturated budget is refused by ``calibrate_for_load_set`` itself, with the proposed budget.)
     """
+    if load_set is not None and not calibrate:
+        raise ExportError("load_set asks for a budget calibration over the loads; calibrate=False asks for none: give one of them")
+    if extrapolate and load_set is None:
+        raise ExportError("extrapolate applies to a load-set calibration (load_set=...); none was given")
     dt = finite(dt, "dt")
     if dt <= 0:
         raise ExportError(f"dt = {dt:g} s must be > 0")
@@ -104,6 +126,12 @@ def xpbd_parameters(card: MaterialCard, *, dt: float, iterations: int, substeps:
             "unit": "compliance 1/(Pa m^3); alpha_tilde = compliance / h^2",
         }
         out["specimen"] = _specimen_dict(card, mesh, displacement) if indentation is None else _xpbd_indentation_specimen(card, indentation, mesh)
+    if load_set is not None:
+        xpbd_load_set_calibration(out, card, load_set, mesh=mesh, extrapolate=extrapolate)
+        out["notes"].append("calibrated over the load set (budget_calibration.card), not on the specimen: the specimen is "
+                            "written for reference, its response at this budget was not measured")
+        return out
+    if mesh is not None:
         if calibrate and (indentation is None or indentation.indenter == "flat_punch"):
             _xpbd_calibrate_specimen(out, card, mesh, indentation, approximate)
         elif calibrate:
@@ -207,10 +235,11 @@ def _specimen_dict(card: MaterialCard, mesh, displacement: float | None) -> dict
 
 def write_xpbd(card: MaterialCard, path, *, dt: float, iterations: int, substeps: int = 1, mesh=None,
                approximate: bool = False, displacement: float | None = None, force: bool = False, indentation=None,
-               calibrate: bool = True) -> Path:
+               calibrate: bool = True, load_set=None, extrapolate: bool = False) -> Path:
     """Write :func:`xpbd_parameters` as JSON."""
     doc = xpbd_parameters(card, dt=dt, iterations=iterations, substeps=substeps, mesh=mesh, approximate=approximate,
-                          displacement=displacement, indentation=indentation, calibrate=calibrate)
+                          displacement=displacement, indentation=indentation, calibrate=calibrate, load_set=load_set,
+                          extrapolate=extrapolate)
     return write_text(path, json.dumps(doc, indent=2, allow_nan=False) + "\n", force)
 
 
