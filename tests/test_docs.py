@@ -47,13 +47,13 @@ def _find_spec(name):
 
 def test_the_code_blocks_of_cutting_md_run(tmp_path, monkeypatch):
     """Every python block of docs/cutting.md runs, in order in one namespace (the cut and its
-    closure, the jitted scalpel sweep, pre-tension, the seed 003 surrogate, the incision), and
+    closure, the jitted scalpel sweep, a cut on a dome, pre-tension, the seed 003 surrogate, the incision), and
     the values its comments state hold."""
     import numpy as np
     from docblocks import exec_blocks, python_blocks
 
     blocks = python_blocks("cutting.md")
-    assert len(blocks) == 5
+    assert len(blocks) == 6
     monkeypatch.chdir(tmp_path)
     ns = {}
     out = exec_blocks("cutting.md", blocks, ns)
@@ -68,6 +68,9 @@ def test_the_code_blocks_of_cutting_md_run(tmp_path, monkeypatch):
     # The sweep: the widest opening grows as the scalpel advances.
     sweep = [float(np.max(w)) for w in ns["sweep"]]
     assert sweep[0] > 1e-7 and np.all(np.diff(sweep) > 0)
+    # The cut on a dome (R = 50 mm): its length is the arc over the 4 mm chord, 2 R asin(c / 2R).
+    np.testing.assert_allclose(ns["dome_cut"].length, 2 * 50e-3 * np.arcsin(4e-3 / (2 * 50e-3)), rtol=1e-3)
+    assert ns["dome_cut"].length > 4e-3 * (1 + 1e-5)
     # Pre-tension: the numbers in the comments.
     np.testing.assert_allclose(ns["T"], 23.70, rtol=2e-3)  # the model's own tension
     np.testing.assert_allclose(ns["T_lin"], 27.27, rtol=2e-3)  # the linear formula
