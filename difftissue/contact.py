@@ -42,7 +42,7 @@ import numpy as np
 from .boundary import BoundaryConditions
 from .errors import BoundaryConditionError, ModelError
 from .materials import Material
-from .mesh import TetMesh
+from .mesh import TetMesh, ray_triangle_hits
 from .models import ElasticModel, ElementTerm
 from .selectors import BoundingBoxFace
 
@@ -363,25 +363,9 @@ def surface_point_on_axis(mesh: TetMesh, axis_point, axis_direction, *, mirror_p
     """
     c = np.asarray(_point3("axis_point", axis_point))
     n = np.asarray(_unit3("axis_direction", axis_direction))
-    p = np.asarray(mesh.points, dtype=float)
     f = mesh.boundary_faces[~_mirror_face_mask(mesh, mirror_planes)] if mirror_planes else mesh.boundary_faces
-    a, b, e = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
-    e1, e2 = b - a, e - a
-    normal = np.cross(e1, e2)
-    denom = normal @ n
-    facing = denom < 0
-    # Moller-Trumbore with a tolerance on the barycentric coordinates (a point on an edge or a vertex hits)
-    h = np.cross(n, e2)
-    det = np.einsum("ij,ij->i", e1, h)
-    ok = facing & (np.abs(det) > 0)
-    inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-    s = c - a
-    u = inv * np.einsum("ij,ij->i", s, h)
-    q = np.cross(s, e1)
-    v = inv * (q @ n)
-    t = inv * np.einsum("ij,ij->i", e2, q)
-    eps = 1e-9
-    hit = ok & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
+    t = ray_triangle_hits(c[None], n, np.asarray(mesh.points, dtype=float)[f], facing=-1)[0][0]
+    hit = np.isfinite(t)
     if not np.any(hit):
         raise BoundaryConditionError(f"the indenter axis through {c.tolist()} m along {n.tolist()} misses the specimen's surface")
     return c + float(np.min(t[hit])) * n

@@ -29,7 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .errors import CutError, DisconnectedCutError, _cite
-from .mesh import Specimen, TetMesh, _build_lattice, _KUHN_TETS, mean_ratio_quality, signed_volumes
+from .mesh import Specimen, TetMesh, _build_lattice, _KUHN_TETS, mean_ratio_quality, ray_triangle_hits, signed_volumes
 from .models import ElasticModel, ElementTerm, hexahedron_jacobians
 
 __all__ = [
@@ -243,36 +243,6 @@ class _Geometry:
 FEATURE_ANGLE = float(np.deg2rad(30.0))
 
 
-def _ray_hits(origins: np.ndarray, direction: np.ndarray, tri: np.ndarray, *, facing: int, eps: float = 1e-9):
-    """Intersections of the lines ``origins + t direction`` (``(Q, 3)`` points, ``(Q, 3)`` or
-    ``(3,)`` directions) with the triangles ``tri`` ``(T, 3, 3)`` (Moller-Trumbore, barycentric
-    tolerance ``eps``): ``(t, u, v)`` arrays ``(Q, T)``, ``t = nan`` where the line misses.
-    ``facing=-1`` keeps the triangles whose (outward) normal is against the direction (entry
-    faces), ``+1`` those along it (exit faces)."""
-    d = np.broadcast_to(np.asarray(direction, dtype=float), origins.shape)
-    a = tri[:, 0]
-    e1, e2 = tri[:, 1] - a, tri[:, 2] - a
-    normal = np.cross(e1, e2)
-    out_t = np.full((len(origins), len(tri)), np.nan)
-    out_u = np.zeros_like(out_t)
-    out_v = np.zeros_like(out_t)
-    for i, (c, n) in enumerate(zip(origins, d)):
-        side = normal @ n
-        h = np.cross(n, e2)
-        det = np.einsum("ij,ij->i", e1, h)
-        ok = (facing * side > 0) & (np.abs(det) > 0)
-        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
-        sv = c - a
-        u = inv * np.einsum("ij,ij->i", sv, h)
-        q = np.cross(sv, e1)
-        v = inv * (q @ n)
-        t = inv * np.einsum("ij,ij->i", e2, q)
-        hit = ok & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
-        out_t[i] = np.where(hit, t, np.nan)
-        out_u[i], out_v[i] = u, v
-    return out_t, out_u, out_v
-
-
 def _closest_on_triangles(x: np.ndarray, tri: np.ndarray):
     """Closest point of the triangles ``tri`` ``(T, 3, 3)`` to each point ``x`` ``(Q, 3)``:
     ``(distance (Q,), triangle (Q,), barycentric (Q, 3))`` (Ericson's region test)."""
@@ -434,7 +404,7 @@ class _SurfaceGeometry:
     def _project(self, origins, direction, *, what: str, first: bool):
         """Surface points on the lines through ``origins`` along ``direction`` (entry faces):
         the first hit (``first``) or the nearest to the origin. Returns points, faces, barycentric."""
-        t, u, v = _ray_hits(origins, direction, self._tri, facing=-1)
+        t, u, v = ray_triangle_hits(origins, direction, self._tri, facing=-1)
         if first:
             key = np.where(np.isnan(t), np.inf, t)
         else:
@@ -557,7 +527,7 @@ class _SurfaceGeometry:
         first exit through the boundary)."""
         d = self.b + self.tan_tilt * self.normal
         dirs = np.concatenate([d, d[-1:]])
-        t, _, _ = _ray_hits(self.p, dirs, self._tri, facing=+1)
+        t, _, _ = ray_triangle_hits(self.p, dirs, self._tri, facing=+1)
         t = np.where(t > 1e-9 * scale, t, np.nan)
         with np.errstate(all="ignore"):
             out = np.nanmin(np.where(np.isnan(t), np.inf, t), axis=1)
@@ -957,6 +927,10 @@ def _acceptable(q_new, q_old, guard):
     return (q_new > 0) & (q_new >= np.minimum(guard, 0.5 * q_old))
 
 
+#: The vertical, +z (a flat top's outward normal).
+_UP = np.array([0.0, 0.0, 1.0])
+
+
 class _Mover:
     """Moves nodes one at a time, refusing a move that would push an incident tet below the
     quality ``guard`` (or invert it), or move a boundary node off its boundary faces (the
@@ -1034,65 +1008,49 @@ def _snap(prep: _Prepared, phases: Sequence[np.ndarray], guard: float):
     # endpoints cannot move is left (a bridge across the open part of the cut is refused later
     # by _check_bridges).
 
-    def snap_to_curved(v, reach) -> bool:
-        # A node of the surface patch goes to the path point (it stays on the surface, to the
-        # path's chord accuracy), any other to the blade point at its own depth; a node on
-        # another boundary face (a side face) slides along it, normal to the depth direction.
-        target = g.surface_point(s[v : v + 1], h[v : v + 1])[0]
-        if np.linalg.norm(target - pts0[v]) <= 1e-12 * lat[v]:
-            target = pts0[v]  # already on the blade (round-off): not a move
-        if not mover.tangential(v, target - pts0[v]):
-            k = g.segment_of(s[v : v + 1])[0]
-            side = [m for m in mover.normals(v) if abs(float(m @ g.b[k])) < 1 - 1e-9]
-            if len(side) != 1:
-                return False
-            dvec = np.cross(-g.b[k], side[0])
-            dvec /= np.linalg.norm(dvec)
-            rate = float(dvec @ g.normal[k])
-            if abs(rate) < 0.3 or abs(n[v] / rate) > reach:
-                return False
-            target = pts0[v] - (n[v] / rate) * dvec
-            s_t, n_t, _ = g.coords(target[None])
-            if abs(n_t[0]) > 1e-9 * lat[v]:
-                return False
+    def move_onto_blade(v, target, up, rate_of, reach) -> bool:
+        # Node v to ``target`` on the blade; a node on another boundary face (a side face),
+        # whose move would leave that face, slides along it instead, normal to ``up`` (the
+        # blade's depth direction reversed), by the signed distance n[v] over the rate
+        # ``rate_of(direction, segment)`` at which that slide approaches the blade.
+        if mover.tangential(v, target - pts0[v]):
             if mover.try_move(v, target):
-                s[v] = s_t[0]
                 snapped[v] = True
                 return True
             return False
+        side = [m for m in mover.normals(v) if abs(float(m @ up)) < 1 - 1e-9]
+        if len(side) != 1:
+            return False
+        dvec = np.cross(up, side[0])
+        dvec /= np.linalg.norm(dvec)
+        rate = rate_of(dvec, g.segment_of(s[v : v + 1])[0])
+        if abs(rate) < 0.3 or abs(n[v] / rate) > reach:
+            return False
+        target = pts0[v] - (n[v] / rate) * dvec
+        s_t, n_t, _ = g.coords(target[None])
+        if abs(n_t[0]) > 1e-9 * lat[v]:
+            return False
         if mover.try_move(v, target):
+            s[v] = s_t[0]
             snapped[v] = True
             return True
         return False
 
+    def snap_to_curved(v, reach) -> bool:
+        # A node of the surface patch goes to the path point (it stays on the surface, to the
+        # path's chord accuracy), any other to the blade point at its own depth.
+        target = g.surface_point(s[v : v + 1], h[v : v + 1])[0]
+        if np.linalg.norm(target - pts0[v]) <= 1e-12 * lat[v]:
+            target = pts0[v]  # already on the blade (round-off): not a move
+        k = g.segment_of(s[v : v + 1])[0]
+        return move_onto_blade(v, target, -g.b[k], lambda dvec, k: float(dvec @ g.normal[k]), reach)
+
     def snap_to_surface(v, reach) -> bool:
         if curved:
             return snap_to_curved(v, reach)
+        # flat: the blade point at the node's height; a side-face node slides horizontally
         target = np.array([*g.surface_xy(s[v : v + 1], h[v : v + 1])[0], pts0[v, 2]])
-        if not mover.tangential(v, target - pts0[v]):
-            # A node on a side face slides along it (horizontally) onto the cutting surface.
-            side = [m for m in mover.normals(v) if abs(m[2]) < 1 - 1e-9]
-            if len(side) != 1:
-                return False
-            dvec = np.cross([0.0, 0.0, 1.0], side[0])
-            dvec /= np.linalg.norm(dvec)
-            k = g.segment_of(s[v : v + 1])[0]
-            rate = float(dvec[:2] @ g.normal[k])
-            if abs(rate) < 0.3 or abs(n[v] / rate) > reach:
-                return False
-            target = pts0[v] - (n[v] / rate) * dvec
-            s_t, n_t, _ = g.coords(target[None])
-            if abs(n_t[0]) > 1e-9 * lat[v]:
-                return False
-            if mover.try_move(v, target):
-                s[v] = s_t[0]
-                snapped[v] = True
-                return True
-            return False
-        if mover.try_move(v, target):
-            snapped[v] = True
-            return True
-        return False
+        return move_onto_blade(v, target, _UP, lambda dvec, k: float(dvec[:2] @ g.normal[k]), reach)
 
     for e in phases:
         i, j = e[:, 0], e[:, 1]

@@ -89,6 +89,36 @@ _KUHN_TETS = np.array([[0, 1 << p[0], (1 << p[0]) | (1 << p[1]), 7] for p in ite
 
 
 # ---------------------------------------------------------------- geometry kernels
+def ray_triangle_hits(origins: np.ndarray, direction: np.ndarray, tri: np.ndarray, *, facing: int, eps: float = 1e-9):
+    """Intersections [m along ``direction``] of the lines ``origins + t direction`` (``(Q, 3)`` points, ``(Q, 3)`` or
+    ``(3,)`` directions) with the triangles ``tri`` ``(T, 3, 3)`` (Moller-Trumbore, barycentric
+    tolerance ``eps``): ``(t, u, v)`` arrays ``(Q, T)``, ``t = nan`` where the line misses.
+    ``facing=-1`` keeps the triangles whose (outward) normal is against the direction (entry
+    faces), ``+1`` those along it (exit faces)."""
+    d = np.broadcast_to(np.asarray(direction, dtype=float), origins.shape)
+    a = tri[:, 0]
+    e1, e2 = tri[:, 1] - a, tri[:, 2] - a
+    normal = np.cross(e1, e2)
+    out_t = np.full((len(origins), len(tri)), np.nan)
+    out_u = np.zeros_like(out_t)
+    out_v = np.zeros_like(out_t)
+    for i, (c, n) in enumerate(zip(origins, d)):
+        side = normal @ n
+        h = np.cross(n, e2)
+        det = np.einsum("ij,ij->i", e1, h)
+        ok = (facing * side > 0) & (np.abs(det) > 0)
+        inv = np.where(ok, 1.0 / np.where(ok, det, 1.0), 0.0)
+        sv = c - a
+        u = inv * np.einsum("ij,ij->i", sv, h)
+        q = np.cross(sv, e1)
+        v = inv * (q @ n)
+        t = inv * np.einsum("ij,ij->i", e2, q)
+        hit = ok & (u >= -eps) & (v >= -eps) & (u + v <= 1 + eps)
+        out_t[i] = np.where(hit, t, np.nan)
+        out_u[i], out_v[i] = u, v
+    return out_t, out_u, out_v
+
+
 def signed_volumes(points: np.ndarray, tets: np.ndarray) -> np.ndarray:
     """Signed volume ``(x1 - x0) . ((x2 - x0) x (x3 - x0)) / 6`` of each tet [m^3].
 
