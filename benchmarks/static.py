@@ -83,7 +83,8 @@ def _child(args):
 
     n, kind, solver = args.size, args.model, args.solver
     mesh, model, bc, top, material = _problem(n, kind)
-    out = {"size": n, "model": kind, "solver": solver, "unknowns": 3 * mesh.n_nodes, "elements": int(mesh.tets.shape[0])}
+    out = {"size": n, "model": kind, "solver": solver, "unknowns": 3 * mesh.n_nodes, "elements": int(mesh.tets.shape[0]),
+           "backend": jax.default_backend(), "device": jax.devices()[0].device_kind}
 
     def clock():
         return time.perf_counter(), time.process_time()
@@ -189,6 +190,9 @@ def _child(args):
         out["cold_wall"] = out["assembly_wall"] + out["setup_wall"] + out["solve_wall"]
         out["cold_cpu"] = out["assembly_cpu"] + out["setup_cpu"] + out["solve_cpu"]
     out["peak_rss_gb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6
+    stats = jax.devices()[0].memory_stats()  # None on the CPU backend
+    if stats and "peak_bytes_in_use" in stats:
+        out["device_peak_gb"] = stats["peak_bytes_in_use"] / 1e9
     print("RESULT " + json.dumps(out), flush=True)
 
 
@@ -210,13 +214,15 @@ def _run(size, model, solver, gradient, timeout):
 
 def _table(rows):
     lines = [
-        "| model | unknowns | solver | cold wall [s] | warm wall [s] | CPU cold [s] | CG its | grad/forward | peak RSS [GB] | force rel. diff |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| model | unknowns | solver | backend | cold wall [s] | warm wall [s] | CPU cold [s] | CG its | grad/forward | peak RSS [GB] | device peak [GB] | force rel. diff |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
-    ref = {(r["model"], r["size"]): r["force"] for r in rows if r.get("solver") == "multigrid" and "force" in r}
+    ref = {}  # the force of difftissue's multigrid solve (closure or direct) of the same size
+    for solver in ("multigrid-direct", "multigrid"):
+        ref.update({(r["model"], r["size"]): r["force"] for r in rows if r.get("solver") == solver and "force" in r})
     for r in rows:
         if "error" in r:
-            lines.append(f"| {r['model']} | size {r['size']} | {r['solver']} | {r['error']} | | | | | | |")
+            lines.append(f"| {r['model']} | size {r['size']} | {r['solver']} | | {r['error']} | | | | | | | |")
             continue
         warm = r.get("warm_wall", r.get("solve_wall"))
         ratio = ""
@@ -224,8 +230,11 @@ def _table(rows):
             ratio = f"{(r['value_and_grad_wall'] - r['warm_wall']) / r['warm_wall']:.2f}"
         f0 = ref.get((r["model"], r["size"]))
         diff = f"{abs(r['force'] - f0) / abs(f0):.1e}" if f0 else ""
+        backend = r.get("backend", "cpu") if r["solver"].startswith(("multigrid", "sparse", "dense", "superlu")) else "cpu (SciPy)"
+        device_peak = f"{r['device_peak_gb']:.2f}" if "device_peak_gb" in r else ""
         lines.append(
-            f"| {r['model']} | {r['unknowns']:,} | {r['solver']} | {r['cold_wall']:.2f} | {warm:.2f} | {r['cold_cpu']:.2f} | {r.get('cg_iterations', '')} | {ratio} | {r['peak_rss_gb']:.2f} | {diff} |"
+            f"| {r['model']} | {r['unknowns']:,} | {r['solver']} | {backend} | {r['cold_wall']:.2f} | {warm:.2f} | {r['cold_cpu']:.2f} | {r.get('cg_iterations', '')} | {ratio}"
+            f" | {r['peak_rss_gb']:.2f} | {device_peak} | {diff} |"
         )
     return "\n".join(lines)
 
