@@ -287,6 +287,7 @@ def test_sharded_fits_on_four_simulated_devices_equal_the_serial_loop(tmp_path, 
     script.write_text(CHILD.format(here=os.path.dirname(os.path.abspath(__file__)), given=str(given)))
     env = dict(os.environ)
     env.pop("XLA_FLAGS", None)
+    env["JAX_PLATFORMS"] = "cpu"  # simulated CPU devices, also on a machine with a GPU
     proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=600)
     assert proc.returncode == 0, proc.stderr[-4000:]
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
