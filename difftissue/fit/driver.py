@@ -222,7 +222,7 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
     status_np = np.asarray(status)
     start_converged = done_np & (status_np == 0)
     if start_converged[best]:
-        reason = "step and residual change below rtol/atol, the remaining step below 1e-4 standard errors or rtol/atol, or residuals within the model's precision"
+        reason = "step and residual change below rtol/atol, the remaining or a rejected step below 1e-4 standard errors or rtol/atol, or residuals within the model's precision"
     elif status_np[best] != 0:
         reason = f"failed: {engine.status_message(int(status_np[best]))}"
     else:

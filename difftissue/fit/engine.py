@@ -254,7 +254,13 @@ class Engine:
                 # result is the last accepted point, as before.
                 trial = state_new.y_eval - u_new
                 rejected = state_new.num_steps_since_acceptance > 0
-                negligible = rejected & (jnp.linalg.norm(trial) <= atol + rtol * jnp.linalg.norm(u_new))
+                J = state_new.f_info.jac.as_matrix()
+                # A rejected trial step below the x tolerance, or below STATIONARY_STEP standard
+                # errors: no statistically meaningful step decreases the loss. This is how a fit
+                # ends whose minimum sits on a kink of the residuals (a contact-set change of a
+                # discretised contact: the one-sided Gauss--Newton steps point at each other,
+                # and the trust region creeps towards the kink until max_steps).
+                negligible = rejected & ((jnp.linalg.norm(trial) <= atol + rtol * jnp.linalg.norm(u_new)) | _statistically_small(J, r, trial))
                 # And stop when the accepted point is stationary to within a statistically
                 # negligible step: the Gauss--Newton step that is left moves the parameters by
                 # less than STATIONARY_STEP standard errors (Bates & Watts' relative-offset
@@ -267,7 +273,7 @@ class Engine:
                 # (FitProblem.precision_floor: simulated, noise-free data): the steps after that
                 # fit round-off, whose Gauss--Newton step can stay above the x tolerance.
                 at_floor = jnp.linalg.norm(r) <= template.with_data(data).precision_floor()
-                finished = term | (status != 0) | negligible | at_floor | _stationary(state_new.f_info.jac.as_matrix(), r, u_new, rtol, atol)
+                finished = term | (status != 0) | negligible | at_floor | _stationary(J, r, u_new, rtol, atol)
                 u_out = jnp.where(done, u, u_new)
                 dyn_out = _tree_where(done, dyn, dyn_new)
                 return u_out, dyn_out, done | finished, jnp.where(done, 0, status), loss
@@ -335,6 +341,19 @@ class Engine:
 STATIONARY_STEP = 1e-4
 
 
+def _statistically_small(J, r, delta):
+    """Whether the parameter step ``delta`` (p,) moves the predictions of a fit with residuals
+    ``r`` (n,) and Jacobian ``J`` (n, p) by less than :data:`STATIONARY_STEP` standard errors,
+    ``|J delta|^2 / s^2 <= STATIONARY_STEP^2`` with ``s^2 = |r|^2 / (n - p)`` (never where
+    ``n <= p`` or the loss is 0: no residual variance to measure it by)."""
+    n, p = J.shape
+    if n <= p:
+        return jnp.asarray(False)
+    s2 = jnp.sum(r * r) / (n - p)
+    moved = jnp.sum((J @ delta) ** 2)
+    return jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(r)) & (s2 > 0) & (moved <= STATIONARY_STEP**2 * s2)
+
+
 def _stationary(J, r, u, rtol, atol):
     """Whether the accepted point ``u`` (p,) with residuals ``r`` (n,) and Jacobian ``J`` (n, p)
     is converged by the Gauss--Newton step left there, ``delta = -J^+ r``:
@@ -349,15 +368,10 @@ def _stationary(J, r, u, rtol, atol):
       (the loss left is the forward model's round-off, which a step can still halve), and the
       damped steps after a converged point would only move it below this tolerance.
     """
-    n, p = J.shape
     finite = jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(r))
     delta = jnp.linalg.lstsq(J, r)[0]
     small = jnp.all(jnp.abs(delta) < atol + rtol * jnp.abs(u))
-    if n <= p:
-        return finite & small
-    predicted = 0.5 * jnp.sum((J @ delta) ** 2)
-    loss = 0.5 * jnp.sum(r * r)
-    return finite & (small | ((loss > 0) & (predicted <= STATIONARY_STEP**2 * loss / (n - p))))
+    return finite & (small | _statistically_small(J, r, delta))
 
 
 #: Adam: the most halvings of a step whose trial point has a non-finite loss (a failed static

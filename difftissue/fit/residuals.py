@@ -235,7 +235,7 @@ def least_squares(
     if stopped:
         reason = "stopped: target reached"
     elif converged:
-        reason = "step and residual change below rtol/atol, the remaining step below 1e-4 standard errors or rtol/atol, or residuals within the model's precision"
+        reason = "step and residual change below rtol/atol, the remaining or a rejected step below 1e-4 standard errors or rtol/atol, or residuals within the model's precision"
     elif status != 0:
         reason = f"failed: {engine.status_message(status)}"
     else:
