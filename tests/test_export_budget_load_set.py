@@ -335,3 +335,20 @@ def test_cli_load_set_saturation_is_reported_and_nothing_written(tmp_path, monke
     err = capsys.readouterr().err
     assert "difftissue: error: XPBD at dt = 0.003 s" in err and err.rstrip().endswith("substeps = 2")
     assert not (tmp_path / "x.json").exists() and not (tmp_path / "README.md").exists()
+
+
+def test_cli_load_set_extrapolate_writes_the_end_factor_and_says_so(tmp_path, monkeypatch, capsys, cal):
+    """A card at 2 E with the file's moduli [E]: refused before calibrating without --extrapolate; with it the end
+    factor is written, the warning printed, and README.md says EXTRAPOLATED (the module's calibration answers)."""
+    import difftissue.budget
+
+    monkeypatch.setattr(difftissue.budget, "calibrate_for_load_set", lambda *a, **k: cal)
+    toml = _LOAD_SET_TOML.replace('length_unit = "mm"', f'length_unit = "mm"\nyoungs_moduli = [{E}]')
+    spec = ("--specimen", "block:10,10,5:4,4,2")
+    assert _cli_export(tmp_path, *spec, toml=toml, card=_card(youngs_modulus=2 * E)) == 1
+    assert "pass --extrapolate" in capsys.readouterr().err and not (tmp_path / "x.json").exists()
+    with pytest.warns(BudgetExtrapolationWarning, match="Young's modulus"):
+        assert _cli_export(tmp_path, *spec, "--extrapolate", toml=toml, card=_card(youngs_modulus=2 * E)) == 0
+    rec = json.loads((tmp_path / "x.json").read_text())["budget_calibration"]
+    assert rec["extrapolated"] is True and rec["effective_youngs_modulus"] == pytest.approx(2 * E * cal.factor, rel=1e-12)
+    assert "- EXTRAPOLATED (--extrapolate)" in (tmp_path / "README.md").read_text()
