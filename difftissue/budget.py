@@ -35,7 +35,8 @@ from .solvers.static import solve_static
 from .solvers.xpbd import XPBDSettings, xpbd_quasi_static
 
 __all__ = ["BudgetCalibration", "calibrate_for_budget", "FITTABLE_FIELDS", "BudgetLoad", "indentation_load", "cell_size",
-           "BudgetProposal", "propose_budget", "LoadSetCalibration", "calibrate_for_load_set", "MIN_SENSITIVITY", "SHAPES"]
+           "BudgetProposal", "propose_budget", "LoadSetCalibration", "calibrate_for_load_set", "MIN_SENSITIVITY", "SHAPES",
+           "LoadSetSpec", "parse_load_set", "read_load_set", "LOAD_SET_KEYS", "LOAD_KEYS"]
 
 #: fields that can be calibrated, with the transform to unconstrained space used for the steps
 FITTABLE_FIELDS = ("youngs_modulus", "poisson_ratio", "cubic_coefficient")
@@ -977,3 +978,206 @@ def calibrate_for_load_set(
         jacobian=np.asarray(fit.jacobian) * rtol, covariance=np.asarray(fit.covariance), standard_errors=dict(fit.standard_errors),
         dof=fit.dof,
     )
+
+
+# ============================================================================ load sets from TOML
+#: Keys of a load-set file's ``[budget]`` table and of each ``[[budget.loads]]`` entry.
+LOAD_SET_KEYS = ("length_unit", "youngs_moduli", "reference", "effective_poisson", "propose", "max_steps", "loads")
+LOAD_KEYS = ("shape", "depth", "radius", "youngs_moduli", "length_unit", "name")
+
+
+@dataclasses.dataclass(frozen=True)
+class LoadSetSpec:
+    """A load set read from a TOML ``[budget]`` table (:func:`parse_load_set`).
+
+    Attributes:
+        loads: the :class:`BudgetLoad` objects on the given mesh (one per load and modulus).
+        options: keyword arguments for :func:`calibrate_for_load_set` given in the table
+            (``effective_poisson``, ``propose``, ``max_steps``).
+        reference: the reference model kind given (``budget.reference``), or None (the caller's
+            default).
+        youngs_modulus_range: ``(lo, hi)`` [Pa] of the loads' moduli.
+    """
+
+    loads: tuple
+    options: dict
+    reference: str | None
+    youngs_modulus_range: tuple
+
+
+def _ls_fail(where: str, msg: str):
+    raise ConfigError(f"{where}: {msg}")
+
+
+def _ls_number(value, where: str, unit: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        _ls_fail(where, f"must be a number in {unit}, got {value!r}")
+    if not value > 0:
+        _ls_fail(where, f"must be > 0 {unit}, got {value!r}")
+    return float(value)
+
+
+def _ls_unit(value, where: str) -> float:
+    from .mesh import LENGTH_UNITS
+
+    if not isinstance(value, str) or value not in LENGTH_UNITS:
+        _ls_fail(where, f"must be one of {', '.join(repr(u) for u in LENGTH_UNITS)}, got {value!r}")
+    return LENGTH_UNITS[value]
+
+
+def _ls_moduli(value, where: str) -> list:
+    if not isinstance(value, list) or not value:
+        _ls_fail(where, f"must be a non-empty list of Young's moduli in Pa, got {value!r}")
+    return sorted({_ls_number(v, f"{where}[{i}]", "Pa") for i, v in enumerate(value)})
+
+
+def _ls_keys(table, where: str, allowed) -> None:
+    unknown = [k for k in table if k not in allowed]
+    if unknown:
+        _ls_fail(where, f"unknown key {unknown[0]!r}; allowed: {', '.join(allowed)}")
+
+
+def parse_load_set(raw, mesh, material: Material, *, where: str = "budget") -> LoadSetSpec:
+    """The load set of a TOML ``[budget]`` table (``raw``: the table as a mapping) on ``mesh``,
+    for the tissue ``material``, checked before anything is solved.
+
+    The table (lengths in metres unless ``length_unit`` says otherwise, moduli in Pa)::
+
+        [budget]
+        length_unit = "mm"             # of depth and radius below ("m", "cm", "mm", "um"; default "m")
+        youngs_moduli = [5e3, 10e3]    # tissue moduli [Pa] the card covers (default: the material's E)
+        reference = "fem_neo_hookean"  # reference model (default: the caller's choice)
+        effective_poisson = false      # also fit one effective Poisson ratio
+        propose = true                 # when saturated, search a budget (or ["substeps"], ["iterations"], false)
+        max_steps = 20                 # optimiser steps
+
+        [[budget.loads]]
+        shape = "flat_punch"           # "flat_punch", "platen" or "sphere" (indentation_load)
+        depth = 0.1                    # indenter travel (length_unit)
+        radius = 3                     # punch / sphere radius (length_unit); not for a platen
+        # youngs_moduli = [10e3]       # this load's moduli [Pa] (default: the table's)
+        # length_unit, name            # this load's own unit and label
+
+    Every load is built by :func:`indentation_load` on ``mesh`` (top face indented, base
+    clamped) once per modulus of its ``youngs_moduli``.
+
+    Raises:
+        ConfigError: unknown or missing keys, values of the wrong type, a unit that is not a
+            length unit, a non-positive depth, radius or modulus, a radius given to a platen
+            or missing for a punch or sphere, a depth not less than the mesh's height or an
+            indenter that covers the whole top face (both usually lengths in the wrong unit),
+            no top node under an indenter. The message starts with the key's path
+            (``budget.loads[1].depth: ...``).
+    """
+    from collections.abc import Mapping
+
+    if not isinstance(raw, Mapping):
+        _ls_fail(where, f"must be a table, got {raw!r}")
+    _ls_keys(raw, where, LOAD_SET_KEYS)
+    if "loads" not in raw:
+        _ls_fail(where, "missing key 'loads': one or more [[budget.loads]] tables (shape, depth, radius)")
+    unit = _ls_unit(raw["length_unit"], f"{where}.length_unit") if "length_unit" in raw else 1.0
+    E0 = float(material.youngs_modulus)
+    moduli = _ls_moduli(raw["youngs_moduli"], f"{where}.youngs_moduli") if "youngs_moduli" in raw else None
+    options = {}
+    if "effective_poisson" in raw:
+        if not isinstance(raw["effective_poisson"], bool):
+            _ls_fail(f"{where}.effective_poisson", f"must be true or false, got {raw['effective_poisson']!r}")
+        options["effective_poisson"] = raw["effective_poisson"]
+    if "propose" in raw:
+        p = raw["propose"]
+        if isinstance(p, list):
+            if not p or any(w not in ("iterations", "substeps") for w in p) or len(set(p)) != len(p):
+                _ls_fail(f"{where}.propose", f"must be true, false or a list of 'iterations' and/or 'substeps', got {p!r}")
+            options["propose"] = tuple(p)
+        elif isinstance(p, bool):
+            options["propose"] = p
+        else:
+            _ls_fail(f"{where}.propose", f"must be true, false or a list of 'iterations' and/or 'substeps', got {p!r}")
+    if "max_steps" in raw:
+        m = raw["max_steps"]
+        if isinstance(m, bool) or not isinstance(m, int) or m < 0:
+            _ls_fail(f"{where}.max_steps", f"must be an integer >= 0, got {m!r}")
+        options["max_steps"] = int(m)
+    reference = None
+    if "reference" in raw:
+        if raw["reference"] not in MODELS:
+            _ls_fail(f"{where}.reference", f"must be one of {', '.join(MODELS)}, got {raw['reference']!r}")
+        reference = raw["reference"]
+    entries = raw["loads"]
+    if not isinstance(entries, list) or not entries:
+        _ls_fail(f"{where}.loads", "must be one or more [[budget.loads]] tables (shape, depth, radius)")
+    p = np.asarray(mesh.points)
+    height = float(np.ptp(p[:, 2]))
+    half = 0.5 * math.hypot(float(np.ptp(p[:, 0])), float(np.ptp(p[:, 1])))  # centre to the top face's corners
+    loads = []
+    for i, e in enumerate(entries):
+        w = f"{where}.loads[{i}]"
+        if not isinstance(e, Mapping):
+            _ls_fail(w, f"must be a table (shape, depth, radius), got {e!r}")
+        _ls_keys(e, w, LOAD_KEYS)
+        for k in ("shape", "depth"):
+            if k not in e:
+                _ls_fail(w, f"missing key {k!r}" + (f" (one of {', '.join(SHAPES)})" if k == "shape" else " (indenter travel)"))
+        shape = e["shape"]
+        if shape not in SHAPES:
+            _ls_fail(f"{w}.shape", f"must be one of {', '.join(SHAPES)}, got {shape!r}")
+        f = _ls_unit(e["length_unit"], f"{w}.length_unit") if "length_unit" in e else unit
+        uname = e.get("length_unit", raw.get("length_unit", "m"))
+        depth = _ls_number(e["depth"], f"{w}.depth", uname) * f
+        if depth >= height:
+            _ls_fail(f"{w}.depth", f"{depth:.4g} m is not less than the mesh's height {height:.4g} m (lengths are in "
+                                   f"{uname!r}; set length_unit, e.g. length_unit = \"mm\", if they are not)")
+        radius = None
+        if shape == "platen":
+            if "radius" in e:
+                _ls_fail(f"{w}.radius", "a platen moves the whole top face: it has no radius (use shape = \"flat_punch\")")
+        else:
+            if "radius" not in e:
+                _ls_fail(w, f"missing key 'radius' (the {shape}'s radius)")
+            radius = _ls_number(e["radius"], f"{w}.radius", uname) * f
+            reach = radius if shape == "flat_punch" else math.sqrt(2.0 * radius * depth)
+            if reach >= half * (1 - 1e-9):
+                what = f"radius {reach:.4g} m" if shape == "flat_punch" else f"contact radius sqrt(2 radius depth) = {reach:.4g} m"
+                _ls_fail(f"{w}.radius", f"the {shape}'s {what} covers the "
+                                        f"whole top face (half-diagonal {half:.4g} m): lengths are in {uname!r}; set length_unit if "
+                                        "they are not, or use shape = \"platen\"")
+        name = ""
+        if "name" in e:
+            if not isinstance(e["name"], str) or not e["name"]:
+                _ls_fail(f"{w}.name", f"must be a non-empty string, got {e['name']!r}")
+            name = e["name"]
+        own = _ls_moduli(e["youngs_moduli"], f"{w}.youngs_moduli") if "youngs_moduli" in e else moduli
+        for E in (own or [None]):
+            label = (name or f"{shape} {1e3 * depth:g} mm") + ("" if E is None or (name and len(own) == 1) else f" E {E:.4g} Pa")
+            try:
+                loads.append(indentation_load(mesh, shape, depth, radius=radius, youngs_modulus=E, name=label))
+            except ConfigError as err:
+                raise ConfigError(f"{w}: {err}") from None
+    youngs = [E0 if ld.youngs_modulus is None else ld.youngs_modulus for ld in loads]
+    return LoadSetSpec(tuple(loads), options, reference, (min(youngs), max(youngs)))
+
+
+def read_load_set(path, mesh, material: Material) -> LoadSetSpec:
+    """:func:`parse_load_set` of the ``[budget]`` table of the TOML file ``path`` (no other
+    top-level key)."""
+    import tomllib
+    from pathlib import Path
+
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"load-set file not found: {path}")
+    try:
+        with open(path, "rb") as fh:
+            raw = tomllib.load(fh)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(" ".join(f"{path}: invalid TOML: {e}".split())) from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    _ls_keys(raw, str(path), ("budget",))
+    if "budget" not in raw:
+        _ls_fail(str(path), "missing the [budget] table (with one or more [[budget.loads]])")
+    try:
+        return parse_load_set(raw["budget"], mesh, material)
+    except ConfigError as e:
+        raise ConfigError(f"{path}: {e}") from None

@@ -224,6 +224,8 @@ def _readme_budget(text: str) -> list[str]:
               if "dt" in st and "iterations" in st else None)
     fmt = lambda a: ", ".join(f"{100 * float(v):+.3g} %" for v in a)  # noqa: E731
     rec, chk = doc.get("budget_calibration"), doc.get("budget_check")
+    if isinstance(rec, dict) and rec.get("method") == "load set":
+        return _readme_load_set(rec, budget)
     if isinstance(rec, dict):
         how = rec.get("budget") or "as given (--dt, --iterations)"
         lines = [f"- budget: {budget} ({how})"]
@@ -259,6 +261,31 @@ def _readme_budget(text: str) -> list[str]:
     return []
 
 
+def _readme_load_set(rec: dict, budget) -> list[str]:
+    """README lines of an XPBD file calibrated over a load set (``budget_calibration.method ==
+    "load set"``): the budget, the effective modulus, the range the card holds over (shapes,
+    depths, tissue moduli, cell size) and every load's residual force error."""
+    card = rec.get("card") or {}
+    v = card.get("validity") or {}
+    (d0, d1), (e0, e1) = v.get("depth_range", [float("nan")] * 2), v.get("youngs_modulus_range", [float("nan")] * 2)
+    lines = [f"- budget: {budget} (as given (--dt, --iterations, --substeps); standard XPBD, Gauss-Seidel, multipliers reset "
+             "every substep)",
+             f"- CALIBRATED OVER A LOAD SET (--load-set): E_eff = {float(rec['effective_youngs_modulus']):.6g} Pa "
+             f"({float(rec['factor']):.6g} x the card's E), nu = {float(rec['poisson_ratio']):.6g}, against the "
+             f"{rec.get('reference_model')} model",
+             f"- valid for: indenter shapes {', '.join(v.get('shapes', []))}; depths {float(d0):.4g} ... {float(d1):.4g} m; tissue "
+             f"moduli {float(e0):.4g} ... {float(e1):.4g} Pa; cells of {float((v.get('mesh') or {}).get('cell_size', float('nan'))):.4g} m "
+             "(this mesh) and this budget only; nothing outside this range was measured",
+             "- residual force error per load (budgeted XPBD with the card vs the reference): "
+             + "; ".join(f"{ld['name']} {100 * float(ld['error']):+.3g} %" for ld in card.get("loads", []))
+             + f" (largest {100 * float(rec['max_residual_error']):.3g} %; smallest d log F / d log E "
+             f"{float(v.get('min_sensitivity', float('nan'))):.3g}, saturated below {float(v.get('sensitivity_threshold', 0.5)):g})"]
+    if rec.get("extrapolated"):
+        lines.append("- EXTRAPOLATED (--extrapolate): the card's E lies outside the calibrated moduli; the end factor is written, "
+                     "its error is unmeasured")
+    return lines
+
+
 def _readme_section(path: Path, target: str, card, what: str) -> str:
     """The README section of one exported file: target, units, how to run it, the budget a
     real-time file was written and recalibrated for (pypbd, XPBD), what was recalibrated
@@ -269,14 +296,15 @@ def _readme_section(path: Path, target: str, card, what: str) -> str:
         text = path.read_text(encoding="utf-8")
     except (OSError, UnicodeDecodeError):  # a binary VTU
         text = ""
-    keys = ("APPROXIMATION", "RECALIBRATED", "VERIFIED for this budget", "NOT calibrated")
+    keys = ("APPROXIMATION", "RECALIBRATED", "VERIFIED for this budget", "NOT calibrated", "CALIBRATED OVER A LOAD SET")
 
     def clean(ln: str) -> str:  # the sentence from its keyword on (JSON: without the key), comment marks stripped
         i = min((ln.find(k) for k in keys if k in ln), default=0)
         return ln[i:].strip().strip("<!->*\"', ").strip()
 
     approx = sorted({clean(ln) for ln in text.splitlines() if "APPROXIMATION" in ln or "NOT calibrated" in ln})
-    recal = sorted({clean(ln) for ln in text.splitlines() if ("RECALIBRATED" in ln or "VERIFIED for this budget" in ln)
+    recal = sorted({clean(ln) for ln in text.splitlines() if ("RECALIBRATED" in ln or "VERIFIED for this budget" in ln
+                                                                 or "CALIBRATED OVER A LOAD SET" in ln)
                     and "APPROXIMATION" not in ln})
     lines = [f"## {path.name}", "", f"- target: {target} ({what}), from a `{card.model}` card `{card.name}`",
              f"- units: {UNITS}", "- run: " + _HOW_TO_RUN[target].format(f=path.name, stem=path.stem)]
@@ -312,6 +340,13 @@ def _cmd_export(args) -> int:
     _enable_float64()  # measuring an approximation or recalibrating solves in difftissue
 
     card = read_card(args.card)
+    if args.load_set is not None or args.extrapolate:
+        if args.load_set is None:
+            raise _UsageError("--extrapolate applies to --load-set")
+        if args.to != "xpbd":
+            raise _UsageError(f"--load-set calibrates the XPBD JSON (--to xpbd), not --to {args.to}")
+        if args.specimen == "fitted":
+            raise _UsageError("--load-set needs the simulator's mesh as --specimen block:LX,LY,LZ:NX,NY,NZ or indentation, not fitted")
     f = _length_factor(args.unit)
     indentation = None
     ind_opts = {k: getattr(args, k) for k in ("indenter", "radius", "half_angle", "depth", "block", "cells", "base", "scenario")
@@ -338,17 +373,58 @@ def _cmd_export(args) -> int:
         raise _UsageError("--to vtu needs --specimen block:LX,LY,LZ:NX,NY,NZ, indentation or fitted")
     if args.to == "xpbd" and (args.dt is None or args.iterations is None):
         raise _UsageError("--to xpbd needs --dt SECONDS and --iterations N")
+    load_set = None
+    if args.load_set is not None:
+        lmesh = mesh if mesh is not None else indentation.mesh() if indentation is not None else None
+        if lmesh is None:
+            raise _UsageError("--load-set needs the simulator's mesh: --specimen block:LX,LY,LZ:NX,NY,NZ (or indentation); "
+                              "the budget is calibrated on it")
+        load_set = _load_set_calibration(card, args, lmesh)
     disp = None if args.displacement is None else args.displacement * f
     path = export(card, args.to, args.out, mesh=mesh, approximate=args.approximate, force=args.force, law=args.law,
                   dt=args.dt, iterations=args.iterations, substeps=args.substeps, displacement=disp,
                   constraints=args.constraints, indentation=indentation, fitted=fitted, nu=args.nu, element=args.element,
-                  field_tolerance=args.field_tolerance)
+                  field_tolerance=args.field_tolerance, load_set=load_set, extrapolate=args.extrapolate)
     what = ("complete specimen model" if mesh is not None else
             f"fitted {fitted.experiment} specimen of scenario {fitted.scenario!r}" if fitted is not None else
             f"{indentation.indenter} indentation specimen, depth {indentation.depth:.6g} m" if indentation is not None else "material")
     readme = _write_readme(Path(path), args.to, card, what)
-    print(f"wrote {path}: {card.model} card as {args.to} ({what}); {readme.name} says how to run it")
+    extra = "" if load_set is None else (f"; calibrated over {len(load_set.loads)} loads (largest residual force error "
+                                         f"{100 * load_set.max_error:.3g} %)")
+    print(f"wrote {path}: {card.model} card as {args.to} ({what}){extra}; {readme.name} says how to run it")
     return 0
+
+
+def _load_set_calibration(card, args, mesh):
+    """``--load-set FILE``: the loads of the file's ``[budget]`` table on ``mesh``
+    (:func:`difftissue.budget.read_load_set`) and their calibration at the export's budget
+    (:func:`difftissue.budget.calibrate_for_load_set` of the XPBD file's stable neo-Hookean pair,
+    standard XPBD, the card's material; reference ``budget.reference`` or the card's model).
+    A saturated budget raises the calibration's :class:`~difftissue.errors.BudgetSaturationError`
+    (with the proposed budget)."""
+    from .budget import calibrate_for_load_set, read_load_set
+    from .errors import ConfigError
+    from .export import resolve_effective_modulus
+    from .models import MODELS
+    from .solvers.xpbd import XPBDSettings
+
+    material = resolve_effective_modulus(card, nu=args.nu, approximate=args.approximate).material()
+    spec = read_load_set(args.load_set, mesh, material)
+    E = float(material.youngs_modulus)
+    lo, hi = spec.youngs_modulus_range
+    if not (lo * (1 - 1e-9) <= E <= hi * (1 + 1e-9)) and not args.extrapolate:
+        raise ConfigError(f"{args.load_set}: the card's Young's modulus {E:.6g} Pa lies outside the load set's moduli {lo:.6g} ... "
+                          f"{hi:.6g} Pa (budget.youngs_moduli, in Pa): the file is written at the card's modulus; include it in "
+                          "the set, or pass --extrapolate to write the end factor with a warning")
+    reference = spec.reference or card.model
+    if reference not in MODELS:
+        raise ConfigError(f"{args.load_set}: the card's model {card.model!r} is no mesh model to solve the loads' reference with; "
+                          f"set budget.reference to one of {', '.join(MODELS)}")
+    settings = XPBDSettings(dt=args.dt, substeps=1 if args.substeps is None else args.substeps, iterations=args.iterations,
+                            method="gauss_seidel", damping=float("inf"), warm_start=False)
+    print(f"calibrating the XPBD budget over {len(spec.loads)} loads of {args.load_set} (reference {reference}) ...",
+          file=sys.stderr, flush=True)
+    return calibrate_for_load_set(mesh, "stable_neo_hookean", material, spec.loads, settings, reference=reference, **spec.options)
 
 
 def _cmd_info(args) -> int:
@@ -975,6 +1051,14 @@ def build_parser() -> argparse.ArgumentParser:
                         "it and the reactions' 2 %% (searched unless --dt, --substeps or --iterations pin it); refused when the "
                         "pypbd lattice's converged limit exceeds it (--approximate: written with the miss stated). Default: no "
                         "field target (the field error is measured and stated)")
+    x.add_argument("--load-set", default=None, metavar="FILE",
+                   help="xpbd with --specimen only: a TOML file with a [budget] table of the loads the simulator meets "
+                        "([[budget.loads]] shape flat_punch|platen|sphere, depth, radius; youngs_moduli in Pa; lengths in m unless "
+                        "length_unit): the XPBD budget is calibrated over them on the specimen's mesh and the file states the range "
+                        "it holds over (see docs/export.md)")
+    x.add_argument("--extrapolate", action="store_true",
+                   help="with --load-set: write the card although its Young's modulus lies outside the load set's moduli (the end "
+                        "factor, with a warning) instead of refusing")
     x.add_argument("--constraints", choices=("xpbd", "fem"), default="xpbd",
                    help="pbd only: XPBD distance + volume constraints (default) or pypbd's PBD FEMTetConstraint (needs --approximate)")
     x.add_argument("--element", choices=("C3D4", "C3D4H", "C3D10", "C3D10H"), default="C3D4",
@@ -1033,6 +1117,7 @@ _CLI_WORDS = (
     ("nu=0.45 / --nu 0.45", "--nu 0.45"),
     ("bonded_punch=True (--bonded-punch)", "--bonded-punch"),
     ("field_tolerance", "--field-tolerance"),
+    ("pass extrapolate=True", "pass --extrapolate"),
 )
 
 
