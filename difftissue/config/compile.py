@@ -247,8 +247,17 @@ class SeparatelyCompiled:
             # per load step) are batched. A primal-only call runs it with zero tangents (their
             # linear solves stop at once), so nothing is compiled twice.
             # Compiled ahead of time per tangent count (_compiled_per_shape).
-            both = _compiled_per_shape(jax.vmap(lambda d, v, t: jax.jvp(lambda vv: f(d, vv), (v,), (t,)), in_axes=(None, None, 0), out_axes=(None, 0)),
-                                      program_key("value_and_tangents"), data, options)
+            if getattr(scenario, "solves_on_host", False):
+                # A small specimen (solve_on_host: the same numbers to round-off): the protocol's
+                # Newton iterations in NumPy, only the model's derivatives compiled.
+                leaf_names = self._leaves
+
+                def both(v, T):
+                    v, T = np.asarray(v, dtype=float), np.asarray(T, dtype=float)
+                    return scenario.solve_on_host(Material(*(float(x) for x in v)), {k: T[:, i] for i, k in enumerate(leaf_names)})
+            else:
+                both = _compiled_per_shape(jax.vmap(lambda d, v, t: jax.jvp(lambda vv: f(d, vv), (v,), (t,)), in_axes=(None, None, 0), out_axes=(None, 0)),
+                                          program_key("value_and_tangents"), data, options)
             n_zero = max(int(n_tangents), 1)
 
             def run(v, T):
