@@ -35,7 +35,7 @@ from ..materials import Material
 from ..models import CheckedMaterial, ElasticModel
 from .static import _MESSAGES, StaticResult, _dense_hessian
 
-__all__ = ["HOST_MAX_NODES", "HostStaticSolver", "HostSolution", "model_derivatives"]
+__all__ = ["HOST_MAX_NODES", "HOST_BATCH", "HostStaticSolver", "HostSolution", "ModelDerivatives", "model_derivatives"]
 
 #: Models with at most this many nodes may be solved on the host (:class:`HostStaticSolver`).
 #: Above it the dense Hessian (``(3N)^2``) and the per-call cost of the compiled derivatives
@@ -58,51 +58,82 @@ def _derivatives(dynamic, static, material, x):
     return jax.vmap(one)(x)
 
 
-def _program(model: ElasticModel, material: CheckedMaterial, batch: int):
-    """The compiled :func:`_derivatives` for ``model``'s structure and ``batch`` positions."""
-    dynamic, static = eqx.partition(model, eqx.is_array)
-    leaves, treedef = jax.tree_util.tree_flatten(dynamic)
-    mleaves, mtree = jax.tree_util.tree_flatten(material)
-    try:
-        s_leaves, s_tree = jax.tree_util.tree_flatten(static)
-        key = (s_tree, tuple(s_leaves), treedef, tuple((np.shape(v), np.result_type(v).str) for v in leaves), mtree,
-               tuple(np.shape(v) for v in mleaves), int(batch), bool(jax.config.jax_enable_x64))
-        hash(key)
-    except TypeError:  # a static field that cannot be hashed: compiled for this model alone
-        key = None
-    hit = _PROGRAMS.get(key) if key is not None else None
-    if hit is None:
-        spec = lambda v: jax.ShapeDtypeStruct(np.shape(v), jnp.result_type(v))  # noqa: E731
-        x = jax.ShapeDtypeStruct((int(batch), model.n_nodes, 3), jnp.float64)
-        hit = jax.jit(_derivatives, static_argnums=1).lower(jax.tree_util.tree_map(spec, dynamic), static,
-                                                           jax.tree_util.tree_map(spec, material), x).compile()
-        if key is not None:
-            _PROGRAMS[key] = hit
-    return hit, dynamic
+#: Positions per call of the compiled derivatives (:class:`ModelDerivatives`): every call is
+#: padded to this batch, so ONE program serves the Newton iteration here (a line search's trial
+#: steps evaluated together) and the homogeneous-deformation solves of
+#: :mod:`difftissue.constitutive` (16 quadrature strains) on a model of the same structure.
+HOST_BATCH = 16
 
 
-def model_derivatives(model: ElasticModel, material: CheckedMaterial, x):
-    """The model's energy and its derivatives at a batch of node positions, from one compiled
-    program per model structure and batch size (shared by models of the same structure and
-    array shapes: the arrays are its arguments).
+class ModelDerivatives:
+    """The model's energy and its derivatives at node positions, from one compiled program per
+    model structure (shared by models of the same structure and array shapes: the arrays are
+    its arguments), evaluated :data:`HOST_BATCH` positions per call.
 
     Args:
         model: an :class:`~difftissue.models.ElasticModel`.
-        material: ``model.checked(material)`` (concrete).
-        x: ``(B, N, 3)`` node positions [m].
-
-    Returns:
-        NumPy arrays ``(energy (B,) [J], gradient (B, 3N) [N], Hessian (B, 3N, 3N) [N/m],
-        dgrad_dmaterial, min_volume_ratio (B,))``; ``dgrad_dmaterial`` is a ``CheckedMaterial``
-        whose fields are ``(B, 3N, n_regions)``: the derivative of the gradient with respect
-        to each region's value of that field (None where the field is None).
     """
-    x = np.asarray(x, dtype=np.float64)
-    if x.ndim != 3 or x.shape[1:] != (model.n_nodes, 3):
-        raise ModelError(f"x must be (B, {model.n_nodes}, 3), got {x.shape}")
-    program, dynamic = _program(model, material, x.shape[0])
-    e, g, H, dgdm, mv = program(dynamic, material, x)
-    return np.asarray(e), np.asarray(g), np.asarray(H), jax.tree_util.tree_map(np.asarray, dgdm), np.asarray(mv)
+
+    def __init__(self, model: ElasticModel):
+        self.model = model
+        self._dynamic, self._static = eqx.partition(model, eqx.is_array)
+        self._programs: dict = {}
+
+    def _program(self, material):
+        mleaves, mtree = jax.tree_util.tree_flatten(material)
+        mkey = (mtree, tuple(np.shape(v) for v in mleaves))
+        hit = self._programs.get(mkey)
+        if hit is not None:
+            return hit
+        leaves, treedef = jax.tree_util.tree_flatten(self._dynamic)
+        try:
+            s_leaves, s_tree = jax.tree_util.tree_flatten(self._static)
+            key = (s_tree, tuple(s_leaves), treedef, tuple((np.shape(v), np.result_type(v).str) for v in leaves), mkey,
+                   bool(jax.config.jax_enable_x64))
+            hash(key)
+        except TypeError:  # a static field that cannot be hashed: compiled for this model alone
+            key = None
+        hit = _PROGRAMS.get(key) if key is not None else None
+        if hit is None:
+            spec = lambda v: jax.ShapeDtypeStruct(np.shape(v), jnp.result_type(v))  # noqa: E731
+            x = jax.ShapeDtypeStruct((HOST_BATCH, self.model.n_nodes, 3), jnp.float64)
+            hit = jax.jit(_derivatives, static_argnums=1).lower(jax.tree_util.tree_map(spec, self._dynamic), self._static,
+                                                               jax.tree_util.tree_map(spec, material), x).compile()
+            if key is not None:
+                _PROGRAMS[key] = hit
+        self._programs[mkey] = hit
+        return hit
+
+    def __call__(self, material: CheckedMaterial, x):
+        """At the positions ``x`` ``(B, N, 3)`` [m] (any ``B``; run :data:`HOST_BATCH` at a time).
+
+        Args:
+            material: ``model.checked(material)`` (concrete).
+
+        Returns:
+            NumPy arrays ``(energy (B,) [J], gradient (B, 3N) [N], Hessian (B, 3N, 3N) [N/m],
+            dgrad_dmaterial, min_volume_ratio (B,))``; ``dgrad_dmaterial`` is a
+            ``CheckedMaterial`` whose fields are ``(B, 3N, n_regions)``: the derivative of the
+            gradient with respect to each region's value of that field (None where the field
+            is None).
+        """
+        x = np.asarray(x, dtype=np.float64)
+        n = self.model.n_nodes
+        if x.ndim != 3 or x.shape[1:] != (n, 3):
+            raise ModelError(f"x must be (B, {n}, 3), got {x.shape}")
+        program = self._program(material)
+        B = x.shape[0]
+        pad = -B % HOST_BATCH
+        if pad or B == 0:
+            x = np.concatenate([x, np.broadcast_to(np.asarray(self.model.rest_points, dtype=np.float64), (pad or HOST_BATCH, n, 3))])
+        parts = [program(self._dynamic, material, x[i:i + HOST_BATCH]) for i in range(0, x.shape[0], HOST_BATCH)]
+        out = jax.tree_util.tree_map(lambda *a: np.concatenate([np.asarray(v) for v in a])[:B], *parts)
+        return tuple(out)
+
+
+def model_derivatives(model: ElasticModel, material: CheckedMaterial, x):
+    """:class:`ModelDerivatives` of ``model`` at ``x`` ``(B, N, 3)`` [m] (see its ``__call__``)."""
+    return ModelDerivatives(model)(material, x)
 
 
 @dataclasses.dataclass
@@ -162,86 +193,85 @@ class HostStaticSolver:
         self.fixed = np.asarray(fixed, dtype=bool).reshape(model.n_nodes, 3)
         self.P = (~self.fixed).astype(float).reshape(-1)
         self.rest = np.asarray(model.rest_points, dtype=float)
+        self.derivatives = ModelDerivatives(model)
 
     def checked(self, material: Material) -> CheckedMaterial:
         """``material`` range-checked by the model (raises for values outside its range)."""
         return self.model.checked(material)
-
-    def _eval(self, material, u):
-        e, g, H, dgdm, mv = model_derivatives(self.model, material, (self.rest + u)[None])
-        return e[0], g[0], H[0], jax.tree_util.tree_map(lambda a: a[0], dgdm), mv[0]
 
     def solve(self, material: CheckedMaterial, displacement, u_init, *, force=None, rtol: float = 1e-10, atol: float = 0.0,
               xtol: float = 1e-8, max_steps: int = 50, max_tries: int = 40, c: float = 1e-4) -> HostSolution:
         """The equilibrium under the prescribed ``displacement`` ``(N, 3)`` [m] (its free
         components ignored) and nodal ``force`` ``(N, 3)`` [N] (default none), from the
         starting guess ``u_init`` ``(N, 3)``; options as for
-        :func:`~difftissue.solvers.static.solve_static`. A failed solve is reported in
-        ``result``, never raised."""
+        :func:`~difftissue.solvers.static.solve_static` (``max_tries``, ``c``: its line
+        search's). A failed solve is reported in ``result``, never raised."""
         P = self.P
-        n3 = P.size
-        f = np.zeros(n3) if force is None else np.asarray(force, dtype=float).reshape(-1)
+        n = self.model.n_nodes
+        f = np.zeros(P.size) if force is None else np.asarray(force, dtype=float).reshape(-1)
         disp = np.asarray(displacement, dtype=float).reshape(-1)
         u_init = np.asarray(u_init, dtype=float).reshape(-1)
         fixed_part = (1.0 - P) * disp
-        cache: dict[bytes, tuple] = {}
 
-        def ev(u):
-            k = u.tobytes()
-            if k not in cache:
-                cache.clear() if len(cache) > 8 else None
-                e, g, H, dgdm, mv = self._eval(material, u.reshape(-1, 3))
-                cache[k] = (e - f @ u, g - f, H, dgdm, mv)
-            return cache[k]
-
-        def potential(u):
-            e, _, _, _, mv = ev(u)
-            return e if (mv > 0 and np.isfinite(e)) else np.inf
-
-        def residual(u):
-            return P * ev(u)[1]
+        def ev(us):
+            """Potential (inf where an element inverts or it is not finite), full gradient,
+            Hessian, mixed material derivative at the rows of ``us`` (B, 3N)."""
+            e, g, H, dgdm, mv = self.derivatives(material, self.rest[None] + us.reshape(-1, n, 3))
+            e = e - us @ f
+            e = np.where((mv > 0) & np.isfinite(e), e, np.inf)
+            return e, g - f, H, dgdm
 
         def project(H):
             return H * P[:, None] * P[None, :] + np.diag(1.0 - P)
 
-        # Dirichlet predictor (solve_static's _newton): linearise at the starting guess.
+        # Dirichlet predictor (solve_static's _newton): linearise at the starting guess and
+        # solve for the free response to the jump in the prescribed values.
         jump = (1.0 - P) * (disp - u_init)
         naive = fixed_part + P * u_init
-        _, g_init, H_init, _, _ = ev(u_init)
-        rhs = P * (g_init + H_init @ jump)
-        delta = _cholesky_solve(project(H_init), -rhs)
-        predicted = naive + P * delta
-        e_predicted = potential(predicted) if np.all(np.isfinite(predicted)) else np.nan
-        e_naive = potential(naive)
-        use = bool(np.all(np.isfinite(predicted)) and e_predicted <= e_naive)
-        u = predicted if use else naive
-        e = e_predicted if use else e_naive
-        g_cold = np.linalg.norm(residual(fixed_part))
+        e3, g3, H3, _ = ev(np.stack([u_init, naive, fixed_part]))
+        rhs = P * (g3[0] + H3[0] @ jump)
+        predicted = naive + P * _cholesky_solve(project(H3[0]), -rhs)
+        g_cold = np.linalg.norm(P * g3[2])
         tol = max(atol, rtol * g_cold)
-        g = residual(u)
+        use = bool(np.all(np.isfinite(predicted)))
+        if use:
+            e1, g1, H1, dgdm1 = ev(predicted[None])
+            use = bool(e1[0] <= e3[1])
+        if use:
+            u, e, grad, H, dgdm = predicted, e1[0], g1[0], H1[0], jax.tree_util.tree_map(lambda a: a[0], dgdm1)
+        else:
+            u, e, grad, H, dgdm = naive, e3[1], g3[1], H3[1], None
+        g = P * grad
         step = 0
         code = StaticResult.successful if np.linalg.norm(g) <= tol else StaticResult.max_steps_reached
         done = code == StaticResult.successful or max_steps <= 0
         eps = np.finfo(float).eps
         while not done:
-            A = project(ev(u)[2])
+            A = project(H)
             d = _cholesky_solve(A, -g)
             gd = float(g @ d)
             bad = not np.all(np.isfinite(d)) or not gd < 0
-            if bad:
-                scale = np.linalg.norm(g) / max(np.linalg.norm(A @ g), 1e-300)
-                d = -g * scale
+            if bad:  # a Jacobi-scaled gradient step instead of an unusable Newton direction
+                d = -g * (np.linalg.norm(g) / max(np.linalg.norm(A @ g), 1e-300))
                 gd = float(g @ d)
-            alpha, accepted, e_new = 1.0, False, e
-            for _ in range(max_tries):
-                e1 = potential(u + alpha * d)
-                slack = 64 * eps * (abs(e) + abs(e1))
-                if np.isfinite(e1) and e1 <= e + c * alpha * gd + slack:
-                    accepted, e_new = True, e1
+            # Armijo backtracking (armijo_backtracking): alpha = 1, 1/2, 1/4, ... up to max_tries,
+            # the trial steps evaluated HOST_BATCH at a time; the first acceptable one is taken.
+            accepted = False
+            for start in range(0, max_tries, HOST_BATCH):
+                alphas = 0.5 ** np.arange(start, min(start + HOST_BATCH, max_tries))
+                trial = u[None] + alphas[:, None] * d[None]
+                et, gt, Ht, dt = ev(trial)
+                slack = 64 * eps * (abs(e) + np.abs(et))
+                ok = np.isfinite(et) & (et <= e + c * alphas * gd + slack)
+                if np.any(ok):
+                    j = int(np.argmax(ok))
+                    accepted = True
+                    alpha, u_new, e, grad, H = alphas[j], trial[j], et[j], gt[j], Ht[j]
+                    dgdm = jax.tree_util.tree_map(lambda a: a[j], dt)
                     break
-                alpha *= 0.5
-            u_new = u + alpha * d if accepted else u
-            g_new = residual(u_new)
+            if not accepted:
+                u_new = u
+            g_new = P * grad
             rn = np.linalg.norm(g_new)
             step += 1
             finite = bool(np.all(np.isfinite(u_new)) and np.isfinite(rn))
@@ -254,10 +284,12 @@ class HostStaticSolver:
             else:
                 code = StaticResult.successful if ok else StaticResult.max_steps_reached
             done = code != StaticResult.max_steps_reached or step >= max_steps
-            u, g, e = u_new, g_new, e_new
-        _, grad, H, dgdm, mv = ev(u)
-        if code == StaticResult.successful and not mv > 0:
-            code = StaticResult.inverted_elements
+            u, g = u_new, g_new
+        if dgdm is None:  # the naive start accepted as the solution at once: its derivatives
+            _, grad, H, dgdm_b = ev(u[None])
+            grad, H, dgdm = grad[0], H[0], jax.tree_util.tree_map(lambda a: a[0], dgdm_b)
+        if code == StaticResult.successful and not np.isfinite(e):
+            code = StaticResult.inverted_elements  # e is inf exactly where an element is inverted (or not finite)
         reaction = (1.0 - P) * grad
         return HostSolution(u.reshape(-1, 3), reaction.reshape(-1, 3), int(code), step, float(np.linalg.norm(g)), H, dgdm)
 
