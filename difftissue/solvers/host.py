@@ -28,7 +28,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import scipy.linalg
 
 from ..errors import ModelError
 from ..materials import Material
@@ -168,12 +167,13 @@ class HostSolution:
 
 
 def _cholesky_solve(A, b):
-    """``A^{-1} b`` by Cholesky; NaN where ``A`` is not positive definite (as lineax's
-    Cholesky returns a non-finite solution there, which the Newton loop rejects)."""
+    """``A^{-1} b`` by Cholesky ``A = L L^T`` (NumPy); NaN where ``A`` is not positive definite
+    (as lineax's Cholesky returns a non-finite solution there, which the Newton loop rejects)."""
     try:
-        return scipy.linalg.cho_solve(scipy.linalg.cho_factor(A, lower=True, check_finite=False), b, check_finite=False)
-    except (np.linalg.LinAlgError, ValueError):
+        L = np.linalg.cholesky(A)
+    except np.linalg.LinAlgError:
         return np.full(np.shape(b), np.nan)
+    return np.linalg.solve(L.T, np.linalg.solve(L, b))
 
 
 class HostStaticSolver:
