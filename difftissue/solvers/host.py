@@ -6,8 +6,8 @@ For a model of a few nodes (the one-cube compression specimen: 8 nodes, 24 unkno
 arithmetic of a static solve takes microseconds, while tracing and compiling a protocol of such
 solves into one XLA program (the Newton loop, its line search, the Dirichlet predictor and the
 implicit-function-theorem tangents, inside a scan over the load steps) takes seconds. Here only
-the model's derivatives are compiled (:func:`model_derivatives`, once per model structure and
-batch size, shared by every model of the same structure and shapes); the iteration runs in
+the model's derivatives are compiled (:class:`ModelDerivatives`, once per model structure,
+shared by every model of the same structure and shapes); the iteration runs in
 NumPy. It is the same algorithm as :func:`~difftissue.solvers.static.solve_static` with the
 dense Cholesky solver (``linear_solver="dense"``, what ``"auto"`` picks at this size): the
 Dirichlet predictor, Newton steps with Armijo backtracking on the energy (inadmissible where an
@@ -21,6 +21,7 @@ equilibrium per tangent direction (:meth:`HostStaticSolver.tangents`).
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 from typing import Any
 
@@ -41,8 +42,10 @@ __all__ = ["HOST_MAX_NODES", "HOST_BATCH", "HostStaticSolver", "HostSolution", "
 #: make the compiled protocol the better choice.
 HOST_MAX_NODES = 64
 
-#: ``{structure key: compiled program}`` of :func:`model_derivatives`.
-_PROGRAMS: dict = {}
+#: ``{structure key: compiled program}`` of :class:`ModelDerivatives`, most recently built
+#: last; at most :data:`PROGRAMS_SIZE` kept (a dropped one stays with the objects using it).
+_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
+PROGRAMS_SIZE = 16
 
 
 def _derivatives(dynamic, static, material, x):
@@ -100,6 +103,8 @@ class ModelDerivatives:
                                                                jax.tree_util.tree_map(spec, material), x).compile()
             if key is not None:
                 _PROGRAMS[key] = hit
+                while len(_PROGRAMS) > PROGRAMS_SIZE:
+                    _PROGRAMS.popitem(last=False)
         self._programs[mkey] = hit
         return hit
 
