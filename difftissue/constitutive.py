@@ -43,6 +43,7 @@ from .errors import MaterialError, ModelError
 from .materials import Material, _is_concrete, _require_equibiaxial, biaxial_pre_stress, explicit_pre_stretch_y, material_fields, surface_tension_from_pre_stretch
 from .mesh import block
 from .models import MODELS, make_model
+from .solvers.host import ModelDerivatives
 
 __all__ = [
     "MembraneState",
@@ -441,34 +442,12 @@ def _uniaxial_stress(kind, shape, Q, mat, eps):
     return jax.vmap(one)(eps)
 
 
-@functools.partial(jax.jit, static_argnums=(0, 1))
-def _cell_gradients_hessians(kind, shape, mat, x):
-    """Gradients ``(B, 24)`` [J/m] and Hessians ``(B, 24, 24)`` [J/m^2] of the cell's energy at
-    the node positions ``x`` ``(B, 8, 3)`` [m] (the model's own energy and element Hessians,
-    :attr:`~difftissue.models.ElementTerm.hessian` where a term has one)."""
-    model = _unit_cell(kind, shape)[0]
-
-    def one(xc):
-        H = jnp.zeros((xc.size, xc.size), dtype=xc.dtype)
-        for term in model.terms(mat):
-            k = term.nodes.shape[1]
-            xe = xc[term.nodes]
-            if term.hessian is not None:
-                he = jax.vmap(term.hessian)(xe, *term.params)
-            else:
-                he = jax.vmap(jax.hessian(term.energy))(xe, *term.params).reshape(xe.shape[0], 3 * k, 3 * k)
-            dofs = (3 * term.nodes[:, :, None] + np.arange(3)).reshape(-1, 3 * k)
-            H = H.at[dofs[:, :, None], dofs[:, None, :]].add(he)
-        return jax.grad(model.energy)(xc, mat).reshape(-1), H
-
-    return jax.vmap(one)(x)
-
-
 def _uniaxial_stress_host(kind, shape, Q, mat, eps):
     """:func:`_uniaxial_stress` for concrete values: the same Newton iteration (``_NEWTON_STEPS``
     limited steps, a residual check, one final step) on the host, the cell's gradient and
-    Hessian from :func:`_cell_gradients_hessians` (compiled once per model and cell shape, for
-    every material and strain count). The positions are linear in the stretch tensor
+    Hessian from :class:`~difftissue.solvers.host.ModelDerivatives` (one compiled program per
+    model structure, for every material, cell shape and strain count, shared with the host
+    solves of small specimens). The positions are linear in the stretch tensor
     ``S = [[lam, y0, y1], [y0, y2, y3], [y1, y3, y4]]`` (``x = X (Q S Q^T)^T``), so the
     gradient and Hessian in ``(lam, y)`` are ``J^T g`` and ``J^T H J`` with the constant
     ``J = dx / d(lam, y)`` (24, 6). Returns ``P`` (B,) [Pa]; a point that does not converge
@@ -488,10 +467,12 @@ def _uniaxial_stress_host(kind, shape, Q, mat, eps):
     zero = np.zeros_like(lt)
     y = np.stack([zero, zero, lt, zero, lt], axis=1)
 
+    cell = ModelDerivatives(model)
+
     def derivatives(y):
         p = np.concatenate([lam[:, None], y], axis=1)
-        g, H = _cell_gradients_hessians(kind, shape, checked, jnp.asarray((p @ J.T).reshape(-1, *X.shape)))
-        g, H = np.asarray(g) / V, np.asarray(H) / V
+        _, g, H, _, _ = cell(checked, (p @ J.T).reshape(-1, *X.shape))
+        g, H = g / V, H / V
         return g @ J, np.einsum("ia,bij,jc->bac", J[:, 1:], H, J[:, 1:])
 
     for _ in range(_NEWTON_STEPS):

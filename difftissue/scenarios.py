@@ -46,7 +46,7 @@ from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_
 from .contact import (ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, facing_surface_nodes, place_indenter,
                       top_surface_nodes)
 from .energies.volume import tet_signed_volume
-from .errors import BoundaryConditionError, ConfigError, DataError, ModelError, ReactionSignError, SelectorError
+from .errors import BoundaryConditionError, ConfigError, ConvergenceError, DataError, ModelError, ReactionSignError, SelectorError
 from .materials import Material
 from .mesh import TetMesh, graded_axis, structured_grid
 from .interpolation import interpolation_operator
@@ -54,6 +54,7 @@ from .models import ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers import solver_setup
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
+from .solvers.host import HOST_MAX_NODES, HostStaticSolver
 from .solvers.static import prediction_rtol, solve_static
 from .structure_keys import data_leaf_indices, hash_scenario_leaves
 
@@ -1249,6 +1250,65 @@ class Compression(eqx.Module):
     def predict(self, material: Material):
         """Stress [Pa] at each strain (compression positive)."""
         return self.solve(material)[0]
+
+    @property
+    def solves_on_host(self) -> bool:
+        """Whether :meth:`solve_on_host` applies: a model of at most
+        :data:`~difftissue.solvers.host.HOST_MAX_NODES` nodes, the dense linear solver
+        (``"auto"`` picks it at that size) and engineering stress."""
+        return (self.model.n_nodes <= HOST_MAX_NODES and self.options.linear_solver in ("auto", "dense")
+                and self.measure == "engineering")
+
+    def solve_on_host(self, material: Material, tangents: dict[str, np.ndarray] | None = None):
+        """The protocol of :meth:`predict` solved on the host (NumPy; only the model's
+        derivatives are compiled, :class:`~difftissue.solvers.host.HostStaticSolver`): the same
+        load steps, starting guesses and Newton iteration, equal to :meth:`predict` to
+        round-off, without tracing and compiling the protocol (seconds for a few milliseconds
+        of arithmetic on a small specimen). Only where :attr:`solves_on_host`.
+
+        Args:
+            material: one concrete material (scalar fields).
+            tangents: ``{field: (K,)}``: material tangents (fields left out: zero).
+
+        Returns:
+            ``(stress (n,) [Pa], stress tangents (K, n) [Pa per unit of the tangent])``. A
+            static solve that fails raises :class:`~difftissue.errors.ConvergenceError`
+            (``options.failure = "raise"``) or makes the stresses and tangents NaN from that
+            strain on (``"nan"``).
+        """
+        if not self.solves_on_host:
+            raise ModelError(f"compression scenario {self.name!r}: solve_on_host needs at most {HOST_MAX_NODES} nodes, "
+                             f"linear_solver 'auto' or 'dense' and measure 'engineering' (use predict)")
+        solver = HostStaticSolver(self.model, self.bc.fixed)
+        checked = solver.checked(material)
+        tangents = {} if tangents is None else {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in tangents.items()}
+        K = len(next(iter(tangents.values()))) if tangents else 0
+        eps = np.asarray(self.abscissa, dtype=float)
+        nominal = eps if self.measure == "engineering" else -np.expm1(-eps)
+        top = np.asarray(self.top_mask, dtype=bool)
+        base = np.asarray(self.bc.displacement, dtype=float)
+        force = np.asarray(self.bc.force, dtype=float)
+        o = self.options
+        stress, t_stress = np.full(nominal.size, np.nan), np.full((K, nominal.size), np.nan)
+        u = u_before = np.zeros_like(base)
+        load_before = load_before2 = 0.0
+        for i, e in enumerate(nominal):
+            span = load_before - load_before2  # _extrapolate's secant through the last two equilibria
+            u0 = u + (e - load_before) / span * (u - u_before) if span != 0 else u
+            disp = base.copy()
+            disp[top, 2] = -e * self.height
+            sol = solver.solve(checked, disp, u0, force=force, rtol=o.rtol, xtol=o.xtol, max_steps=o.max_steps)
+            if not sol.converged:
+                if o.failure == "raise":
+                    raise ConvergenceError(f"compression scenario {self.name!r} at strain {float(eps[i]):g}: {sol.message} "
+                                           f"(steps {sol.steps}, residual {sol.residual_norm:.3g} N)")
+                break  # NaN from here on, as the compiled protocol (its next starting guesses are NaN)
+            stress[i] = -np.sum(sol.reaction[top, 2]) / self.area
+            if K:
+                _, t_reaction = solver.tangents(sol, tangents)
+                t_stress[:, i] = -np.sum(t_reaction[:, top, 2], axis=1) / self.area
+            u, u_before, load_before, load_before2 = sol.displacement, u, float(e), load_before
+        return stress, t_stress
 
     def protocol(self) -> dict:
         """The protocol as recorded in a material card's scenario record: ``platens``

@@ -49,6 +49,17 @@ class _Compiles:
         self.hits = info["hits"] - self.info0["hits"]
 
 
+@pytest.fixture(scope="module", autouse=True)
+def _compiled_protocols():
+    """These tests are about the compiled protocols: the one-cube specimens here would
+    otherwise solve on the host (HOST_SOLVES; tested at the end of this file)."""
+    from difftissue.config import compile as cc
+
+    before, cc.HOST_SOLVES = cc.HOST_SOLVES, False
+    yield
+    cc.HOST_SOLVES = before
+
+
 STRAINS = [0.05, 0.1, 0.15, 0.2]
 MATERIAL = Material(2.0e4, 0.45, cubic_coefficient=0.5)
 

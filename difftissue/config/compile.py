@@ -27,7 +27,7 @@ from ..errors import ConfigError
 from ..fit.problem import data_leaf_indices, hash_scenario_leaves
 from ..materials import Material
 
-__all__ = ["SeparatelyCompiled", "compile_cache_info", "clear_compile_cache", "COMPILE_CACHE_SIZE"]
+__all__ = ["SeparatelyCompiled", "compile_cache_info", "clear_compile_cache", "COMPILE_CACHE_SIZE", "HOST_SOLVES"]
 
 #: Most compiled programs kept for sharing between equal scenarios (least recently used
 #: dropped first). A dropped program stays with the :class:`SeparatelyCompiled` objects that
@@ -146,6 +146,12 @@ def _compiler_options(scenario) -> dict | None:
     return None
 
 
+#: Forward-mode scenarios that can solve on the host (``scenario.solves_on_host``: a small
+#: compression specimen, :meth:`difftissue.scenarios.Compression.solve_on_host`) do so instead
+#: of compiling their protocol: the same numbers to round-off, without the seconds of tracing
+#: and compiling it (the one-cube Ecoflex fit). False: always the compiled protocol.
+HOST_SOLVES = True
+
 _MATERIAL_LEAVES = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
 
 
@@ -167,6 +173,9 @@ class SeparatelyCompiled:
     model solve per ``jax.jacfwd``), so it supports ``jax.jvp`` and ``jax.jacfwd`` (what the
     fit's forward Jacobians use) but not ``jax.linearize`` or reverse mode: use
     ``mode="reverse"`` for those.
+
+    A scenario that solves on the host (:data:`HOST_SOLVES`, ``scenario.solves_on_host``)
+    compiles no protocol: forward mode calls its ``solve_on_host`` (prediction and tangents) instead.
 
     An evaluation at an invalid material (E <= 0, nu outside (-1, 0.5), non-finite values) or
     one whose static solve fails returns NaN instead of raising, so that Levenberg--Marquardt
@@ -247,8 +256,17 @@ class SeparatelyCompiled:
             # per load step) are batched. A primal-only call runs it with zero tangents (their
             # linear solves stop at once), so nothing is compiled twice.
             # Compiled ahead of time per tangent count (_compiled_per_shape).
-            both = _compiled_per_shape(jax.vmap(lambda d, v, t: jax.jvp(lambda vv: f(d, vv), (v,), (t,)), in_axes=(None, None, 0), out_axes=(None, 0)),
-                                      program_key("value_and_tangents"), data, options)
+            if HOST_SOLVES and getattr(scenario, "solves_on_host", False):
+                # A small specimen (solve_on_host: the same numbers to round-off): the protocol's
+                # Newton iterations in NumPy, only the model's derivatives compiled.
+                leaf_names = self._leaves
+
+                def both(v, T):
+                    v, T = np.asarray(v, dtype=float), np.asarray(T, dtype=float)
+                    return scenario.solve_on_host(Material(*(float(x) for x in v)), {k: T[:, i] for i, k in enumerate(leaf_names)})
+            else:
+                both = _compiled_per_shape(jax.vmap(lambda d, v, t: jax.jvp(lambda vv: f(d, vv), (v,), (t,)), in_axes=(None, None, 0), out_axes=(None, 0)),
+                                          program_key("value_and_tangents"), data, options)
             n_zero = max(int(n_tangents), 1)
 
             def run(v, T):

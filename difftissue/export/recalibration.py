@@ -25,7 +25,6 @@ from typing import Mapping
 import jax
 import jax.numpy as jnp
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..boundary import BoundaryConditions
 from ..errors import ExportError
@@ -410,6 +409,8 @@ def fit_ogden(strains, stresses, youngs_modulus: float, nu: float):
     for x0 in _OGDEN_STARTS:
         res = lambda x: np.nan_to_num(ogden_uniaxial_stress(x[0::2] * g, x[1::2], nu, e) / s - 1.0, nan=1e3)  # noqa: E731
         try:
+            from scipy.optimize import least_squares  # on first use (its import costs ~0.3 s)
+
             r = least_squares(res, np.asarray(x0), method="lm", max_nfev=2000, xtol=1e-12, ftol=1e-12)
         except (ValueError, FloatingPointError):
             continue

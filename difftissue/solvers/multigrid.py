@@ -39,8 +39,6 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
-import scipy.linalg
-import scipy.sparse as sps
 
 from ..errors import ModelError
 from .sparse import cache_key
@@ -88,6 +86,8 @@ def _ell_layout(indptr: np.ndarray, indices: np.ndarray, n: int):
 
 def ell_from_csr(A) -> EllMatrix:
     """An :class:`EllMatrix` from a SciPy sparse matrix."""
+    import scipy.sparse as sps  # SciPy is imported on first use (a small fit never needs it)
+
     A = sps.csr_matrix(A)
     A.sum_duplicates()
     A.sort_indices()
@@ -140,6 +140,8 @@ class BlockEllMatrix(eqx.Module):
 
     def to_scipy(self):
         """The matrix as a SciPy BSR matrix (host)."""
+        import scipy.sparse as sps
+
         data = np.array(self.blocks())  # a writable copy (SciPy sorts in place)
         n, w = data.shape[:2]
         A = sps.bsr_matrix((data.reshape(-1, 3, 3), np.array(self.cols).reshape(-1), np.arange(0, n * w + 1, w)), shape=(3 * n, 3 * n))
@@ -463,6 +465,8 @@ def multigrid_setup(A, points, free_dofs, *, max_coarse: int = 60, key: str | No
         The hierarchy (NumPy arrays; a jitted solve takes them as arguments).
     """
     import pyamg  # one-off setup only; heavy import kept out of the package import
+    import scipy.linalg
+    import scipy.sparse as sps
 
     if key is not None and key in _CACHE:
         return _CACHE[key]

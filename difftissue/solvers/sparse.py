@@ -24,8 +24,6 @@ import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
-import scipy.sparse as sps
-import scipy.sparse.linalg as spla
 
 __all__ = ["SparsePattern", "sparse_pattern", "SparseLU"]
 
@@ -136,6 +134,9 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> np
     x = _cholesky_solve(pattern, data, b)
     if x is not None:
         return x
+    import scipy.sparse as sps  # imported on first use: a fit that never factorises need not load SciPy
+    import scipy.sparse.linalg as spla
+
     A = sps.csc_matrix(sps.csr_matrix((data, pattern.indices, pattern.indptr), shape=(pattern.n, pattern.n)))
     try:
         lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
@@ -153,6 +154,8 @@ def _solve_many(lu, b: np.ndarray) -> np.ndarray:
     two sparse triangular solves done here (measured: 31 columns of a 3,267-unknown stiffness,
     0.76 s against 0.13 s), which dominated a condensed indentation's forward solve.
     """
+    import scipy.sparse.linalg as spla
+
     L, U = lu.L.tocsr(), lu.U.tocsr()
     pb = np.empty_like(b)
     pb[lu.perm_r] = b
