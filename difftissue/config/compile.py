@@ -199,6 +199,9 @@ class SeparatelyCompiled:
             raise ConfigError(f"mode must be 'forward' or 'reverse', got {mode!r}")
         if fields is not None:
             fields = tuple(fields)
+            unknown = [f for f in fields if f not in _MATERIAL_LEAVES + ("pre_stretch_y",)]
+            if unknown:
+                raise ConfigError(f"fields: {unknown} are not material fields (choose from {list(_MATERIAL_LEAVES) + ['pre_stretch_y']})")
             n_tangents = len(fields)
         self.inner = scenario
         self.mode = mode
