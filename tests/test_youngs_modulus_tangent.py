@@ -100,7 +100,7 @@ def test_separately_compiled_jacobian_with_the_closed_form_youngs_modulus_column
     # against the implicit-function-theorem Jacobian of the scenario itself: the nu column is
     # the same computation; the E column differs by the IFT solve of the Newton residual
     Ji = np.asarray(jax.jacfwd(_fn(sc, fields))(p))
-    np.testing.assert_allclose(J[:, 1], Ji[:, 1], rtol=1e-12)
+    np.testing.assert_allclose(J[:, 1], Ji[:, 1], rtol=1e-10)  # one tangent lane vs two: summation order
     np.testing.assert_allclose(J[:, 0], Ji[:, 0], rtol=1e-8)
 
 
