@@ -55,11 +55,11 @@ def run(model: str, cells, points: int, max_steps: int, solver: str = "auto", fi
     if not fit_too:
         return dict(model=model, solver=solver, tets=mesh.n_tets, nodes=mesh.n_nodes, first_forward_s=t_first, forward_s=t_forward)
     sc = make(data)
+    param = MaterialParameterization(("youngs_modulus", "poisson_ratio"), transforms={"poisson_ratio": ScaledLogit(0.25 if model == "springs_volume" else 0.0, 0.499)})
     if separate:  # the command line's path: the scenario compiled once, on its own (difftissue.config.SeparatelyCompiled)
         from difftissue.config import SeparatelyCompiled
 
-        sc = SeparatelyCompiled(sc, n_tangents=2)
-    param = MaterialParameterization(("youngs_modulus", "poisson_ratio"), transforms={"poisson_ratio": ScaledLogit(0.25 if model == "springs_volume" else 0.0, 0.499)})
+        sc = SeparatelyCompiled(sc, fields=param.fields)
     timed = []
     for _ in range(2):  # cold (compiles), then warm (the same fit again)
         load0 = os.getloadavg()[0]

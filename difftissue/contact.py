@@ -490,6 +490,12 @@ class ContactModel(ElasticModel):
         self.penalty_factors = penalty * np.sqrt(copies * area) / copies
         self.penalty = float(penalty)
 
+    @property
+    def energy_linear_in_youngs_modulus(self) -> bool:  # type: ignore[override]
+        """The base model's: the penalty ``kappa_i`` is the largest Young's modulus times a
+        constant, so scaling every modulus scales the contact energy alike."""
+        return bool(self.base.energy_linear_in_youngs_modulus)
+
     def with_depth(self, depth) -> "ContactModel":
         """The same model with the indenter at ``depth`` [m] (traceable: no recompile)."""
         return eqx.tree_at(lambda m: m.depth, self, jnp.asarray(depth, dtype=float))

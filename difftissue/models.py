@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import abc
 import math
-from typing import Callable, Sequence
+from typing import Callable, ClassVar, Sequence
 
 import equinox as eqx
 import jax
@@ -253,6 +253,13 @@ class ElasticModel(eqx.Module):
     region_names: tuple[str, ...] = eqx.field(static=True)
     #: Poisson-ratio range the model represents: [nu_min, 1/2).
     nu_min: float = eqx.field(static=True)
+    #: True when the energy is exactly proportional to Young's modulus at fixed positions and
+    #: fixed other material fields (every stiffness is ``E`` times a function of ``nu`` and the
+    #: geometry, also under differentiation). Then a displacement-controlled equilibrium
+    #: without applied forces does not depend on ``E`` and every reaction force is proportional
+    #: to it (:attr:`difftissue.scenarios.Indentation.prediction_scales_with_youngs_modulus`).
+    #: False unless a model states it (and a test checks it).
+    energy_linear_in_youngs_modulus: ClassVar[bool] = False
 
     @property
     def n_nodes(self) -> int:
@@ -422,6 +429,7 @@ class FEMModel(ElasticModel):
     """
 
     volumetric: str = eqx.field(static=True)
+    energy_linear_in_youngs_modulus: ClassVar[bool] = True  # lambda and mu are E times functions of nu
     patch_nodes: np.ndarray | None
     patch_tets: np.ndarray | None
     patch_local_tets: np.ndarray | None
@@ -460,6 +468,8 @@ class FEMModel(ElasticModel):
 class StableNeoHookeanModel(ElasticModel):
     """Stable neo-Hookean tets (Macklin & Müller 2021) with ``lambda' = lambda + mu`` so the
     small-strain response is the material's (E, nu)."""
+
+    energy_linear_in_youngs_modulus: ClassVar[bool] = True  # lambda + mu and mu are E times functions of nu
 
     def __init__(self, mesh: TetMesh):
         for k, v in _base_fields(mesh, "stable_neo_hookean", -1.0).items():
@@ -606,6 +616,7 @@ class SpringVolumeModel(ElasticModel):
 
     springs: np.ndarray
     rest_lengths: np.ndarray
+    energy_linear_in_youngs_modulus: ClassVar[bool] = True  # k = mu g, a = b k / L0^2, lambda - mu: E times functions of nu
     spring_regions: np.ndarray
     spring_factors: np.ndarray
     spring_factor_slopes: np.ndarray

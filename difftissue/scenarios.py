@@ -683,6 +683,18 @@ def _solve(model, material, bc, u0, opts: SolverOptions):
     return sol
 
 
+def _scales_with_youngs_modulus(model, bc: BoundaryConditions) -> bool:
+    """Whether the static equilibria of ``model`` under ``bc`` are independent of Young's
+    modulus and its reactions proportional to it: an energy linear in ``E`` and no applied
+    force (prescribed displacements only). Needs a concrete ``bc.force``."""
+    if not bool(getattr(model, "energy_linear_in_youngs_modulus", False)):
+        return False
+    force = bc.force
+    if isinstance(force, jax.core.Tracer):
+        return False
+    return not bool(np.any(np.asarray(force) != 0.0))
+
+
 class _Condensation(eqx.Module):
     """Penalty-contact indentation of a linear body solved on its candidate contact nodes.
 
@@ -1066,6 +1078,17 @@ class Indentation(eqx.Module):
         """Relative precision [-] of the predictions (from the solver options)."""
         return self.options.prediction_rtol
 
+    @property
+    def prediction_scales_with_youngs_modulus(self) -> bool:
+        """True when every predicted force is exactly proportional to Young's modulus at fixed
+        other material fields: the model's energy, contact penalty included, is linear in
+        ``E`` (:attr:`~difftissue.models.ElasticModel.energy_linear_in_youngs_modulus`) and the
+        depths are prescribed with no applied force, so the equilibria do not depend on ``E``
+        (``d u / d E = 0``) and ``d F / d E = F / E``. :class:`~difftissue.config.SeparatelyCompiled`
+        then takes a Jacobian's ``E`` column in that closed form instead of an
+        implicit-function-theorem solve per depth."""
+        return _scales_with_youngs_modulus(self.model, self.bc)
+
     def predict(self, material: Material, contact_offset=0.0):
         """Indentation force [N] at each depth (positive compressive); ``contact_offset`` [m]
         shifts every depth (see :meth:`solve`)."""
@@ -1246,6 +1269,14 @@ class Compression(eqx.Module):
     def prediction_rtol(self) -> float:
         """Relative precision [-] of the predictions (from the solver options)."""
         return self.options.prediction_rtol
+
+    @property
+    def prediction_scales_with_youngs_modulus(self) -> bool:
+        """True when every predicted stress is exactly proportional to Young's modulus at fixed
+        other material fields (the platen displacements are prescribed with no applied force
+        and the model's energy is linear in ``E``): see
+        :attr:`Indentation.prediction_scales_with_youngs_modulus`."""
+        return _scales_with_youngs_modulus(self.model, self.bc)
 
     def predict(self, material: Material):
         """Stress [Pa] at each strain (compression positive)."""

@@ -183,7 +183,7 @@ class SeparatelyCompiled:
     failures' messages are kept in :attr:`failures`.
     """
 
-    def __init__(self, scenario, *, mode: str = "forward", n_tangents: int = 1, pre_stretch_y: bool = False):
+    def __init__(self, scenario, *, mode: str = "forward", n_tangents: int = 1, pre_stretch_y: bool = False, fields=None):
         """
         Args:
             scenario: a scenario with ``predict(material)`` and the data attributes.
@@ -194,9 +194,24 @@ class SeparatelyCompiled:
             pre_stretch_y: compile for materials with an anisotropic pre-stretch
                 (``Material.pre_stretch_y``, then a sixth leaf; a material without one passes
                 ``pre_stretch`` for it). Without it a material with a ``pre_stretch_y`` is refused.
+            fields: the material fields the Jacobians are taken in (the fitted ones), in
+                place of ``n_tangents`` (which is then ``len(fields)``). With a scenario whose
+                predictions are proportional to Young's modulus
+                (``scenario.prediction_scales_with_youngs_modulus``), the tangent along
+                ``youngs_modulus`` is the prediction over ``E`` (no model solve) and the
+                program is compiled for the other tangents only when ``fields`` names
+                ``youngs_modulus`` (with ``n_tangents`` alone, for ``n_tangents`` tangents).
+                Any tangent is answered correctly either way; a call with more tangents to
+                solve than the program was compiled for compiles another.
         """
         if mode not in ("forward", "reverse"):
             raise ConfigError(f"mode must be 'forward' or 'reverse', got {mode!r}")
+        if fields is not None:
+            fields = tuple(fields)
+            unknown = [f for f in fields if f not in _MATERIAL_LEAVES + ("pre_stretch_y",)]
+            if unknown:
+                raise ConfigError(f"fields: {unknown} are not material fields (choose from {list(_MATERIAL_LEAVES) + ['pre_stretch_y']})")
+            n_tangents = len(fields)
         self.inner = scenario
         self.mode = mode
         #: messages of the model evaluations that failed (returned NaN) during fits
@@ -267,11 +282,36 @@ class SeparatelyCompiled:
             else:
                 both = _compiled_per_shape(jax.vmap(lambda d, v, t: jax.jvp(lambda vv: f(d, vv), (v,), (t,)), in_axes=(None, None, 0), out_axes=(None, 0)),
                                           program_key("value_and_tangents"), data, options)
-            n_zero = max(int(n_tangents), 1)
+            # A prediction proportional to Young's modulus (leaf 0) has the E tangent
+            # t_E y / E in closed form: the equilibria do not depend on E (displacement
+            # control, an energy linear in E), so the implicit solve of that tangent at every
+            # load step would only return d u / d E = 0 up to the solver's tolerance. The
+            # program is then compiled for the other tangents only (the vmapped tangent solves
+            # cost about one solve per tangent, batched or not).
+            #: whether Jacobian calls take the Young's modulus tangent in closed form
+            self.scales_with_youngs_modulus = bool(getattr(scenario, "prediction_scales_with_youngs_modulus", False))
+            n_solved = int(n_tangents)
+            if self.scales_with_youngs_modulus and fields is not None and "youngs_modulus" in fields:
+                n_solved -= 1
+            n_zero = max(n_solved, 1)
 
-            def run(v, T):
+            def solve_tangents(v, T):
                 y, JT = both(v, T)
                 return np.asarray(y, dtype=np.float64), np.asarray(JT, dtype=np.float64)
+
+            def run(v, T):
+                if not self.scales_with_youngs_modulus:
+                    return solve_tangents(v, T)
+                T = np.array(T, dtype=np.float64)
+                along_E = T[:, 0] / float(v[0])  # v[0] > 0 (guarded)
+                T[:, 0] = 0.0
+                rows = np.flatnonzero(np.any(T != 0.0, axis=1))
+                solved = np.zeros((max(n_zero, rows.size), n_leaves))
+                solved[: rows.size] = T[rows]
+                y, JS = solve_tangents(v, solved)
+                JT = along_E[:, None] * y[None, :]
+                JT[rows] += JS[: rows.size]
+                return y, JT
 
             def host_f(v):
                 self.calls["value"] += 1
@@ -329,6 +369,7 @@ class SeparatelyCompiled:
                 return value_and_tangent(v, t)
 
         else:
+            self.scales_with_youngs_modulus = False
             fwd = _compiled_per_shape(f, program_key("value"), data, options)
             vjp = _compiled_per_shape(lambda d, v, ct: jax.vjp(lambda vv: f(d, vv), v)[1](ct)[0], program_key("vector_jacobian"), data, options)
 

@@ -103,9 +103,9 @@ class FitConfig:
         if not sep:
             return self.scenarios
         mode = "reverse" if (self.options.get("method") in ("adam", "lbfgs") or self.options.get("jac") == "bwd") else "forward"
-        n_tangents = len(self.parameterization.fields)
+        fields = tuple(self.parameterization.fields)
         aniso = self.anisotropic_pre_stretch
-        return tuple(SeparatelyCompiled(e.scenario, mode=mode, n_tangents=n_tangents, pre_stretch_y=aniso) if e.kind != "analytic_indentation" else e.scenario for e in self.experiments)
+        return tuple(SeparatelyCompiled(e.scenario, mode=mode, fields=fields, pre_stretch_y=aniso) if e.kind != "analytic_indentation" else e.scenario for e in self.experiments)
 
     def run(self, **overrides):
         """Fit: :func:`difftissue.fit.fit` with the config's options updated by ``overrides``
