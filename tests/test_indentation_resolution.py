@@ -49,6 +49,30 @@ def test_default_resolution_and_cone_contact_radius():
     assert c.force_error is None  # not measured for a cone: no number rather than the sphere's
 
 
+@pytest.mark.parametrize("indenter, kw, thickness", [("sphere", {"radius": R}, None), ("cone", {"half_angle": math.radians(70.0)}, 3e-3)])
+def test_coarser_is_the_same_rule_at_half_the_resolution(indenter, kw, thickness):
+    """The discretisation check's coarser block differs from the chosen one in resolution only:
+    the rule itself at m / 2 (same size and core, first cells exactly doubled, far field graded
+    by the same growth), so the Richardson pair has cell size ratio 2."""
+    d = D if indenter == "sphere" else 1e-4
+    fine = indentation_specimen_for(indenter, max_depth=d, thickness=thickness, cells_per_contact_radius=4, **kw)
+    coarse = fine.coarser()
+    same = indentation_specimen_for(indenter, max_depth=d, thickness=thickness, cells_per_contact_radius=2, **kw)
+    assert coarse.cells == same.cells and coarse.size == fine.size == same.size and coarse.core == fine.core
+    assert coarse.refine == pytest.approx(same.refine, rel=1e-14) and coarse.refine / fine.refine == 2.0
+    assert coarse.cells_per_contact_radius == 2.0 and coarse.force_error == same.force_error
+    assert coarse.indenter == indenter and coarse.thickness_given == (thickness is not None)
+    pts_c, pts_s = np.asarray(coarse.block().points), np.asarray(same.block().points)
+    np.testing.assert_allclose(pts_c, pts_s, rtol=0, atol=1e-12 * fine.size[0])
+    h = np.diff(np.unique(pts_c[:, 0]))
+    np.testing.assert_allclose(h[:3], 2 * fine.refine, rtol=1e-9)  # core 1.5 a = 3 cells of a/2
+    assert np.max(h[1:] / h[:-1]) <= CELL_GROWTH * (1 + 1e-9)
+    with pytest.raises(ConfigError, match="fewer than one"):
+        coarse.coarser(3.0)
+    with pytest.raises(ConfigError, match="factor must be > 1"):
+        fine.coarser(1.0)
+
+
 def test_given_thickness_is_the_specimens_own():
     s = indentation_specimen_for("sphere", radius=R, max_depth=D, thickness=2e-3, cells_per_contact_radius=4)
     assert s.thickness_given and s.size[2] == 2e-3 and s.size[0] == pytest.approx(400 * math.sqrt(R * D))
@@ -109,8 +133,12 @@ def test_config_without_specimen_builds_the_chosen_block(curve_dir):
     assert sc.symmetry == "quarter" and sc.force_multiplier == 4
     assert any("specimen chosen automatically" in n and f"cells {list(chosen.cells)}" in n for n in exp.notes)
     # the discretisation check's coarser block carries the rule's record into the estimate
-    _, info = exp.coarsen()
+    # (the rule at half the cells per contact radius, cell size ratio exactly 2)
+    coarse_sc, info = exp.coarsen()
     assert info["specimen"] == chosen.record() and info["fine_cells"] == list(chosen.cells)
+    assert info["coarse_cells"] == list(chosen.coarser().cells) and info["refinement_ratio"] == 2.0
+    coarse_sc = getattr(coarse_sc, "scenario", coarse_sc)
+    np.testing.assert_allclose(np.asarray(coarse_sc.model.rest_points), np.asarray(chosen.coarser().block().points), rtol=0, atol=1e-15)
 
 
 @pytest.mark.parametrize("model, shape, size, match", [
