@@ -13,6 +13,7 @@ import pytest
 from difftissue import Material
 from difftissue.boundary import BoundaryConditions
 from difftissue.config import SeparatelyCompiled, compile_cache_info
+from difftissue.config import compile as compile_module
 from difftissue.contact import ContactModel, SphereIndenter
 from difftissue.mesh import block
 from difftissue.models import ElasticModel, make_model
@@ -84,11 +85,14 @@ def test_separately_compiled_jacobian_with_the_closed_form_youngs_modulus_column
     w = SeparatelyCompiled(sc, fields=fields)
     assert w.scales_with_youngs_modulus
     p = jnp.array([12e3, 0.42])
+    # one compiled protocol program, or none where a small compression specimen is solved on
+    # the host (Compression.solve_on_host: only the model's derivatives are compiled)
+    programs = 0 if (compile_module.HOST_SOLVES and getattr(sc, "solves_on_host", False)) else 1
     before = compile_cache_info()["compilations"]
     J = np.asarray(jax.jacfwd(_fn(w, fields))(p))
-    assert compile_cache_info()["compilations"] - before == 1 and w.calls["value_and_tangents"] == 1
+    assert compile_cache_info()["compilations"] - before == programs and w.calls["value_and_tangents"] == 1
     y = np.asarray(w.evaluate(Material(12e3, 0.42, cubic_coefficient=0.5)))  # the same program (one tangent lane, zero)
-    assert compile_cache_info()["compilations"] - before == 1
+    assert compile_cache_info()["compilations"] - before == programs
     # the prediction really is proportional to E (what the closed form rests on)
     np.testing.assert_allclose(np.asarray(_fn(sc, fields)(jnp.array([1.37 * 12e3, 0.42]))), 1.37 * y, rtol=1e-11)
     np.testing.assert_allclose(J[:, 0], y / 12e3, rtol=1e-14)
