@@ -8,8 +8,7 @@ into a dense matrix and factorised by Cholesky for small problems or applied mat
 Jacobi-preconditioned conjugate gradients (lineax) for large ones, with a backtracking line
 search that rejects steps which invert an element or raise the energy. The stopping rule is
 residual-based: ``|grad Pi|_free <= max(atol, rtol * |grad Pi at the undeformed start|)``,
-or a full Newton correction below ``xtol`` relative (round-off level) with the residual within
-``max(atol, max(rtol, xtol) * |grad Pi at the start|)``, the precision the solve claims.
+or a full Newton correction below ``xtol`` relative (round-off level).
 
 Derivatives of the solution with respect to the material, the prescribed displacements and
 the forces come from the implicit function theorem (a custom JVP with one linear solve with
@@ -47,7 +46,6 @@ class StaticResult(enum.IntEnum):
     inverted_elements = 3
     nonfinite = 4
     linear_solver_failed = 5
-    stalled = 6
 
 
 _MESSAGES = (
@@ -57,13 +55,7 @@ _MESSAGES = (
     "static solve: an element is inverted in the solution",
     "static solve produced NaN or infinite values",
     "static solve: the preconditioned conjugate gradients did not converge (the preconditioner no longer fits the operator: nu close to 0.5, or a material or deformation far from the one the multigrid hierarchy was built for); raise cg_max_steps or use linear_solver='sparse' (direct)",
-    "static solve stalled: the Newton corrections are below xtol but the residual is above what xtol claims (xtol times the force scale); "
-    "the energy has a kink or a near-singular stiffness there (a node balanced on a sharp indenter's tip?)",
 )
-
-#: Consecutive Newton steps below ``xtol`` whose residual stays above the xtol bound after
-#: which the solve stops with ``StaticResult.stalled`` (instead of running to max_steps).
-STALL_STEPS = 3
 
 #: A Newton direction whose CG relative residual is above this is unusable (solve stops with
 #: ``linear_solver_failed``); below it but above ``cg_rtol`` it is an inexact Newton step.
@@ -349,12 +341,6 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     g_cold_vec, g0 = jax.vmap(residual)(jnp.stack([cold, u0]))
     g_cold = jnp.linalg.norm(g_cold_vec)
     tol = jnp.maximum(options.atol, options.rtol * g_cold)
-    # A "small Newton step" exit is a round-off stall only if the residual is also within the
-    # precision the solve claims (prediction_rtol = max(rtol, xtol)) of the force scale: at a
-    # kink of the energy (a node near a sharp indenter's tip, where the curvature of the
-    # regularised distance to the axis is ~1e77 /m) or in a near-singular stiff direction the
-    # step is tiny because the curvature is huge, not because the residual is at round-off.
-    stall_tol = jnp.maximum(tol, options.xtol * g_cold)
 
     def cond(state):
         return ~state[4]
@@ -362,7 +348,7 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     g_scale = jnp.maximum(g_cold, jnp.finfo(u_init.dtype).tiny)
 
     def body(state):
-        u, g, step, code, _, cg_max, _, e, stalls = state
+        u, g, step, code, _, cg_max, _, e = state
         op, solver, opts = _projected_operator(model, u, material, free, options)
         if isinstance(solver, PreconditionedCG):
             # Inexact Newton: the forcing term (NEWTON_FORCING_MAX).
@@ -391,32 +377,24 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         # Converged: residual below tolerance, or a full Newton step that no longer moves the
         # solution (a displacement correction at round-off level: the residual of an
         # ill-conditioned problem cannot drop further).
-        tiny_step = accepted & ~bad & (jnp.linalg.norm(d) <= options.xtol * jnp.linalg.norm(u_new))
-        small_step = tiny_step & (rn <= stall_tol)
+        small_step = accepted & ~bad & (jnp.linalg.norm(d) <= options.xtol * jnp.linalg.norm(u_new))
         ok = (rn <= tol) | small_step
-        # Tiny corrections with the residual above the claimed precision: keep iterating (the
-        # state may still move off a kink), but report a stall after STALL_STEPS in a row.
-        stalls = jnp.where(tiny_step & ~ok, stalls + 1, 0)
         code = jnp.where(
             ~finite,
             StaticResult.nonfinite,
-            jnp.where(
-                ~accepted,
-                StaticResult.line_search_failed,
-                jnp.where(ok, StaticResult.successful, jnp.where(stalls >= STALL_STEPS, StaticResult.stalled, StaticResult.max_steps_reached)),
-            ),
+            jnp.where(~accepted, StaticResult.line_search_failed, jnp.where(ok, StaticResult.successful, StaticResult.max_steps_reached)),
         )
         # A conjugate-gradient solve that did not converge is reported as such (with its
         # iteration count and residual), not taken as a Newton direction.
         code = jnp.where(linear_failed & ~ok, StaticResult.linear_solver_failed, code).astype(jnp.int32)
         done = (code != StaticResult.max_steps_reached) | (step >= options.max_steps)
-        return u_new, g_new, step, code, done, jnp.maximum(cg_max, cg_steps), cg_res, e_new, stalls
+        return u_new, g_new, step, code, done, jnp.maximum(cg_max, cg_steps), cg_res, e_new
 
     done0 = jnp.linalg.norm(g0) <= tol
     code0 = jnp.where(done0, StaticResult.successful, StaticResult.max_steps_reached)
     zero = jnp.asarray(0, jnp.int32)
-    state = (u0, g0, zero, code0.astype(jnp.int32), done0 | (options.max_steps <= 0), cg_steps0, cg_res0.astype(u0.dtype), e_u0, zero)
-    u, g, step, code, _, cg_max, cg_res, _, _ = jax.lax.while_loop(cond, body, state)
+    state = (u0, g0, zero, code0.astype(jnp.int32), done0 | (options.max_steps <= 0), cg_steps0, cg_res0.astype(u0.dtype), e_u0)
+    u, g, step, code, _, cg_max, cg_res, _ = jax.lax.while_loop(cond, body, state)
     inverted = model.min_volume_ratio(jnp.asarray(model.rest_points) + u) <= 0
     code = jnp.where((code == StaticResult.successful) & inverted, StaticResult.inverted_elements, code)
     return u, jnp.linalg.norm(g), step, code, cg_max, cg_res
@@ -548,14 +526,9 @@ def solve_static(
         bc: prescribed displacements [m] and nodal forces [N]; they must remove every
             rigid-body mode (checked when values are concrete: :class:`RigidModeError`).
         rtol, atol: residual tolerance ``|grad Pi|_free <= max(atol [N], rtol * |grad Pi|_start)``.
-        xtol: also converged when the Newton correction is below ``xtol * |u|`` (2-norms)
-            and the residual is within ``max(atol, max(rtol, xtol) * |grad Pi|_start)`` (the
-            precision the solve claims, :func:`prediction_rtol`): the residual of an
-            ill-conditioned problem stalls at round-off level, and with Newton's quadratic
-            convergence the remaining error is far below that correction. Tiny corrections with
-            a larger residual (a kink of the energy: the step is small because the curvature is
-            huge) are not convergence: after three in a row the solve stops with
-            ``StaticResult.stalled``.
+        xtol: also converged when the Newton correction is below ``xtol * |u|`` (2-norms):
+            the residual of an ill-conditioned problem stalls at round-off level, and with
+            Newton's quadratic convergence the remaining error is far below that correction.
         max_steps: Newton steps allowed.
         linear_solver: ``"multigrid"`` (conjugate gradients preconditioned by a
             smoothed-aggregation multigrid V-cycle, applied in JAX: jit, vmap, GPU; see
