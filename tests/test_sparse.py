@@ -73,3 +73,38 @@ def test_jacfwd_factorises_once_for_all_tangents_and_agrees_with_grad(problem):
     jf = jax.jacfwd(f, argnums=(0, 1))(1e4, 0.45)
     g = jax.grad(f, argnums=(0, 1))(1e4, 0.45)
     np.testing.assert_allclose([float(v) for v in jf], [float(v) for v in g], rtol=1e-9)
+
+
+def test_cholmod_is_not_retried_on_a_pattern_that_had_an_indefinite_matrix(monkeypatch):
+    """A failed CHOLMOD factorisation leaks its factor (cholespy), so after an indefinite
+    matrix every later matrix of the same pattern goes to the symmetric LU (at most one leak
+    per pattern); another pattern still gets CHOLMOD; every solve is exact."""
+    import scipy.sparse as sps
+
+    from difftissue.solvers import sparse
+
+    def matrices(n_cells):
+        mesh = block((1.0, 1.0, 1.0), (n_cells, 2, 2))
+        model = make_model(mesh, "fem_linear")
+        pat = sparse_pattern([t.nodes for t in model.terms(Material(1.0, 0.3))], mesh.n_nodes)
+        rows = np.repeat(np.arange(pat.n), np.diff(pat.indptr))
+        R = sps.csr_matrix((np.random.default_rng(1).standard_normal(pat.nnz), pat.indices, pat.indptr), shape=(pat.n, pat.n))
+        S = (R + R.T).toarray()
+        S += np.eye(pat.n) * (1.0 - np.linalg.eigvalsh(S).min())  # smallest eigenvalue 1
+        return pat, S[rows, pat.indices], (S - 2.0 * np.eye(pat.n))[rows, pat.indices]  # definite, indefinite
+
+    calls = []
+    original = sparse._cholesky_solve
+    monkeypatch.setattr(sparse, "_cholesky_solve", lambda p, d, b: calls.append(p.n) or original(p, d, b))
+    monkeypatch.setattr(sparse, "_INDEFINITE_PATTERNS", set())
+    pat, definite, indefinite = matrices(2)
+    other, other_definite, _ = matrices(3)
+    b = np.random.default_rng(2).standard_normal(pat.n)
+    for k, (p, data) in enumerate([(pat, definite), (pat, indefinite), (pat, indefinite), (pat, definite), (other, other_definite)]):
+        rhs = b if p is pat else np.ones(p.n)
+        x = sparse._factor_solve(p, data, rhs)
+        A = sps.csr_matrix((data, p.indices, p.indptr), shape=(p.n, p.n))
+        np.testing.assert_allclose(A @ x, rhs, rtol=0, atol=1e-9 * np.abs(rhs).max(), err_msg=f"solve {k}")
+    # CHOLMOD: 1st (definite), 2nd (tried once, fails); LU for the rest of this pattern; the other
+    # pattern's definite matrix: CHOLMOD.
+    assert calls == [pat.n, pat.n, other.n]

@@ -5,7 +5,8 @@ CSR matrix whose sparsity pattern is computed once per mesh (in NumPy, outside t
 code); the values are scattered inside the compiled solve. The linear solve itself is a
 ``jax.pure_callback`` to a sparse Cholesky factorisation (CHOLMOD, through cholespy), or
 SciPy's sparse LU (SuperLU with a symmetric-mode ordering) where the matrix is not positive
-definite, wrapped as a :mod:`lineax` solver so that implicit differentiation (forward and reverse) goes
+definite (and, since a failed CHOLMOD factorisation leaks memory, for every later matrix of a
+pattern that had an indefinite one: ``_factor_solve``), wrapped as a :mod:`lineax` solver so that implicit differentiation (forward and reverse) goes
 through it like through the dense Cholesky. The matrix is symmetric, so the transposed solve
 (reverse mode) is the same solve.
 
@@ -111,9 +112,20 @@ def assemble_csr_data(pattern: SparsePattern, element_hessians, free_dofs):
     return jnp.zeros(pattern.nnz, dtype=v.dtype).at[jnp.asarray(pattern.scatter)].add(v)
 
 
+#: Sparsity patterns (digests) that have had an indefinite matrix: their matrices go to the
+#: symmetric LU from then on (see _factor_solve). Digests are 64 characters: kept for the
+#: process, so that each pattern leaks at most one failed CHOLMOD factor.
+_INDEFINITE_PATTERNS: set[str] = set()
+
+
 def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
     """Sparse Cholesky (CHOLMOD through cholespy) of the symmetric CSR matrix, or None when it
-    is not positive definite (then the LU below decides)."""
+    is not positive definite (then the LU below decides).
+
+    A failed factorisation is not free: cholespy (2.2) raises from its constructor without
+    releasing CHOLMOD's factor, so every indefinite matrix passed here leaks about the size of
+    its Cholesky factor (measured: ~175 MB per attempt at 17,500 unknowns). ``_factor_solve``
+    therefore calls it at most once per pattern with an indefinite matrix."""
     import cholespy  # host-side only
 
     try:
@@ -128,12 +140,25 @@ def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
 def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Solve with one factorisation for ``b`` of shape ``(n,)`` or ``(n, k)``: sparse
     Cholesky where the matrix is positive definite, SuperLU otherwise (a Newton step at an
-    indefinite point: the Newton loop then checks the direction)."""
+    indefinite point: the Newton loop then checks the direction).
+
+    CHOLMOD is tried only on patterns that have not had an indefinite matrix: a failed
+    Cholesky leaks its factor (``_cholesky_solve``), and along a Newton path of a nearly
+    incompressible, pre-stretched membrane the Hessian is indefinite at one step out of three,
+    which at 16,560 unknowns leaked 0.12-0.24 GB per step (8 GB and a MemoryError over one
+    solve). After the first failure the pattern's matrices go to the symmetric LU, which is
+    exact whether or not the matrix is definite and at that size no slower (3.4 s against
+    CHOLMOD's 4.7-5.2 s CPU per factorisation). Linear-elastic stiffness matrices (condensation,
+    fits of linear models: many right-hand sides, where CHOLMOD wins) are never indefinite and
+    keep CHOLMOD. Which factorisation solved a definite matrix changes the result at round-off
+    level only."""
     if not (np.all(np.isfinite(data)) and np.all(np.isfinite(b))):
         return np.full(b.shape, np.nan)
-    x = _cholesky_solve(pattern, data, b)
-    if x is not None:
-        return x
+    if pattern.digest not in _INDEFINITE_PATTERNS:
+        x = _cholesky_solve(pattern, data, b)
+        if x is not None:
+            return x
+        _INDEFINITE_PATTERNS.add(pattern.digest)
     import scipy.sparse as sps  # imported on first use: a fit that never factorises need not load SciPy
     import scipy.sparse.linalg as spla
 
