@@ -279,7 +279,7 @@ def test_failed_solve_gives_nan_values_and_derivatives_in_both_modes(cube):
     assert np.isnan(float(jax.jit(jax.grad(out))(1e3)))
     assert np.isnan(float(jax.jit(jax.jacfwd(out))(1e3)))
     ok = Compression(cube, [0.3], model="fem_neo_hookean", options=SolverOptions(failure="nan", linear_solver="dense"))
-    assert np.isfinite(float(jax.jit(jax.grad(lambda E: ok.predict(Material(E, 0.45))[0]))(1e3)))
+    assert np.isfinite(float(jax.grad(lambda E: ok.predict(Material(E, 0.45))[0])(1e3)))
 
 
 def test_an_equal_scenario_rebuilt_reuses_the_compiled_protocol(cube, caplog):
