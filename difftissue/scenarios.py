@@ -602,10 +602,13 @@ class _ScenarioSolve:
 
     def __init__(self, program: _ArgumentSolve, scenario, dynamic):
         self.program = program
-        self._dynamic = jax.tree_util.tree_map(jnp.asarray, dynamic)  # converted once, not per call
-        model = scenario.model
-        # the reference state of a contact model: the indenter at depth 0 (the depth is traced in the protocol)
-        self._model = model.with_depth(0.0) if isinstance(model, ContactModel) else model
+        # Evaluated now, also when the first call is inside an outer jit (whose trace would
+        # otherwise stage these operations and leave its tracers in this cached object).
+        with jax.ensure_compile_time_eval():
+            self._dynamic = jax.tree_util.tree_map(jnp.asarray, dynamic)  # converted once, not per call
+            model = scenario.model
+            # the reference state of a contact model: the indenter at depth 0 (the depth is traced in the protocol)
+            self._model = model.with_depth(0.0) if isinstance(model, ContactModel) else model
         self._bc, self._options = scenario.bc, scenario.options
         self._setups: dict = {}
 

@@ -314,3 +314,18 @@ def test_an_equal_scenario_rebuilt_reuses_the_compiled_protocol(cube, caplog):
     longer = Compression(cube, [1e-3, 1e-2, 2e-2], model="fem_linear")
     assert scenarios._jitted_solve(longer).program is not program
     np.testing.assert_allclose(longer.predict(mat), [16.0, 160.0, 320.0], rtol=1e-9)
+
+
+def test_a_first_prediction_inside_jit_leaves_no_tracer_behind():
+    """A scenario whose first ``predict`` runs inside ``jax.jit`` (a user's own jit, a fit)
+    caches its compiled protocol with concrete arrays: a second jit and a plain call of the same
+    scenario work (they raised UnexpectedTracerError when the cache held the first trace's
+    tracers) and give the same forces."""
+    mesh = indentation_block((4e-3, 4e-3, 1.6e-3), (3, 3, 2), symmetry="quarter")
+    sc = Indentation(mesh, np.array([0.05e-3, 0.1e-3]), model="springs_volume", radius=1e-3, symmetry="quarter")
+    first = np.asarray(jax.jit(lambda E: sc.predict(Material(E, 0.3)))(1e4))
+    second = np.asarray(jax.jit(lambda E: 2.0 * sc.predict(Material(E, 0.3)))(1e4)) / 2.0
+    plain = np.asarray(sc.predict(Material(1e4, 0.3)))
+    assert np.all(first < 0) or np.all(first > 0)
+    np.testing.assert_allclose(second, first, rtol=1e-12)
+    np.testing.assert_allclose(plain, first, rtol=1e-12)
