@@ -1349,7 +1349,7 @@ class Compression(eqx.Module):
         tangents = {} if tangents is None else {k: np.atleast_1d(np.asarray(v, dtype=float)) for k, v in tangents.items()}
         K = len(next(iter(tangents.values()))) if tangents else 0
         eps = np.asarray(self.abscissa, dtype=float)
-        nominal = eps if self.measure == "engineering" else -np.expm1(-eps)
+        nominal = eps  # engineering strain (solves_on_host)
         top = np.asarray(self.top_mask, dtype=bool)
         base = np.asarray(self.bc.displacement, dtype=float)
         force = np.asarray(self.bc.force, dtype=float)
@@ -1386,7 +1386,7 @@ class Compression(eqx.Module):
         eps = np.asarray(self.abscissa, dtype=float)
         if eps.size == 0:
             raise DataError(f"compression scenario {self.name!r} has an empty strain protocol")
-        nominal = eps if self.measure == "engineering" else -np.expm1(-eps)
+        nominal = eps  # engineering strain (solves_on_host)
         return {"platens": "bonded" if self.bonded else "frictionless", "measure": str(self.measure),
                 "strains": eps.tolist(), "nominal_strains": nominal.tolist(), "height": float(self.height),
                 "area": float(self.area), "top_displacement": float(-nominal[-1] * self.height), "reaction": "z"}
