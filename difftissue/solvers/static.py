@@ -8,7 +8,9 @@ into a dense matrix and factorised by Cholesky for small problems or applied mat
 Jacobi-preconditioned conjugate gradients (lineax) for large ones, with a backtracking line
 search that rejects steps which invert an element or raise the energy. The stopping rule is
 residual-based: ``|grad Pi|_free <= max(atol, rtol * |grad Pi at the undeformed start|)``,
-or a full Newton correction below ``xtol`` relative (round-off level).
+or a full Newton correction below ``xtol`` relative (round-off level) through a positive
+definite matrix (a minimum: a tiny correction through an indefinite one is replaced by the
+scaled gradient step).
 
 Derivatives of the solution with respect to the material, the prescribed displacements and
 the forces come from the implicit function theorem (a custom JVP with one linear solve with
@@ -537,9 +539,14 @@ def solve_static(
         bc: prescribed displacements [m] and nodal forces [N]; they must remove every
             rigid-body mode (checked when values are concrete: :class:`RigidModeError`).
         rtol, atol: residual tolerance ``|grad Pi|_free <= max(atol [N], rtol * |grad Pi|_start)``.
-        xtol: also converged when the Newton correction is below ``xtol * |u|`` (2-norms):
-            the residual of an ill-conditioned problem stalls at round-off level, and with
-            Newton's quadratic convergence the remaining error is far below that correction.
+        xtol: also converged when a full Newton correction is below ``xtol * |u|`` (2-norms)
+            and that step's matrix was positive definite (Cholesky succeeded, CG met no
+            negative curvature, the sparse factorisation's pivots were positive): the residual
+            of an ill-conditioned problem stalls at round-off level, and with Newton's
+            quadratic convergence the remaining error is far below that correction. A tiny
+            correction through an indefinite matrix (a node balanced on a sharp indenter's
+            tip: the correction is small because the curvature is huge, not because the
+            residual is at round-off) is replaced by a scaled gradient step, never accepted.
         max_steps: Newton steps allowed.
         linear_solver: ``"multigrid"`` (conjugate gradients preconditioned by a
             smoothed-aggregation multigrid V-cycle, applied in JAX: jit, vmap, GPU; see
