@@ -100,11 +100,56 @@ def test_cholmod_is_not_retried_on_a_pattern_that_had_an_indefinite_matrix(monke
     pat, definite, indefinite = matrices(2)
     other, other_definite, _ = matrices(3)
     b = np.random.default_rng(2).standard_normal(pat.n)
+    flags = []
     for k, (p, data) in enumerate([(pat, definite), (pat, indefinite), (pat, indefinite), (pat, definite), (other, other_definite)]):
         rhs = b if p is pat else np.ones(p.n)
-        x = sparse._factor_solve(p, data, rhs)
+        x, is_definite = sparse._factor_solve(p, data, rhs)
+        flags.append(is_definite)
         A = sps.csr_matrix((data, p.indices, p.indptr), shape=(p.n, p.n))
         np.testing.assert_allclose(A @ x, rhs, rtol=0, atol=1e-9 * np.abs(rhs).max(), err_msg=f"solve {k}")
+    # Definiteness as the factorisation shows it: CHOLMOD's success, then the LU's pivots
+    # (Sylvester's inertia) for this pattern's definite (4th) and indefinite (2nd, 3rd) matrices.
+    assert flags == [True, False, False, True, True]
     # CHOLMOD: 1st (definite), 2nd (tried once, fails); LU for the rest of this pattern; the other
     # pattern's definite matrix: CHOLMOD.
     assert calls == [pat.n, pat.n, other.n]
+
+
+def test_the_solver_reports_positive_definiteness_per_matrix_under_vmap(monkeypatch):
+    """``SparseLU`` passes out of its host callback whether each matrix was positive definite
+    (the static solve accepts a round-off-sized Newton step only then): one flag per batch
+    member, from CHOLMOD's success or, on a pattern that went to the LU, from its pivots."""
+    import lineax as lx
+
+    from difftissue.solvers import sparse
+
+    monkeypatch.setattr(sparse, "_INDEFINITE_PATTERNS", set())
+    mesh = block((1.0, 1.0, 1.0), (2, 2, 2))
+    model = make_model(mesh, "fem_linear")
+    pat = sparse_pattern([t.nodes for t in model.terms(Material(1.0, 0.3))], mesh.n_nodes)
+    rows = np.repeat(np.arange(pat.n), np.diff(pat.indptr))
+    diagonal = rows == pat.indices
+    base = np.where(diagonal, 4.0, 0.0) + np.where(rows == pat.indices + 3, 1.0, 0.0) + np.where(rows + 3 == pat.indices, 1.0, 0.0)
+    indefinite = base - 5.0 * (diagonal & (rows == 7))  # e_7 . A e_7 = -1
+    dense = lambda d: np.asarray(sps_dense(pat, d))  # noqa: E731
+    assert np.linalg.eigvalsh(dense(base)).min() > 0 and np.linalg.eigvalsh(dense(indefinite)).min() < 0
+
+    def solve(data, b):
+        op = lx.FunctionLinearOperator(lambda v: v, jax.ShapeDtypeStruct((pat.n,), jnp.float64))  # unused by SparseLU
+        sol = lx.linear_solve(op, b, sparse.SparseLU(pat), options={"csr_data": data}, throw=False)
+        return sol.value, sol.stats["positive_definite"]
+
+    b = jnp.ones(pat.n)
+    for order in ([base, indefinite], [indefinite, base]):  # CHOLMOD then LU; LU for both after
+        x, flags = jax.vmap(solve, in_axes=(0, None))(jnp.asarray(np.stack(order)), b)
+        assert np.asarray(flags).tolist() == [d is base for d in order]
+        for data, xi in zip(order, np.asarray(x)):
+            np.testing.assert_allclose(dense(data) @ xi, np.ones(pat.n), atol=1e-10)
+    x, flag = jax.jit(solve)(jnp.asarray(base), b)
+    assert bool(flag) and np.asarray(flag).shape == ()
+
+
+def sps_dense(pat, data):
+    import scipy.sparse as sps
+
+    return sps.csr_matrix((data, pat.indices, pat.indptr), shape=(pat.n, pat.n)).toarray()

@@ -137,10 +137,13 @@ def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
     return x
 
 
-def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> np.ndarray:
+def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
     """Solve with one factorisation for ``b`` of shape ``(n,)`` or ``(n, k)``: sparse
     Cholesky where the matrix is positive definite, SuperLU otherwise (a Newton step at an
-    indefinite point: the Newton loop then checks the direction).
+    indefinite point: the Newton loop then checks the direction). Returns ``(x, definite)``:
+    ``definite`` is True when the factorisation shows the matrix positive definite (CHOLMOD
+    succeeded, or the LU's inertia: :func:`_lu_is_definite`), False when it is indefinite,
+    singular, not finite or its inertia is not known.
 
     CHOLMOD is tried only on patterns that have not had an indefinite matrix: a failed
     Cholesky leaks its factor (``_cholesky_solve``), and along a Newton path of a nearly
@@ -153,11 +156,11 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> np
     keep CHOLMOD. Which factorisation solved a definite matrix changes the result at round-off
     level only."""
     if not (np.all(np.isfinite(data)) and np.all(np.isfinite(b))):
-        return np.full(b.shape, np.nan)
+        return np.full(b.shape, np.nan), False
     if pattern.digest not in _INDEFINITE_PATTERNS:
         x = _cholesky_solve(pattern, data, b)
         if x is not None:
-            return x
+            return x, True
         _INDEFINITE_PATTERNS.add(pattern.digest)
     import scipy.sparse as sps  # imported on first use: a fit that never factorises need not load SciPy
     import scipy.sparse.linalg as spla
@@ -166,10 +169,24 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> np
     try:
         lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:  # exactly singular: NaN, the Newton loop falls back / flags it
-        return np.full(b.shape, np.nan)
+        return np.full(b.shape, np.nan), False
+    definite = _lu_is_definite(lu)
     if b.ndim == 1 or b.shape[1] < 4:
-        return lu.solve(b)
-    return _solve_many(lu, b)
+        return lu.solve(b), definite
+    return _solve_many(lu, b), definite
+
+
+def _lu_is_definite(lu) -> bool:
+    """Whether the symmetric matrix ``A`` factorised by SuperLU as ``Pr A Pc = L U`` is
+    positive definite. With a symmetric permutation (``perm_r == perm_c``, which the
+    symmetric mode with diagonal pivoting keeps unless a diagonal pivot is exactly zero)
+    ``U = D L^T`` with ``Pc^T A Pc = L D L^T``, and by Sylvester's law of inertia ``A`` is
+    positive definite exactly when every pivot ``U_ii`` is positive. Any other permutation:
+    False (not known to be definite)."""
+    if not np.array_equal(lu.perm_r, lu.perm_c):
+        return False
+    pivots = lu.U.diagonal()
+    return bool(np.all(np.isfinite(pivots)) and np.all(pivots > 0))
 
 
 def _solve_many(lu, b: np.ndarray) -> np.ndarray:
@@ -190,22 +207,27 @@ def _solve_many(lu, b: np.ndarray) -> np.ndarray:
 
 
 def _host_solve(pattern: SparsePattern, data, b):
-    """Callback body. Under ``vmap`` (``vmap_method="expand_dims"``) ``data`` is
-    ``(B or 1, ..., nnz)`` and ``b`` ``(B or 1, ..., n)``: an unbatched matrix (the common
-    case: several tangents or adjoints of one solve) is factorised once for all right-hand sides."""
+    """Callback body: ``(x, definite)`` (see :func:`_factor_solve`). Under ``vmap``
+    (``vmap_method="expand_dims"``) ``data`` is ``(B or 1, ..., nnz)`` and ``b``
+    ``(B or 1, ..., n)``, ``definite`` then has the batch shape: an unbatched matrix (the
+    common case: several tangents or adjoints of one solve) is factorised once for all
+    right-hand sides."""
     data, b = np.asarray(data), np.asarray(b)
     dtype = b.dtype
     if data.ndim == 1:
-        return _factor_solve(pattern, data, b).astype(dtype)
+        x, definite = _factor_solve(pattern, data, b)
+        return x.astype(dtype), np.asarray(definite)
     batch = np.broadcast_shapes(data.shape[:-1], b.shape[:-1])
     d2 = data.reshape(-1, data.shape[-1])
     b2 = np.broadcast_to(b, batch + b.shape[-1:]).reshape(-1, b.shape[-1])
     if d2.shape[0] == 1:
-        x = _factor_solve(pattern, d2[0], np.ascontiguousarray(b2.T)).T
+        xt, definite = _factor_solve(pattern, d2[0], np.ascontiguousarray(b2.T))
+        x, flags = xt.T, np.full(b2.shape[0], definite)
     else:
         d2 = np.broadcast_to(data, batch + data.shape[-1:]).reshape(-1, data.shape[-1])
-        x = np.stack([_factor_solve(pattern, d2[i], b2[i]) for i in range(b2.shape[0])])
-    return x.reshape(batch + b.shape[-1:]).astype(dtype)
+        solved = [_factor_solve(pattern, d2[i], b2[i]) for i in range(b2.shape[0])]
+        x, flags = np.stack([s[0] for s in solved]), np.array([s[1] for s in solved])
+    return x.reshape(batch + b.shape[-1:]).astype(dtype), flags.reshape(batch)
 
 
 class SparseLU(lx.AbstractLinearSolver):
@@ -214,7 +236,8 @@ class SparseLU(lx.AbstractLinearSolver):
 
     The matrix must be symmetric (transposed solves reuse it). Runs on the host through
     ``jax.pure_callback``; under ``vmap`` one matrix with many right-hand sides (``jacfwd``
-    tangents) is factorised once.
+    tangents) is factorised once. Stats: ``positive_definite`` (bool: CHOLMOD succeeded, or
+    the LU's pivots show the matrix positive definite).
     """
 
     pattern: SparsePattern = eqx.field(static=True)
@@ -224,12 +247,13 @@ class SparseLU(lx.AbstractLinearSolver):
 
     def compute(self, state, vector, options):
         data = state
-        shape = jax.ShapeDtypeStruct(vector.shape, vector.dtype)
-        x = jax.pure_callback(lambda d, b: _host_solve(self.pattern, d, b), shape, data, vector, vmap_method="expand_dims")
+        shapes = (jax.ShapeDtypeStruct(vector.shape, vector.dtype), jax.ShapeDtypeStruct(vector.shape[:-1], jnp.bool_))
+        x, definite = jax.pure_callback(lambda d, b: _host_solve(self.pattern, d, b), shapes, data, vector, vmap_method="expand_dims")
         # A singular matrix gives NaN values (the Newton loop and fits check for them); the
         # result code stays successful, since lineax raises on any other code of a transposed
-        # solve in reverse mode.
-        return x, lx.RESULTS.successful, {}
+        # solve in reverse mode. ``positive_definite``: the factorisation showed the matrix
+        # positive definite (the Newton loop accepts a round-off-sized step only then).
+        return x, lx.RESULTS.successful, {"positive_definite": definite}
 
     def transpose(self, state, options):
         return state, options

@@ -8,7 +8,9 @@ into a dense matrix and factorised by Cholesky for small problems or applied mat
 Jacobi-preconditioned conjugate gradients (lineax) for large ones, with a backtracking line
 search that rejects steps which invert an element or raise the energy. The stopping rule is
 residual-based: ``|grad Pi|_free <= max(atol, rtol * |grad Pi at the undeformed start|)``,
-or a full Newton correction below ``xtol`` relative (round-off level).
+or a full Newton correction below ``xtol`` relative (round-off level) through a positive
+definite matrix (a minimum: a tiny correction through an indefinite one is replaced by the
+scaled gradient step).
 
 Derivatives of the solution with respect to the material, the prescribed displacements and
 the forces come from the implicit function theorem (a custom JVP with one linear solve with
@@ -362,7 +364,17 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         linear_failed = (cg_res > jnp.maximum(NEWTON_CG_FAILURE, opts.get("rtol", 0.0))) & ~negative_curvature
         d = sol.value.reshape(u.shape)
         gd = jnp.vdot(g, d)
-        bad = ~jnp.all(jnp.isfinite(d)) | (gd >= 0)
+        # Whether this step's matrix is positive definite (u is near a minimum, not a saddle):
+        # the dense Cholesky fails (NaN direction) where it is not; CG met no negative
+        # curvature; the sparse factorisation says so (CHOLMOD succeeded or the LU's pivots).
+        definite = jnp.asarray(sol.stats.get("positive_definite", True), dtype=bool) & ~negative_curvature
+        # A round-off-sized Newton correction through an indefinite matrix is no sign of
+        # convergence: where the curvature is huge in one direction (a node under a sharp
+        # indenter's tip) the correction is tiny while the residual is not, and an LU step heads
+        # for the saddle. Such a step is replaced by the scaled gradient step below (as the
+        # dense Cholesky's failure does), which moves off it.
+        tiny = jnp.linalg.norm(d) <= options.xtol * jnp.linalg.norm(u + d)
+        bad = ~jnp.all(jnp.isfinite(d)) | (gd >= 0) | (tiny & ~definite)
         # Fall back to a Jacobi-scaled gradient step if the Newton direction is unusable.
         scale = jnp.linalg.norm(g) / jnp.maximum(jnp.linalg.norm(op.mv(g.reshape(-1))), 1e-300)
         d = jnp.where(bad, -g * scale, d)
@@ -376,8 +388,9 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         finite = jnp.all(jnp.isfinite(u_new)) & jnp.isfinite(rn)
         # Converged: residual below tolerance, or a full Newton step that no longer moves the
         # solution (a displacement correction at round-off level: the residual of an
-        # ill-conditioned problem cannot drop further).
-        small_step = accepted & ~bad & (jnp.linalg.norm(d) <= options.xtol * jnp.linalg.norm(u_new))
+        # ill-conditioned problem cannot drop further) through a positive definite matrix (a
+        # minimum; ~bad excludes the indefinite ones).
+        small_step = accepted & ~bad & definite & (jnp.linalg.norm(d) <= options.xtol * jnp.linalg.norm(u_new))
         ok = (rn <= tol) | small_step
         code = jnp.where(
             ~finite,
@@ -526,9 +539,14 @@ def solve_static(
         bc: prescribed displacements [m] and nodal forces [N]; they must remove every
             rigid-body mode (checked when values are concrete: :class:`RigidModeError`).
         rtol, atol: residual tolerance ``|grad Pi|_free <= max(atol [N], rtol * |grad Pi|_start)``.
-        xtol: also converged when the Newton correction is below ``xtol * |u|`` (2-norms):
-            the residual of an ill-conditioned problem stalls at round-off level, and with
-            Newton's quadratic convergence the remaining error is far below that correction.
+        xtol: also converged when a full Newton correction is below ``xtol * |u|`` (2-norms)
+            and that step's matrix was positive definite (Cholesky succeeded, CG met no
+            negative curvature, the sparse factorisation's pivots were positive): the residual
+            of an ill-conditioned problem stalls at round-off level, and with Newton's
+            quadratic convergence the remaining error is far below that correction. A tiny
+            correction through an indefinite matrix (a node balanced on a sharp indenter's
+            tip: the correction is small because the curvature is huge, not because the
+            residual is at round-off) is replaced by a scaled gradient step, never accepted.
         max_steps: Newton steps allowed.
         linear_solver: ``"multigrid"`` (conjugate gradients preconditioned by a
             smoothed-aggregation multigrid V-cycle, applied in JAX: jit, vmap, GPU; see
