@@ -399,8 +399,8 @@ def _tabulated_force_error(indenter: str, m: float) -> float | None:
 #: as resolved (:meth:`Indentation.resolution`). Chosen from the per-depth force errors of
 #: fem_linear on the automatic specimen against Hertz / Sneddon (``experiments/indentation_default_fit.py``,
 #: docs/dev/indentation-resolution.md): from 1 to 2 cells per contact radius the force is
-#: +14 to +27 % high (sphere and 70 deg cone, two meshes), below one cell it climbs steeply
-#: (cone +49 / +93 / +199 / +497 % at 0.8 / 0.6 / 0.4 / 0.2 cells, sphere +39 / +92 % at 0.63 / 0.45).
+#: +13 to +27 % high (sphere and 70 deg cone, two meshes), below one cell it climbs steeply
+#: (cone +49 / +93 / +199 / +497 % at 0.8 / 0.62 / 0.4 / 0.2 cells, sphere +39 / +92 % at 0.65 / 0.47).
 MIN_CELLS_PER_CONTACT_RADIUS = 1.0
 #: Surface nodes nearest the indenter axis over which the cell size under the indenter is taken.
 _AXIS_NODES = 16
