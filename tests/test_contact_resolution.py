@@ -67,6 +67,18 @@ def test_cell_size_of_the_automatic_specimen_is_its_first_cell():
     np.testing.assert_allclose(r.cells_per_contact_radius, [0.4, 4.0], rtol=1e-6)  # a / refine = 4 at the deepest point
 
 
+def test_cell_size_on_a_curved_surface():
+    """surface="boundary": the surface spacing along the dome near the placed indenter's axis
+    (0.25 mm cells, a 2 mm dome: slightly more than 0.25 mm along the slope)."""
+    from difftissue.mesh import block, curved_top
+
+    dome = curved_top(block((2e-3, 2e-3, 1e-3), (8, 8, 4), origin=(-1e-3, -1e-3, 0.0)), 2e-3)
+    r = Indentation(dome, [2e-6, 2e-5, 1e-4], model="fem_linear", indenter="sphere", radius=1e-3, surface="boundary").resolution()
+    assert r.cell_size == pytest.approx(0.25e-3, rel=0.01)
+    np.testing.assert_allclose(r.cells_per_contact_radius, np.sqrt(1e-3 * np.array([2e-6, 2e-5, 1e-4])) / r.cell_size, rtol=1e-12)
+    assert list(r.flagged) == [0, 1]
+
+
 def test_warning_fires_for_a_shallow_cone_depth_only():
     """The automatic specimen's 4 cells per contact radius at the deepest point leave 0.4 cells
     at a tenth of the depth: flagged and named; the deepest point alone is not."""
