@@ -440,13 +440,14 @@ def _cmd_info(args) -> int:
 
 
 def _load_config(path):
-    """:func:`difftissue.config.load_config`, its data-plausibility warnings kept for the
+    """:func:`difftissue.config.load_config`, its data-plausibility and resolution warnings kept for the
     command's own output (``warning:`` lines, fit.json, report.md) instead of Python's format."""
     from .config import load_config
-    from .errors import ImplausibleUnitWarning
+    from .errors import ImplausibleUnitWarning, UnderResolvedContactWarning
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ImplausibleUnitWarning)
+        warnings.simplefilter("ignore", UnderResolvedContactWarning)
         return load_config(path)
 
 

@@ -407,3 +407,17 @@ class BudgetRangeError(ConfigError):
 class BudgetExtrapolationWarning(DifftissueWarning):
     """A budget card is used outside its calibrated depth or stiffness range because the caller
     asked for it (``extrapolate=True``): the effective material's error there is unmeasured."""
+
+
+# ===================================================================== indentation resolution
+# (appended block: depths whose contact zone the mesh does not resolve)
+__all__ += ["UnderResolvedContactWarning"]
+
+
+class UnderResolvedContactWarning(DifftissueWarning):
+    """Some depths of a simulated indentation have a contact radius smaller than the stated
+    number of mesh cells (:meth:`difftissue.scenarios.Indentation.resolution`): the linear
+    tetrahedra over-predict the force there by tens to hundreds of percent, and those depths
+    enter the fit as if they were as good as the others. The message names the depths, their
+    cells per contact radius, and the options: refine the mesh under the indenter, or leave the
+    depths out (config ``under_resolved = "drop"``)."""

@@ -33,6 +33,7 @@ import contextvars
 import dataclasses
 import hashlib
 import math
+import warnings
 import weakref
 from typing import Any, Sequence
 
@@ -46,7 +47,7 @@ from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_
 from .contact import (ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, facing_surface_nodes, place_indenter,
                       top_surface_nodes)
 from .energies.volume import tet_signed_volume
-from .errors import BoundaryConditionError, ConfigError, ConvergenceError, DataError, ModelError, ReactionSignError, SelectorError
+from .errors import BoundaryConditionError, ConfigError, ConvergenceError, DataError, ModelError, ReactionSignError, SelectorError, UnderResolvedContactWarning
 from .materials import Material
 from .mesh import TetMesh, graded_axis, structured_grid
 from .interpolation import interpolation_operator
@@ -67,6 +68,9 @@ __all__ = [
     "indentation_block",
     "IndentationSpecimen",
     "indentation_specimen_for",
+    "indentation_contact_radius",
+    "IndentationResolution",
+    "MIN_CELLS_PER_CONTACT_RADIUS",
     "cylinder",
     "recover_lattice",
 ]
@@ -389,6 +393,128 @@ def _tabulated_force_error(indenter: str, m: float) -> float | None:
     """:data:`INDENTATION_FORCE_ERROR` at ``m`` cells per contact radius (None where not tabulated)."""
     C, p = INDENTATION_FORCE_ERROR.get(indenter, (None, None))
     return None if C is None else float(C * m ** (-p))
+
+
+#: Fewest mesh cells per contact radius [-] at which a depth of a simulated indentation counts
+#: as resolved (:meth:`Indentation.resolution`). Chosen from the per-depth force errors of
+#: fem_linear on the automatic specimen against Hertz / Sneddon (``experiments/indentation_default_fit.py``,
+#: docs/dev/indentation-resolution.md): from 1 to 2 cells per contact radius the force is
+#: +13 to +27 % high (sphere and 70 deg cone, two meshes), below one cell it climbs steeply
+#: (cone +49 / +93 / +199 / +497 % at 0.8 / 0.62 / 0.4 / 0.2 cells, sphere +39 / +92 % at 0.65 / 0.47).
+MIN_CELLS_PER_CONTACT_RADIUS = 1.0
+#: Surface nodes nearest the indenter axis over which the cell size under the indenter is taken.
+_AXIS_NODES = 16
+
+
+def indentation_contact_radius(indenter: str, depths, *, radius: float | None = None, half_angle: float | None = None) -> np.ndarray:
+    """Contact radius [m] of a rigid indenter on a half-space at each depth [m]: sphere
+    ``sqrt(R d)`` (:func:`~difftissue.analytic.hertz_contact_radius`), cone ``2 d tan(theta) / pi``
+    (:func:`~difftissue.analytic.cone_contact_radius`), flat punch its ``radius``
+    (:func:`~difftissue.analytic.flat_punch_contact_radius`).
+
+    Args:
+        indenter: ``"sphere"`` (``radius`` [m]), ``"cone"`` (``half_angle`` [rad]) or
+            ``"flat_punch"`` (``radius`` [m]).
+        depths: indentation depths [m], >= 0.
+
+    Raises:
+        ConfigError: an unknown indenter or a missing size.
+    """
+    d = np.asarray(depths, dtype=float)
+    if indenter in ("sphere", "flat_punch"):
+        if radius is None:
+            raise ConfigError(f"a {indenter.replace('_', ' ')} needs radius [m]")
+        f = analytic.hertz_contact_radius if indenter == "sphere" else analytic.flat_punch_contact_radius
+        return np.asarray(f(d, float(radius)), dtype=float)
+    if indenter == "cone":
+        if half_angle is None:
+            raise ConfigError("a cone needs half_angle [rad]")
+        return np.asarray(analytic.cone_contact_radius(d, float(half_angle)), dtype=float)
+    raise ConfigError(f"indenter must be 'sphere', 'cone' or 'flat_punch', got {indenter!r}")
+
+
+def _cell_size_at_axis(points: np.ndarray, nodes: np.ndarray, distance: np.ndarray) -> float:
+    """Cell size [m] under an indenter: the median distance from each of the
+    :data:`_AXIS_NODES` surface ``nodes`` nearest the axis (``distance`` [m] from it) to its
+    nearest other surface node (the spacing ``h`` of a structured grid, the first cell of a
+    graded one). NaN with fewer than two surface nodes."""
+    if nodes.size < 2:
+        return float("nan")
+    order = np.argsort(distance, kind="stable")
+    near = points[nodes[order[: min(nodes.size, 16 * _AXIS_NODES)]]]
+    k = min(near.shape[0], _AXIS_NODES)
+    gap = np.linalg.norm(near[:k, None, :] - near[None, :, :], axis=-1)
+    gap[np.arange(k), np.arange(k)] = np.inf
+    return float(np.median(gap.min(axis=1)))
+
+
+@dataclasses.dataclass(frozen=True)
+class IndentationResolution:
+    """How well a simulated indentation's mesh resolves the contact zone at each depth
+    (:meth:`Indentation.resolution`).
+
+    Attributes:
+        name: the scenario's name.
+        indenter: ``"sphere"``, ``"cone"`` or ``"flat_punch"``.
+        depths: the protocol's depths [m].
+        contact_radius: half-space contact radius [m] at each depth
+            (:func:`indentation_contact_radius`).
+        cell_size: mesh cell size [m] under the indenter (the median nearest-neighbour spacing
+            of the surface nodes nearest the axis).
+        cells_per_contact_radius: ``contact_radius / cell_size`` [-] at each depth.
+        min_cells_per_contact_radius: the threshold [-] below which a depth is flagged.
+    """
+
+    name: str
+    indenter: str
+    depths: np.ndarray
+    contact_radius: np.ndarray
+    cell_size: float
+    cells_per_contact_radius: np.ndarray
+    min_cells_per_contact_radius: float
+
+    @property
+    def flagged(self) -> np.ndarray:
+        """Indices of the depths below :attr:`min_cells_per_contact_radius` cells per contact radius."""
+        # a relative 1e-6 below the threshold still counts (float32 meshes put a depth chosen at exactly the threshold a rounding below it)
+        return np.flatnonzero(~(self.cells_per_contact_radius >= self.min_cells_per_contact_radius * (1.0 - 1e-6)))
+
+    @property
+    def keep(self) -> np.ndarray:
+        """Boolean mask of the resolved depths (the complement of :attr:`flagged`)."""
+        mask = np.ones(self.depths.shape, dtype=bool)
+        mask[self.flagged] = False
+        return mask
+
+    def record(self) -> dict:
+        """The check as plain numbers (SI) for ``fit.json``: threshold, cell size, and the
+        flagged depths with their contact radius and cells per contact radius."""
+        i = self.flagged
+        return {"indenter": self.indenter, "min_cells_per_contact_radius": self.min_cells_per_contact_radius, "cell_size": self.cell_size,
+                "cells_per_contact_radius_range": [float(np.min(self.cells_per_contact_radius)), float(np.max(self.cells_per_contact_radius))]
+                if self.depths.size else [],
+                "flagged": [{"index": int(k), "depth": float(self.depths[k]), "contact_radius": float(self.contact_radius[k]),
+                             "cells_per_contact_radius": float(self.cells_per_contact_radius[k])} for k in i]}
+
+    def message(self, where: str | None = None) -> str:
+        """One line naming the flagged depths, their cells per contact radius and the options."""
+        i = self.flagged
+        shown = ", ".join(f"{self.depths[k]:.4g} m ({self.cells_per_contact_radius[k]:.2g})" for k in i[:8])
+        more = f" and {i.size - 8} more" if i.size > 8 else ""
+        return (f"{where or self.name}: {i.size} of {self.depths.size} depths have a contact radius of less than {self.min_cells_per_contact_radius:g} "
+                f"mesh cells ({self.indenter}, cells of {self.cell_size:.4g} m under the indenter): depth (cells per contact radius) "
+                f"{shown}{more}; the linear tetrahedra over-predict the force there by tens to hundreds of percent (docs/scenarios.md, "
+                f"\"Resolution at each depth\"); refine the mesh under the indenter, or leave these depths out "
+                f"(config: under_resolved = \"drop\"; Python: the scenario's depths[resolution.keep])")
+
+    def warn(self, where: str | None = None, stacklevel: int = 2) -> str | None:
+        """Emit :class:`~difftissue.errors.UnderResolvedContactWarning` when a depth is flagged;
+        returns its message (None when every depth is resolved)."""
+        if self.flagged.size == 0:
+            return None
+        msg = self.message(where)
+        warnings.warn(msg, UnderResolvedContactWarning, stacklevel=stacklevel + 1)
+        return msg
 
 
 def cylinder(diameter: float, height: float, cells_radial: int = 4, cells_height: int = 4) -> TetMesh:
@@ -1106,6 +1232,37 @@ class Indentation(eqx.Module):
 
         _, (forces, us) = jax.lax.scan(step, _history(u0), jnp.asarray(depths, dtype=u0.dtype))
         return forces, us
+
+    def resolution(self, min_cells_per_contact_radius: float = MIN_CELLS_PER_CONTACT_RADIUS) -> IndentationResolution:
+        """Cells per contact radius at each depth: the half-space contact radius of the indenter
+        (:func:`indentation_contact_radius`; on a curved surface an estimate) over the mesh's
+        cell size under the indenter (the median nearest-neighbour spacing of the
+        :data:`_AXIS_NODES` contact-surface nodes nearest the axis: the first cell of a graded
+        block). Depths below ``min_cells_per_contact_radius`` are :attr:`~IndentationResolution.flagged`;
+        :meth:`IndentationResolution.warn` emits :class:`~difftissue.errors.UnderResolvedContactWarning`.
+
+        Raises:
+            ConfigError: ``min_cells_per_contact_radius`` not a positive number.
+        """
+        m = float(min_cells_per_contact_radius)
+        if not (math.isfinite(m) and m > 0):
+            raise ConfigError(f"min_cells_per_contact_radius must be a positive number of cells, got {min_cells_per_contact_radius!r}")
+        X = np.asarray(self.model.rest_points, dtype=float)
+        if self.punch is None:
+            geom = self.model.indenter
+            nodes = np.asarray(self.model.contact_nodes)
+            dist = np.asarray(geom.distance_from_axis(jnp.asarray(X[nodes])), dtype=float)
+            kind = "sphere" if isinstance(geom, SphereIndenter) else "cone"
+            a = indentation_contact_radius(kind, self.abscissa, radius=getattr(geom, "radius", None), half_angle=getattr(geom, "half_angle", None))
+        else:
+            kind = "flat_punch"
+            zs = X[:, 2]
+            nodes = np.flatnonzero(np.abs(zs - zs.max()) <= 1e-9 * max(float(np.ptp(X, axis=0).max()), 1e-300))
+            dist = np.hypot(X[nodes, 0] - self.punch.axis_xy[0], X[nodes, 1] - self.punch.axis_xy[1])
+            a = indentation_contact_radius(kind, self.abscissa, radius=self.punch.radius)
+        h = _cell_size_at_axis(X, nodes, dist)
+        return IndentationResolution(name=self.name, indenter=kind, depths=np.asarray(self.abscissa, dtype=float), contact_radius=a,
+                                     cell_size=h, cells_per_contact_radius=a / h, min_cells_per_contact_radius=m)
 
     @property
     def prediction_rtol(self) -> float:

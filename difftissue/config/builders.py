@@ -23,11 +23,12 @@ from ..incision import Incision, IncisionOptions
 from ..materials import Material
 from ..mesh import Specimen, block, layered_skin, read_mesh
 from ..models import MODELS, NODAL_FEM_MODELS
-from ..scenarios import AnalyticIndentation, Compression, FEMField, Indentation, SolverOptions, cylinder, indentation_block, indentation_specimen_for
+from ..scenarios import (MIN_CELLS_PER_CONTACT_RADIUS, AnalyticIndentation, Compression, FEMField, Indentation, SolverOptions, cylinder, indentation_block,
+                         indentation_specimen_for)
 from ..selectors import selector_from_dict
 from .estimates import _compression_estimate, _compression_plausibility, _indentation_estimate, _plausibility
 from .experiment import Experiment
-from .rows import _force_depth, _load_data, _stress_strain
+from .rows import _force_depth, _load_data, _provenance_note, _stress_strain
 from .schema import (
     _DATA_FORMATS,
     _MESH_UNITS,
@@ -340,17 +341,58 @@ def _indentation(e, path, name, base_dir) -> Experiment:
         coarse_mesh, skip = _coarse_indentation_block(size, cells, symmetry, refine, core)
         if depth.max() >= size[2]:
             _fail(_join(path, "max_depth"), f"the deepest point ({depth.max():.3g} m) reaches the specimen's height ({size[2]:.3g} m)")
+    min_cells = _positive(e["min_cells_per_contact_radius"], _join(path, "min_cells_per_contact_radius")) if "min_cells_per_contact_radius" in e \
+        else MIN_CELLS_PER_CONTACT_RADIUS
+    under = _choice(e.get("under_resolved", "warn"), _join(path, "under_resolved"), ("warn", "drop"))
     try:
         sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
+        res = sc.resolution(min_cells)
     except DifftissueError as err:
         _reraise(path, err)
+    resolution_warnings: tuple[str, ...] = ()
+    res_record = {**res.record(), "under_resolved": under}
+    for f in res_record["flagged"]:
+        f["row"] = int(prov["used"][f["index"]])  # the data file's row (its name: provenance row_names)
+    if res.flagged.size:
+        if under == "warn":
+            resolution_warnings = (res.warn(path, stacklevel=3),)
+        else:
+            depth, force, sigma, prov, notes = _drop_under_resolved(res, path, depth, force, sigma, prov, notes)
+            try:
+                sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
+            except DifftissueError as err:
+                _reraise(path, err)
+    prov = {**prov, "resolution": res_record}
     coarsen = None
     if coarse_mesh is not None:
         def coarsen():
             m, info = coarse_mesh()
             return Indentation(m, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw), info
-    return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve),
+    return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve) + resolution_warnings,
                       _indentation_estimate(depth, force, sigma, kw), coarsen=coarsen, coarsen_skip=skip)
+
+
+def _drop_under_resolved(res, path: str, depth, force, sigma, prov: dict, notes: tuple):
+    """``under_resolved = "drop"``: the depths of ``res`` (:class:`~difftissue.scenarios.IndentationResolution`)
+    below its threshold left out of ``depth``, ``force`` and ``sigma`` (an array per depth or
+    one value), recorded as a "left out" step of the provenance and in its note. Returns
+    ``depth, force, sigma, provenance, notes``."""
+    keep = res.keep
+    if not keep.any():
+        _fail(_join(path, "under_resolved"), f"every depth has a contact radius of less than {res.min_cells_per_contact_radius:g} mesh cells "
+              f"(at most {float(res.cells_per_contact_radius.max()):.3g}, cells of {res.cell_size:.4g} m under the indenter): "
+              "nothing is left to fit; refine the specimen under the indenter")
+    old_note = _provenance_note(path, prov)
+    used = [prov["used"][i] for i in range(len(prov["used"])) if keep[i]]
+    why = (f"a contact radius of less than {res.min_cells_per_contact_radius:g} mesh cells (cells of {res.cell_size:.4g} m under the indenter; "
+           "under_resolved = \"drop\")")
+    steps = [*prov["steps"], {"action": "left out", "rows": [int(prov["used"][i]) for i in res.flagged], "reason": why}]
+    prov = {**prov, "rows_used": len(used), "used": used, "steps": steps}
+    notes = tuple(_provenance_note(path, prov) if n == old_note else n for n in notes)
+    sig = np.asarray(sigma)
+    if sig.ndim and sig.size == keep.size:
+        sigma = sig[keep]
+    return depth[keep], force[keep], sigma, prov, notes
 
 
 def _auto_specimen_note(auto) -> str:

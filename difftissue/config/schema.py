@@ -63,7 +63,8 @@ TISSUE_RANGES: dict[str, tuple[float, float]] = {
 _COMMON_EXPERIMENT_KEYS = ("name", "scenario", "data", "sigma", "points", "length_unit")
 _EXPERIMENT_KEYS = {
     "analytic_indentation": _COMMON_EXPERIMENT_KEYS + ("indenter", "solution", "thickness", "base", "max_depth"),
-    "indentation": _COMMON_EXPERIMENT_KEYS + ("model", "indenter", "specimen", "base", "rollers", "max_depth", "penalty", "solver"),
+    "indentation": _COMMON_EXPERIMENT_KEYS + ("model", "indenter", "specimen", "base", "rollers", "max_depth", "penalty", "solver",
+                                             "min_cells_per_contact_radius", "under_resolved"),
     "compression": _COMMON_EXPERIMENT_KEYS + ("model", "specimen", "platens", "rollers", "measure", "max_strain", "solver"),
     "fem_field": ("name", "scenario", "data", "model", "prescribed", "observe", "reaction", "displacement_sigma", "force_sigma", "solver",
                   "reference_mesh", "specimen", "tolerance"),
