@@ -149,16 +149,17 @@ def test_stationary_tests_the_gauss_newton_step_left():
 def test_a_minimum_on_a_kink_of_the_residuals_ends_the_fit():
     """Residuals with a kink (``|b - 2|``, as a discretised contact's force has where a node
     enters contact) whose least-squares minimum sits on the kink: the one-sided Gauss--Newton
-    steps point at each other, Levenberg--Marquardt creeps towards the kink with rejected trial
-    steps, and neither the x tolerance (0 here) nor the Gauss--Newton step left ends the fit.
-    It ends once a rejected trial step is below ``STATIONARY_STEP`` standard errors (59 steps
-    without that rule, ending only when b lands on 2 exactly), at the kink to within that."""
+    steps (0.5 and 0.8 standard errors) point at each other, Levenberg--Marquardt creeps
+    towards the kink with rejected trial steps, and neither the x tolerance (0 here) nor the
+    Gauss--Newton step left ends the fit. It ends once a rejected trial step is below
+    ``STATIONARY_STEP`` standard errors (76 steps without that rule, ending only when b lands on
+    2 exactly; 30 with it), at the kink to within that."""
     from difftissue.fit.engine import STATIONARY_STEP
 
     rng = np.random.default_rng(3)
     t = np.linspace(0.0, 1.0, 12)
     g = 1.0 + t**2
-    y = 1.0 + 2.0 * t - 0.05 * g + 0.01 * rng.normal(size=t.size)
+    y = 1.0 + 2.0 * t - 0.02 * g + 0.01 * rng.normal(size=t.size)
 
     def residual_fn(values, data):
         pred = values[0] + values[1] * data["t"] + 2.0 * jnp.abs(values[1] - 2.0) * data["g"]
@@ -166,5 +167,5 @@ def test_a_minimum_on_a_kink_of_the_residuals_ends_the_fit():
 
     problem = ResidualProblem(residual_fn, ("a", "b"), (Identity(), Identity()), t.size, data={"t": t, "y": y, "g": g})
     res = least_squares(problem, [0.3, 2.7], max_steps=100, rtol=0.0, atol=0.0)
-    assert res.converged and res.steps < 40, (res.converged, res.steps)
+    assert res.converged and res.steps < 50, (res.converged, res.steps)
     assert abs(res.values["b"] - 2.0) <= STATIONARY_STEP * res.standard_errors["b"]

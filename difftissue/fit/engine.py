@@ -255,12 +255,16 @@ class Engine:
                 trial = state_new.y_eval - u_new
                 rejected = state_new.num_steps_since_acceptance > 0
                 J = state_new.f_info.jac.as_matrix()
-                # A rejected trial step below the x tolerance, or below STATIONARY_STEP standard
-                # errors: no statistically meaningful step decreases the loss. This is how a fit
-                # ends whose minimum sits on a kink of the residuals (a contact-set change of a
-                # discretised contact: the one-sided Gauss--Newton steps point at each other,
-                # and the trust region creeps towards the kink until max_steps).
-                negligible = rejected & ((jnp.linalg.norm(trial) <= atol + rtol * jnp.linalg.norm(u_new)) | _statistically_small(J, r, trial))
+                # A rejected trial step below the x tolerance; or, within KINK_NEIGHBOURHOOD
+                # standard errors of the Gauss--Newton optimum, a rejected trial step below
+                # STATIONARY_STEP standard errors: no statistically meaningful step decreases
+                # the loss. This is how a fit ends whose minimum sits on a kink of the residuals
+                # (a contact-set change of a discretised contact: the one-sided Gauss--Newton
+                # steps point at each other, and the trust region creeps towards the kink until
+                # max_steps). Far from the optimum a small rejected step only means a strongly
+                # nonlinear model (the trust region shrank): the fit goes on.
+                near = _statistically_small(J, r, jnp.linalg.lstsq(J, r)[0], KINK_NEIGHBOURHOOD)
+                negligible = rejected & ((jnp.linalg.norm(trial) <= atol + rtol * jnp.linalg.norm(u_new)) | (near & _statistically_small(J, r, trial)))
                 # And stop when the accepted point is stationary to within a statistically
                 # negligible step: the Gauss--Newton step that is left moves the parameters by
                 # less than STATIONARY_STEP standard errors (Bates & Watts' relative-offset
@@ -341,17 +345,23 @@ class Engine:
 STATIONARY_STEP = 1e-4
 
 
-def _statistically_small(J, r, delta):
+#: A rejected trial step below :data:`STATIONARY_STEP` standard errors ends a fit only where
+#: the Gauss--Newton step left is within this many standard errors (a minimum on a kink of the
+#: residuals: the one-sided steps there are a fraction of a standard error).
+KINK_NEIGHBOURHOOD = 1.0
+
+
+def _statistically_small(J, r, delta, bound=STATIONARY_STEP):
     """Whether the parameter step ``delta`` (p,) moves the predictions of a fit with residuals
-    ``r`` (n,) and Jacobian ``J`` (n, p) by less than :data:`STATIONARY_STEP` standard errors,
-    ``|J delta|^2 / s^2 <= STATIONARY_STEP^2`` with ``s^2 = |r|^2 / (n - p)`` (never where
-    ``n <= p`` or the loss is 0: no residual variance to measure it by)."""
+    ``r`` (n,) and Jacobian ``J`` (n, p) by at most ``bound`` standard errors,
+    ``|J delta|^2 / s^2 <= bound^2`` with ``s^2 = |r|^2 / (n - p)`` (never where ``n <= p`` or
+    the loss is 0: no residual variance to measure it by)."""
     n, p = J.shape
     if n <= p:
         return jnp.asarray(False)
     s2 = jnp.sum(r * r) / (n - p)
     moved = jnp.sum((J @ delta) ** 2)
-    return jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(r)) & (s2 > 0) & (moved <= STATIONARY_STEP**2 * s2)
+    return jnp.all(jnp.isfinite(J)) & jnp.all(jnp.isfinite(r)) & (s2 > 0) & (moved <= bound**2 * s2)
 
 
 def _stationary(J, r, u, rtol, atol):
