@@ -1543,7 +1543,7 @@ class Compression(eqx.Module):
         eps = np.asarray(self.abscissa, dtype=float)
         if eps.size == 0:
             raise DataError(f"compression scenario {self.name!r} has an empty strain protocol")
-        nominal = eps  # engineering strain (solves_on_host)
+        nominal = eps if self.measure == "engineering" else -np.expm1(-eps)
         return {"platens": "bonded" if self.bonded else "frictionless", "measure": str(self.measure),
                 "strains": eps.tolist(), "nominal_strains": nominal.tolist(), "height": float(self.height),
                 "area": float(self.area), "top_displacement": float(-nominal[-1] * self.height), "reaction": "z"}
