@@ -9,14 +9,34 @@ import math
 import os
 import sys
 import tempfile
+import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 
-from .errors import OutputError, OutputExistsError
+from .errors import ConfigError, OutputError, OutputExistsError
 
-__all__ = ["atomic_output", "sha256_file", "json_number", "jsonable"]
+__all__ = ["atomic_output", "sha256_file", "json_number", "jsonable", "read_toml"]
+
+
+def read_toml(path, what: str = "config") -> dict:
+    """The TOML file ``path`` as a dict.
+
+    Raises:
+        ConfigError: the file is missing (``"<what> file not found: ..."``), is not UTF-8 text
+            or is not valid TOML (one line, naming the file).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"{what} file not found: {path}")
+    try:
+        with open(path, "rb") as fh:
+            return tomllib.load(fh)
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(" ".join(f"{path}: invalid TOML: {e}".split())) from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
 
 
 @contextlib.contextmanager

@@ -18,18 +18,20 @@ from __future__ import annotations
 import dataclasses
 import math
 import warnings
+from pathlib import Path
 from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from ._io import read_toml
 from .boundary import BoundaryConditions
 from .errors import (BudgetExtrapolationWarning, BudgetRangeError, BudgetSaturationError, ConfigError, ConvergenceError, DifftissueWarning,
                      ModelError)
 from .fit.residuals import ResidualProblem, least_squares
 from .materials import MATERIAL_FIELDS, Identity, Material, ScaledLogit
-from .mesh import signed_volumes
+from .mesh import LENGTH_UNITS, signed_volumes
 from .models import MODELS, ElasticModel, make_model
 from .solvers.static import solve_static
 from .solvers.xpbd import XPBDSettings, xpbd_quasi_static
@@ -1018,8 +1020,6 @@ def _ls_number(value, where: str, unit: str) -> float:
 
 
 def _ls_unit(value, where: str) -> float:
-    from .mesh import LENGTH_UNITS
-
     if not isinstance(value, str) or value not in LENGTH_UNITS:
         _ls_fail(where, f"must be one of {', '.join(repr(u) for u in LENGTH_UNITS)}, got {value!r}")
     return LENGTH_UNITS[value]
@@ -1161,19 +1161,8 @@ def parse_load_set(raw, mesh, material: Material, *, where: str = "budget") -> L
 def read_load_set(path, mesh, material: Material) -> LoadSetSpec:
     """:func:`parse_load_set` of the ``[budget]`` table of the TOML file ``path`` (no other
     top-level key)."""
-    import tomllib
-    from pathlib import Path
-
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"load-set file not found: {path}")
-    try:
-        with open(path, "rb") as fh:
-            raw = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(" ".join(f"{path}: invalid TOML: {e}".split())) from None
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
+    raw = read_toml(path, "load-set")
     _ls_keys(raw, str(path), ("budget",))
     if "budget" not in raw:
         _ls_fail(str(path), "missing the [budget] table (with one or more [[budget.loads]])")

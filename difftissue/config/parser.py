@@ -8,11 +8,11 @@ return a :class:`~difftissue.config.FitConfig`.
 from __future__ import annotations
 
 import math
-import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from .._io import read_toml
 from ..errors import ConfigError
 from ..fit import LOSSES, METHODS
 from ..materials import Identity, Log, Material, MaterialParameterization, ScaledLogit
@@ -43,16 +43,7 @@ from .schema import (
 def load_config(path) -> FitConfig:
     """Read, validate and build a TOML fit config; relative paths are taken from its folder."""
     path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"config file not found: {path}")
-    try:
-        with open(path, "rb") as fh:
-            raw = tomllib.load(fh)
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(" ".join(f"{path}: invalid TOML: {e}".split())) from None
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not UTF-8 text ({e.reason} at byte {e.start})") from None
-    return parse_config(raw, base_dir=path.parent, path=path)
+    return parse_config(read_toml(path, "config"), base_dir=path.parent, path=path)
 
 
 def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
