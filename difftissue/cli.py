@@ -146,12 +146,21 @@ def _print_summary(title: str, summary: dict, findings, notes) -> None:
         console.print(f"{f.severity}: {f.kind.__name__}: {cli_words(f.message, 'info')}", markup=False)
 
 
-def _parse_specimen(spec: str, factor: float):
-    """``block:LX,LY,LZ:NX,NY,NZ`` (lengths in --unit) -> TetMesh."""
-    from .mesh import block
+def _parse_specimen(spec: str, unit: str | None):
+    """``block:LX,LY,LZ:NX,NY,NZ`` (lengths in --unit) or a tet mesh file (coordinates in
+    --unit, which must then be given: a file's unit is not guessed) -> TetMesh."""
+    from .mesh import block, read_mesh
 
     parts = spec.split(":")
-    if len(parts) != 3 or parts[0] != "block":
+    if parts[0] != "block":
+        if not Path(spec).is_file():
+            raise _UsageError(f"--specimen {spec!r}: expected block:LX,LY,LZ:NX,NY,NZ, indentation, fitted or a mesh file "
+                              "(no such file)")
+        if unit is None:
+            raise _UsageError(f"--specimen {spec}: a mesh file needs --unit, the length unit of its coordinates (m, cm, mm or um)")
+        return read_mesh(spec, length_unit=unit)
+    factor = _length_factor(unit or "mm")
+    if len(parts) != 3:
         raise _UsageError(f"--specimen {spec!r}: expected block:LX,LY,LZ:NX,NY,NZ")
     try:
         size = [float(v) for v in parts[1].split(",")]
@@ -346,8 +355,8 @@ def _cmd_export(args) -> int:
         if args.to != "xpbd":
             raise _UsageError(f"--load-set calibrates the XPBD JSON (--to xpbd), not --to {args.to}")
         if args.specimen == "fitted":
-            raise _UsageError("--load-set needs the simulator's mesh as --specimen block:LX,LY,LZ:NX,NY,NZ or indentation, not fitted")
-    f = _length_factor(args.unit)
+            raise _UsageError("--load-set needs the simulator's mesh as --specimen block:LX,LY,LZ:NX,NY,NZ, a mesh file or indentation, not fitted")
+    f = _length_factor(args.unit or "mm")
     indentation = None
     ind_opts = {k: getattr(args, k) for k in ("indenter", "radius", "half_angle", "depth", "block", "cells", "base", "scenario")
                 if getattr(args, k) is not None}
@@ -368,16 +377,16 @@ def _cmd_export(args) -> int:
     else:
         if ind_opts or args.bonded_punch:
             raise _UsageError(f"--{sorted(ind_opts)[0].replace('_', '-') if ind_opts else 'bonded-punch'} belongs to --specimen indentation")
-        mesh = _parse_specimen(args.specimen, f) if args.specimen else None
+        mesh = _parse_specimen(args.specimen, args.unit) if args.specimen else None
     if args.to == "vtu" and mesh is None and indentation is None and fitted is None:
-        raise _UsageError("--to vtu needs --specimen block:LX,LY,LZ:NX,NY,NZ, indentation or fitted")
+        raise _UsageError("--to vtu needs --specimen block:LX,LY,LZ:NX,NY,NZ, a mesh file, indentation or fitted")
     if args.to == "xpbd" and (args.dt is None or args.iterations is None):
         raise _UsageError("--to xpbd needs --dt SECONDS and --iterations N")
     load_set = None
     if args.load_set is not None:
         lmesh = mesh if mesh is not None else indentation.mesh() if indentation is not None else None
         if lmesh is None:
-            raise _UsageError("--load-set needs the simulator's mesh: --specimen block:LX,LY,LZ:NX,NY,NZ (or indentation); "
+            raise _UsageError("--load-set needs the simulator's mesh: --specimen block:LX,LY,LZ:NX,NY,NZ, a mesh file (or indentation); "
                               "the budget is calibrated on it")
         load_set = _load_set_calibration(card, args, lmesh)
     disp = None if args.displacement is None else args.displacement * f
@@ -1023,8 +1032,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "Poisson ratio; exports E = E* (1 - nu^2) and this nu (without it a card fitted at nu = 0 is refused)")
     x.add_argument("--law", choices=("linear", "neo_hookean", "springs"), default=None,
                    help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
-    x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|indentation|fitted",
+    x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|FILE|indentation|fitted",
                    help="write a complete specimen model: a compression block (fixed base, prescribed top displacement), "
+                        "a tet mesh FILE (VTU, XDMF, Gmsh, Medit, ...; coordinates in --unit, required then) held at its "
+                        "flat base (smallest z) and loaded at its flat top (largest z) like the block, "
                         "'indentation' (the fitted indentation experiment from the card's scenario record, completed by the "
                         "options below), or 'fitted' (the fem_field / compression / incision experiment from the specimen file the fit wrote "
                         "beside the card); required for vtu")
@@ -1041,7 +1052,8 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--steps", type=int, default=10, help="indentation: load increments (default 10)")
     x.add_argument("--scenario", default=None, help="indentation / fitted: the card's scenario record to use (default: the first indentation record; fitted: the only specimen)")
     x.add_argument("--displacement", type=float, default=None, help="top displacement along z in --unit (default: -10%% of the height)")
-    x.add_argument("--unit", choices=_UNITS, default="mm", help="length unit of --specimen and --displacement (default mm); files are in metres")
+    x.add_argument("--unit", choices=_UNITS, default=None, help="length unit of --specimen (a mesh file's coordinates too: required "
+                   "then) and of --displacement and the indentation options (default mm); files are written in metres")
     x.add_argument("--dt", type=float, default=None, help="time step [s] (xpbd: required; pbd: default 1/60)")
     x.add_argument("--iterations", type=int, default=None, help="iterations per substep (xpbd: required, recorded with the compliances; pbd: default 10)")
     x.add_argument("--substeps", type=int, default=None, help="XPBD substeps per time step (default 1; pbd: chosen with dt and "

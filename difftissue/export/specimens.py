@@ -60,7 +60,9 @@ __all__ = ["INDENTERS", "IndentationSpecimen", "indentation_specimen", "indentat
 
 def block_sets(mesh, axis: int = 2, tol: float = 1e-9):
     """``(base nodes, top nodes, height [m])`` of a block specimen: the nodes within ``tol`` x the
-    height of its lowest and highest ``axis`` coordinate (z); ExportError without distinct faces."""
+    height of its lowest and highest ``axis`` coordinate (z); ExportError without distinct faces
+    (for a mesh with tets, also when the base or the top nodes span no boundary face: a mesh
+    from a file whose lowest or highest point is a vertex or an edge)."""
     pts = np.asarray(mesh.points, dtype=float)
     lo, hi = pts[:, axis].min(), pts[:, axis].max()
     t = tol * max(hi - lo, 1e-300)
@@ -68,6 +70,18 @@ def block_sets(mesh, axis: int = 2, tol: float = 1e-9):
     top = np.flatnonzero(pts[:, axis] >= hi - t)
     if base.size == 0 or top.size == 0 or hi <= lo:
         raise ExportError("the specimen mesh has no distinct base and top faces along z")
+    tets = getattr(mesh, "tets", None)
+    if tets is not None:  # a mesh from a file: its extreme nodes must form faces, not a point or an edge
+        faces, _ = boundary_faces(np.asarray(tets))
+        for name, nodes in (("base", base), ("top", top)):
+            on = faces[np.all(np.isin(faces, nodes), axis=1)]
+            tri = pts[on]
+            area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1).sum() if on.size else 0.0
+            if not area > 0.0:
+                raise ExportError(f"the specimen mesh has no flat {name} face normal to z (its {name} is the boundary at the "
+                                  f"{'smallest' if name == 'base' else 'largest'} z, here {nodes.size} node(s) and no face): "
+                                  "the specimen is held at its base and loaded at its top; orient the mesh so that both are "
+                                  "flat faces normal to z")
     return base, top, hi - lo
 
 
