@@ -296,6 +296,9 @@ def test_small_models_are_compiled_at_low_optimisation_with_the_same_numbers(fir
     assert cc._compiler_options(sc.inner) == cc.SMALL_MODEL_COMPILER_OPTIONS
     monkeypatch.setattr(cc, "SMALL_MODEL_NODES", 0)
     assert cc._compiler_options(sc.inner) is None
+    # XLA's default level (3) stated for this program, so that a lower level in the
+    # environment's XLA_FLAGS cannot make both programs the same
+    monkeypatch.setattr(cc, "_compiler_options", lambda scenario: {"xla_backend_optimization_level": 3})
     default = _wrapped(_config(tmp_path))
     y0, jac0, c = _value_and_tangents(default)
     assert c.compiled == 1 and c.hits == 0  # its own program: the options are in the key

@@ -666,19 +666,24 @@ def _pull_scenario():
             return u[None]
 
     probe = Pull("probe", np.array([25.0]), np.zeros(1), np.ones(1))
-    observed = np.asarray(probe.predict(Material(150.0, 0.3)))
+    # jitted: one program instead of the solve's operations dispatched (compiled) one by one
+    observed = np.asarray(jax.jit(lambda E: probe.predict(Material(E, 0.3)))(150.0))
     return Pull("pull", np.array([25.0]), observed, 1e-3 * np.ones(1)), seen
 
 
 @pytest.fixture(scope="module")
 def pull():
-    """One pull scenario for the four reverse-mode cases, and one reverse-mode
-    ``SeparatelyCompiled`` of it: its solve, gradient and separately compiled programs are
-    compiled once for the module (the cases clear the recorded trial points themselves)."""
+    """One pull scenario for the four reverse-mode cases, one reverse-mode ``SeparatelyCompiled``
+    of it, and its prediction and gradient at a failing trial point: its solve, gradient and
+    separately compiled programs are compiled once for the module (the cases clear the recorded
+    trial points themselves)."""
     from difftissue.config import SeparatelyCompiled
 
     sc, seen = _pull_scenario()
-    return sc, seen, SeparatelyCompiled(sc, mode="reverse")
+    # the prediction and its gradient at E = 40 Pa, in the failing region (each one jitted
+    # program, evaluated once for the four cases)
+    premise = jax.jit(jax.value_and_grad(lambda E: sc.predict(Material(E, 0.3))[0]))(40.0)
+    return sc, seen, SeparatelyCompiled(sc, mode="reverse"), np.array([float(premise[0]), float(premise[1])])
 
 
 @pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning", "ignore::difftissue.errors.FitQualityWarning")
@@ -687,9 +692,8 @@ def test_reverse_mode_fit_rejects_a_failed_trial_point(method, separate, pull):
     """A trial point whose static solve fails gives a NaN loss and gradient (failure="nan");
     Adam halves the step, L-BFGS's line search shortens it: the fit continues to the optimum
     instead of stopping with a non-finite loss (Adam did) or raising."""
-    sc, seen, separately_compiled = pull
-    assert np.isnan(float(sc.predict(Material(40.0, 0.3))[0]))  # the premise: a failing region
-    assert np.isnan(float(jax.grad(lambda E: sc.predict(Material(E, 0.3))[0])(40.0)))
+    sc, seen, separately_compiled, premise = pull
+    assert np.isnan(premise).all()  # the premise: a failing region (value and gradient)
     seen.clear()
     kw = {"learning_rate": 1.5, "max_steps": 300} if method == "adam" else {"max_steps": 100}
     target = separately_compiled if separate else sc
