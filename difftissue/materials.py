@@ -476,12 +476,31 @@ def _field_value(material: Material, field: str):
 
 
 # -------------------------------------------------------------- fitting transforms
+def _xp(u):
+    """NumPy for NumPy input (floats, NumPy arrays and scalars: no JAX dispatch, nothing
+    compiled), ``jax.numpy`` otherwise (JAX arrays, tracers)."""
+    return np if isinstance(u, (float, int, np.ndarray, np.generic)) else jnp
+
+
+def _sigmoid(u):
+    """The logistic function ``1 / (1 + exp(-u))``: ``jax.nn.sigmoid`` for JAX input,
+    ``(1 + tanh(u / 2)) / 2`` (no overflow) for NumPy input."""
+    if _xp(u) is np:
+        return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(u, dtype=float)))
+    return jax.nn.sigmoid(u)
+
+
 class Transform(eqx.Module):
     """A smooth bijection from an unconstrained real ``u`` to a bounded parameter value."""
 
     @abc.abstractmethod
     def forward(self, u):
-        """Parameter value from unconstrained ``u``."""
+        """Parameter value from unconstrained ``u`` (NumPy in, NumPy out; JAX arrays and
+        tracers otherwise)."""
+
+    @abc.abstractmethod
+    def derivative(self, u):
+        """``d value / d u`` at ``u`` (NumPy in, NumPy out; JAX arrays and tracers otherwise)."""
 
     @abc.abstractmethod
     def inverse(self, value):
@@ -493,6 +512,9 @@ class Identity(Transform):
 
     def forward(self, u):
         return u
+
+    def derivative(self, u):
+        return _xp(u).ones_like(u)
 
     def inverse(self, value):
         return value
@@ -509,7 +531,10 @@ class Log(Transform):
     scale: float = 1.0
 
     def forward(self, u):
-        return self.lower + self.scale * jnp.exp(u)
+        return self.lower + self.scale * _xp(u).exp(u)
+
+    def derivative(self, u):
+        return self.scale * _xp(u).exp(u)
 
     def inverse(self, value):
         _check_bounds(value, self.lower, None)
@@ -527,7 +552,11 @@ class ScaledLogit(Transform):
             raise MaterialError(f"ScaledLogit needs upper > lower, got ({self.lower}, {self.upper})")
 
     def forward(self, u):
-        return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
+        return self.lower + (self.upper - self.lower) * _sigmoid(u)
+
+    def derivative(self, u):
+        s = _sigmoid(u)
+        return (self.upper - self.lower) * s * (1.0 - s)
 
     def inverse(self, value):
         _check_bounds(value, self.lower, self.upper)

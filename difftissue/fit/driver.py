@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import CheckpointError, FitError, FitQualityWarning, IdentifiabilityWarning
 from ..materials import Material, MaterialParameterization
 from .checkpoint import load_checkpoint, save_checkpoint
+from .host import HostEngine, host_capable
 from .engine import Engine, LoopState, METHODS, cached_engine, final_evaluation, progress_bar, run_steps, tolerances
 from .problem import FitProblem, UNITS
 from .result import plot_layout, FitProgress, FitResult, ScenarioFit
@@ -125,10 +126,18 @@ def fit(
     rtol, atol = tolerances(U.dtype, rtol, atol)
     fingerprint, components = problem.fingerprint(method, n_starts)
 
-    engine = cached_engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
+    if host_capable(problem, method, loss, jac, U.dtype):
+        # every scenario solves on the host: the same Levenberg--Marquardt steps in NumPy,
+        # nothing compiled (difftissue.fit.host)
+        engine = HostEngine(problem, rtol=rtol, atol=atol)
+        U = np.asarray(U)
+        done0 = np.zeros(n_starts, dtype=bool)
+    else:
+        engine = cached_engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
+        done0 = jnp.zeros(n_starts, dtype=bool)
     traces_before = engine.traces
     data = problem.data()
-    state = LoopState(U, engine.init(U, data), jnp.zeros(n_starts, dtype=bool), np.zeros(n_starts, dtype=np.int32))
+    state = LoopState(U, engine.init(U, data), done0, np.zeros(n_starts, dtype=np.int32))
     step_fn = engine.make_step()
     resumed_from = 0
     ckpt = Path(checkpoint) if checkpoint is not None else None
