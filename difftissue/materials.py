@@ -538,7 +538,7 @@ class Log(Transform):
 
     def inverse(self, value):
         _check_bounds(value, self.lower, None)
-        return jnp.log((value - self.lower) / self.scale)
+        return _xp(value).log((value - self.lower) / self.scale)
 
 
 class ScaledLogit(Transform):
@@ -561,7 +561,8 @@ class ScaledLogit(Transform):
     def inverse(self, value):
         _check_bounds(value, self.lower, self.upper)
         s = (value - self.lower) / (self.upper - self.lower)
-        return jnp.log(s) - jnp.log1p(-s)
+        xp = _xp(value)
+        return xp.log(s) - xp.log1p(-s)
 
 
 def _check_bounds(value, lower, upper):
@@ -620,7 +621,11 @@ class MaterialParameterization(eqx.Module):
 
     def pack(self, material: Material) -> jax.Array:
         """Unconstrained vector ``u`` (shape ``(len(fields),)``) of the fitted fields."""
-        return jnp.stack([jnp.asarray(t.inverse(_field_value(material, f)), dtype=float) for f, t in zip(self.fields, self.transforms)])
+        values = [_field_value(material, f) for f in self.fields]
+        if _is_concrete(values):  # NumPy: nothing dispatched to JAX (one compiled program per operation)
+            dtype = jax.dtypes.canonicalize_dtype(float)
+            return np.stack([np.asarray(t.inverse(np.asarray(v, dtype=dtype)), dtype=dtype) for v, t in zip(values, self.transforms)])
+        return jnp.stack([jnp.asarray(t.inverse(v), dtype=float) for v, t in zip(values, self.transforms)])
 
     def values(self, u) -> dict[str, jax.Array]:
         """Physical values of the fitted fields from ``u``."""

@@ -259,8 +259,10 @@ class SeparatelyCompiled:
             # optimiser rejects that trial point instead of the whole fit aborting.
             if not valid(v):
                 return None if shape is None else np.full(shape, np.nan)
+            # host solves take NumPy arrays (nothing dispatched to JAX), compiled programs JAX arrays
+            asarray = np.asarray if self.solves_on_host else jnp.asarray
             try:
-                return fn(jnp.asarray(v, dtype=jnp.float64), *(jnp.asarray(a, dtype=jnp.float64) for a in args))
+                return fn(asarray(v, dtype=np.float64), *(asarray(a, dtype=np.float64) for a in args))
             except Exception as e:  # a static solve that failed to converge, an inverted element, ...
                 self.failures.append(" ".join(str(e).split())[-300:])
                 return None if shape is None else np.full(shape, np.nan)

@@ -26,7 +26,10 @@ from .statistics import assess_quality, effective_modulus, identifiability_diagn
 
 # ============================================================================ fit
 def initial_starts(parameterization, initial: Material, starts, seed: int, spread: float):
-    u0 = jnp.asarray(parameterization.pack(initial))
+    """The unconstrained starts ``(S, p)``: NumPy where the materials are concrete (nothing
+    dispatched to JAX), JAX arrays otherwise."""
+    u0 = parameterization.pack(initial)
+    xp = np if isinstance(u0, np.ndarray) else jnp
     if isinstance(starts, Material):
         starts = [starts]
     if isinstance(starts, (int, np.integer)) and not isinstance(starts, bool):
@@ -36,9 +39,12 @@ def initial_starts(parameterization, initial: Material, starts, seed: int, sprea
             return u0[None, :]
         rng = np.random.default_rng(seed)
         extra = rng.normal(0.0, spread, size=(int(starts) - 1, u0.shape[0]))
-        return jnp.concatenate([u0[None, :], u0[None, :] + jnp.asarray(extra, dtype=u0.dtype)])
+        return xp.concatenate([u0[None, :], u0[None, :] + xp.asarray(extra, dtype=u0.dtype)])
     if isinstance(starts, Sequence) and starts and all(isinstance(m, Material) for m in starts):
-        return jnp.stack([jnp.asarray(parameterization.pack(m), dtype=u0.dtype) for m in starts])
+        packed = [parameterization.pack(m) for m in starts]
+        if all(isinstance(u, np.ndarray) for u in packed):
+            return np.stack([np.asarray(u, dtype=u0.dtype) for u in packed])
+        return jnp.stack([jnp.asarray(u, dtype=u0.dtype) for u in packed])
     raise FitError(f"starts must be an int >= 1 or a non-empty sequence of Material, got {starts!r}")
 
 
@@ -216,7 +222,7 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
     covariance, identifiability diagnostics (emitted as warnings, prefixed by
     ``warning_prefix``) and per-scenario outputs. ``history`` is a list of ``(S,)`` loss rows."""
     fields = problem.fields
-    U = jnp.asarray(U)
+    U = U if isinstance(U, np.ndarray) else jnp.asarray(U)  # NumPy (the host engine): no JAX dispatch
     history = list(history)
     final = np.asarray(final)
     history[-1] = final
