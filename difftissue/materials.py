@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .energies.volume import array_namespace
 from .errors import MaterialError, ModelRangeError
 
 __all__ = [
@@ -476,17 +477,12 @@ def _field_value(material: Material, field: str):
 
 
 # -------------------------------------------------------------- fitting transforms
-def _xp(u):
-    """NumPy for NumPy input (floats, NumPy arrays and scalars: no JAX dispatch, nothing
-    compiled), ``jax.numpy`` otherwise (JAX arrays, tracers)."""
-    return np if isinstance(u, (float, int, np.ndarray, np.generic)) else jnp
-
-
 def _sigmoid(u):
-    """The logistic function ``1 / (1 + exp(-u))``: ``jax.nn.sigmoid`` for JAX input,
-    ``(1 + tanh(u / 2)) / 2`` (no overflow) for NumPy input."""
-    if _xp(u) is np:
-        return 0.5 * (1.0 + np.tanh(0.5 * np.asarray(u, dtype=float)))
+    """The logistic function ``1 / (1 + exp(-u))``: ``jax.nn.sigmoid`` for JAX input, that
+    formula in NumPy for NumPy input (``exp(-u) = inf`` for very negative ``u`` gives 0)."""
+    if array_namespace(u) is np:
+        with np.errstate(over="ignore"):
+            return 1.0 / (1.0 + np.exp(-np.asarray(u, dtype=float)))
     return jax.nn.sigmoid(u)
 
 
@@ -514,7 +510,7 @@ class Identity(Transform):
         return u
 
     def derivative(self, u):
-        return _xp(u).ones_like(u)
+        return array_namespace(u).ones_like(u)
 
     def inverse(self, value):
         return value
@@ -531,14 +527,14 @@ class Log(Transform):
     scale: float = 1.0
 
     def forward(self, u):
-        return self.lower + self.scale * _xp(u).exp(u)
+        return self.lower + self.scale * array_namespace(u).exp(u)
 
     def derivative(self, u):
-        return self.scale * _xp(u).exp(u)
+        return self.scale * array_namespace(u).exp(u)
 
     def inverse(self, value):
         _check_bounds(value, self.lower, None)
-        return _xp(value).log((value - self.lower) / self.scale)
+        return array_namespace(value).log((value - self.lower) / self.scale)
 
 
 class ScaledLogit(Transform):
@@ -556,12 +552,12 @@ class ScaledLogit(Transform):
 
     def derivative(self, u):
         s = _sigmoid(u)
-        return (self.upper - self.lower) * s * (1.0 - s)
+        return (self.upper - self.lower) * (s * (1.0 - s))  # as JAX's derivative of the logistic
 
     def inverse(self, value):
         _check_bounds(value, self.lower, self.upper)
         s = (value - self.lower) / (self.upper - self.lower)
-        xp = _xp(value)
+        xp = array_namespace(value)
         return xp.log(s) - xp.log1p(-s)
 
 

@@ -74,11 +74,14 @@ def _statistically_small(J, r, delta, bound) -> bool:
 
 
 def _lstsq(J, r):
-    with np.errstate(all="ignore"):
-        try:
-            return np.linalg.lstsq(J, r, rcond=None)[0]
-        except np.linalg.LinAlgError:  # non-finite J (LAPACK's SVD did not converge)
-            return np.full(J.shape[1], np.nan)
+    """The least-squares solution of ``J delta = r`` (NaN where ``J`` or ``r`` is not finite:
+    every test that uses it is then False, as in the compiled engine)."""
+    if not (np.all(np.isfinite(J)) and np.all(np.isfinite(r))):
+        return np.full(J.shape[1], np.nan)
+    try:
+        return np.linalg.lstsq(J, r, rcond=None)[0]
+    except np.linalg.LinAlgError:  # LAPACK's SVD did not converge
+        return np.full(J.shape[1], np.nan)
 
 
 def _stationary(J, r, u, rtol, atol, bound) -> bool:
