@@ -20,7 +20,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .energies.volume import array_namespace
 from .errors import MaterialError, ModelRangeError
 
 __all__ = [
@@ -477,10 +476,18 @@ def _field_value(material: Material, field: str):
 
 
 # -------------------------------------------------------------- fitting transforms
+def _xp(u):
+    """NumPy for NumPy input (floats, NumPy arrays and scalars: no JAX dispatch, nothing
+    compiled), ``jax.numpy`` otherwise (JAX arrays, tracers): the rule of
+    :func:`difftissue.energies.volume.array_namespace`, which this module cannot import (the
+    data loaders import it and must not import the physics)."""
+    return np if isinstance(u, (float, int, np.ndarray, np.generic)) else jnp
+
+
 def _sigmoid(u):
     """The logistic function ``1 / (1 + exp(-u))``: ``jax.nn.sigmoid`` for JAX input, that
     formula in NumPy for NumPy input (``exp(-u) = inf`` for very negative ``u`` gives 0)."""
-    if array_namespace(u) is np:
+    if _xp(u) is np:
         with np.errstate(over="ignore"):
             return 1.0 / (1.0 + np.exp(-np.asarray(u, dtype=float)))
     return jax.nn.sigmoid(u)
@@ -510,7 +517,7 @@ class Identity(Transform):
         return u
 
     def derivative(self, u):
-        return array_namespace(u).ones_like(u)
+        return _xp(u).ones_like(u)
 
     def inverse(self, value):
         return value
@@ -527,14 +534,14 @@ class Log(Transform):
     scale: float = 1.0
 
     def forward(self, u):
-        return self.lower + self.scale * array_namespace(u).exp(u)
+        return self.lower + self.scale * _xp(u).exp(u)
 
     def derivative(self, u):
-        return self.scale * array_namespace(u).exp(u)
+        return self.scale * _xp(u).exp(u)
 
     def inverse(self, value):
         _check_bounds(value, self.lower, None)
-        return array_namespace(value).log((value - self.lower) / self.scale)
+        return _xp(value).log((value - self.lower) / self.scale)
 
 
 class ScaledLogit(Transform):
@@ -557,7 +564,7 @@ class ScaledLogit(Transform):
     def inverse(self, value):
         _check_bounds(value, self.lower, self.upper)
         s = (value - self.lower) / (self.upper - self.lower)
-        xp = array_namespace(value)
+        xp = _xp(value)
         return xp.log(s) - xp.log1p(-s)
 
 
