@@ -137,6 +137,13 @@ def test_host_engine_takes_the_compiled_engines_steps():
     _assert_same(on_host, compiled)
 
 
+def test_host_engine_without_steps_evaluates_the_start():
+    """max_steps = 0: no step, the final evaluation at the start (the evaluate path)."""
+    on_host, compiled = _both(_problem_data(), max_steps=0)
+    assert on_host.steps == 0
+    _assert_same(on_host, compiled)
+
+
 def test_host_engine_with_several_starts_and_failing_trial_points():
     """Three starts (one far away, whose steps run into the region where the evaluation fails:
     rejected trial points, a shrinking trust region) give the same iterates and loss history."""

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import FitError
 from .marquardt import INITIAL_DAMPING
 from .problem import FitProblem
 
@@ -152,8 +153,6 @@ class HostEngine:
             y = np.asarray(y, dtype=float)
             JT = np.asarray(JT, dtype=float).reshape(p, -1)
             if y.shape != obs.shape:
-                from ..errors import FitError
-
                 raise FitError(f"scenario {sc.name!r}: predict returned shape {y.shape}, observed has {obs.shape}")
             obs, sig = np.asarray(obs, dtype=float), np.asarray(sig, dtype=float)
             rs.append((y - obs) / sig)
