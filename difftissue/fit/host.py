@@ -6,7 +6,7 @@ specimen wrapped by :class:`~difftissue.config.SeparatelyCompiled`) gives its pr
 its tangents from NumPy (``scenario.predict_and_tangents_on_host(material, tangents)``). The
 compiled fit engine (:mod:`difftissue.fit.engine`) would still trace and compile its step
 (optimistix's machinery around a :func:`jax.pure_callback`) and its final evaluation: about
-1.5 s of CPU for a fit whose arithmetic takes milliseconds. :class:`HostEngine` is the same
+1.3 s of CPU for a fit whose arithmetic takes milliseconds. :class:`HostEngine` is the same
 step in NumPy, with the interface of :class:`~difftissue.fit.engine.Engine` that
 :func:`~difftissue.fit.fit` uses:
 
