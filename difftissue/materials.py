@@ -476,12 +476,34 @@ def _field_value(material: Material, field: str):
 
 
 # -------------------------------------------------------------- fitting transforms
+def _xp(u):
+    """NumPy for NumPy input (floats, NumPy arrays and scalars: no JAX dispatch, nothing
+    compiled), ``jax.numpy`` otherwise (JAX arrays, tracers): the rule of
+    :func:`difftissue.energies.volume.array_namespace`, which this module cannot import (the
+    data loaders import it and must not import the physics)."""
+    return np if isinstance(u, (float, int, np.ndarray, np.generic)) else jnp
+
+
+def _sigmoid(u):
+    """The logistic function ``1 / (1 + exp(-u))``: ``jax.nn.sigmoid`` for JAX input, that
+    formula in NumPy for NumPy input (``exp(-u) = inf`` for very negative ``u`` gives 0)."""
+    if _xp(u) is np:
+        with np.errstate(over="ignore"):
+            return 1.0 / (1.0 + np.exp(-np.asarray(u, dtype=float)))
+    return jax.nn.sigmoid(u)
+
+
 class Transform(eqx.Module):
     """A smooth bijection from an unconstrained real ``u`` to a bounded parameter value."""
 
     @abc.abstractmethod
     def forward(self, u):
-        """Parameter value from unconstrained ``u``."""
+        """Parameter value from unconstrained ``u`` (NumPy in, NumPy out; JAX arrays and
+        tracers otherwise)."""
+
+    @abc.abstractmethod
+    def derivative(self, u):
+        """``d value / d u`` at ``u`` (NumPy in, NumPy out; JAX arrays and tracers otherwise)."""
 
     @abc.abstractmethod
     def inverse(self, value):
@@ -493,6 +515,9 @@ class Identity(Transform):
 
     def forward(self, u):
         return u
+
+    def derivative(self, u):
+        return _xp(u).ones_like(u)
 
     def inverse(self, value):
         return value
@@ -509,11 +534,14 @@ class Log(Transform):
     scale: float = 1.0
 
     def forward(self, u):
-        return self.lower + self.scale * jnp.exp(u)
+        return self.lower + self.scale * _xp(u).exp(u)
+
+    def derivative(self, u):
+        return self.scale * _xp(u).exp(u)
 
     def inverse(self, value):
         _check_bounds(value, self.lower, None)
-        return jnp.log((value - self.lower) / self.scale)
+        return _xp(value).log((value - self.lower) / self.scale)
 
 
 class ScaledLogit(Transform):
@@ -527,12 +555,17 @@ class ScaledLogit(Transform):
             raise MaterialError(f"ScaledLogit needs upper > lower, got ({self.lower}, {self.upper})")
 
     def forward(self, u):
-        return self.lower + (self.upper - self.lower) * jax.nn.sigmoid(u)
+        return self.lower + (self.upper - self.lower) * _sigmoid(u)
+
+    def derivative(self, u):
+        s = _sigmoid(u)
+        return (self.upper - self.lower) * (s * (1.0 - s))  # as JAX's derivative of the logistic
 
     def inverse(self, value):
         _check_bounds(value, self.lower, self.upper)
         s = (value - self.lower) / (self.upper - self.lower)
-        return jnp.log(s) - jnp.log1p(-s)
+        xp = _xp(value)
+        return xp.log(s) - xp.log1p(-s)
 
 
 def _check_bounds(value, lower, upper):
@@ -591,7 +624,11 @@ class MaterialParameterization(eqx.Module):
 
     def pack(self, material: Material) -> jax.Array:
         """Unconstrained vector ``u`` (shape ``(len(fields),)``) of the fitted fields."""
-        return jnp.stack([jnp.asarray(t.inverse(_field_value(material, f)), dtype=float) for f, t in zip(self.fields, self.transforms)])
+        values = [_field_value(material, f) for f in self.fields]
+        if _is_concrete(values):  # NumPy: nothing dispatched to JAX (one compiled program per operation)
+            dtype = jax.dtypes.canonicalize_dtype(float)
+            return np.stack([np.asarray(t.inverse(np.asarray(v, dtype=dtype)), dtype=dtype) for v, t in zip(values, self.transforms)])
+        return jnp.stack([jnp.asarray(t.inverse(v), dtype=float) for v, t in zip(values, self.transforms)])
 
     def values(self, u) -> dict[str, jax.Array]:
         """Physical values of the fitted fields from ``u``."""

@@ -376,14 +376,17 @@ class ElasticModel(eqx.Module):
         return m
 
 
-# Mesh set-up on concrete arrays: one compiled program each instead of one per operation.
-_jit_rest_shape = jax.jit(rest_shape)
-_jit_hexahedron_volumes = jax.jit(jax.vmap(hexahedron_volume))
-_jit_hexahedron_jacobians = jax.jit(jax.vmap(hexahedron_jacobians))
+# Mesh set-up on concrete arrays. The tets' rest shapes in NumPy (the geometry helpers take
+# NumPy input, see difftissue.energies.volume.array_namespace): nothing compiled. The cells'
+# Gauss-point Jacobians and volumes as one compiled program each (not one per operation): a
+# NumPy evaluation differs from it in the last bit, which moves a fit by round-off.
+_host_rest_shape = rest_shape
+_host_hexahedron_volumes = jax.jit(jax.vmap(hexahedron_volume))
+_host_hexahedron_jacobians = jax.jit(jax.vmap(hexahedron_jacobians))
 
 
 def _tet_geometry(mesh: TetMesh):
-    Dm_inv, V0 = _jit_rest_shape(np.asarray(mesh.points, dtype=float)[mesh.tets])
+    Dm_inv, V0 = _host_rest_shape(np.asarray(mesh.points, dtype=float)[mesh.tets])
     Dm_inv, V0 = np.asarray(Dm_inv), np.asarray(V0)
     bad = np.flatnonzero(~(V0 > 0))
     if bad.size:
@@ -678,8 +681,8 @@ class SpringVolumeModel(ElasticModel):
         self.cell_factor_terms = np.concatenate([g[..., None], slope[..., None], ratio], axis=-1)
         self.cells = lat.cubes
         self.cell_regions = lat.cube_region_ids
-        self.cell_jacobians = np.asarray(_jit_hexahedron_jacobians(np.asarray(p[lat.cubes], dtype=float)))
-        self.cell_volumes = np.asarray(_jit_hexahedron_volumes(np.asarray(p[lat.cubes], dtype=float)))
+        self.cell_jacobians = np.asarray(_host_hexahedron_jacobians(np.asarray(p[lat.cubes], dtype=float)))
+        self.cell_volumes = np.asarray(_host_hexahedron_volumes(np.asarray(p[lat.cubes], dtype=float)))
         self.pre_stretch_range = ranges
 
     def checked(self, material: Material) -> "CheckedMaterial":

@@ -259,8 +259,10 @@ class SeparatelyCompiled:
             # optimiser rejects that trial point instead of the whole fit aborting.
             if not valid(v):
                 return None if shape is None else np.full(shape, np.nan)
+            # host solves take NumPy arrays (nothing dispatched to JAX), compiled programs JAX arrays
+            asarray = np.asarray if self.solves_on_host else jnp.asarray
             try:
-                return fn(jnp.asarray(v, dtype=jnp.float64), *(jnp.asarray(a, dtype=jnp.float64) for a in args))
+                return fn(asarray(v, dtype=np.float64), *(asarray(a, dtype=np.float64) for a in args))
             except Exception as e:  # a static solve that failed to converge, an inverted element, ...
                 self.failures.append(" ".join(str(e).split())[-300:])
                 return None if shape is None else np.full(shape, np.nan)
@@ -271,7 +273,11 @@ class SeparatelyCompiled:
             # per load step) are batched. A primal-only call runs it with zero tangents (their
             # linear solves stop at once), so nothing is compiled twice.
             # Compiled ahead of time per tangent count (_compiled_per_shape).
-            if HOST_SOLVES and getattr(scenario, "solves_on_host", False):
+            #: whether the predictions and their tangents are solved on the host (NumPy, no
+            #: compiled protocol): :meth:`predict_and_tangents_on_host` is then available, and
+            #: a Levenberg--Marquardt fit runs its steps on the host too (:mod:`difftissue.fit.host`)
+            self.solves_on_host = bool(HOST_SOLVES and getattr(scenario, "solves_on_host", False))
+            if self.solves_on_host:
                 # A small specimen (solve_on_host: the same numbers to round-off): the protocol's
                 # Newton iterations in NumPy, only the model's derivatives compiled.
                 leaf_names = self._leaves
@@ -353,6 +359,7 @@ class SeparatelyCompiled:
                 return (Y, JT), (True, True)
 
             self._host_f = host_f
+            self._host_tangents = host_tangents
 
             def call_f(v):
                 return jax.pure_callback(host_f, out, v, vmap_method="sequential")
@@ -370,6 +377,7 @@ class SeparatelyCompiled:
 
         else:
             self.scales_with_youngs_modulus = False
+            self.solves_on_host = False
             fwd = _compiled_per_shape(f, program_key("value"), data, options)
             vjp = _compiled_per_shape(lambda d, v, ct: jax.vjp(lambda vv: f(d, vv), v)[1](ct)[0], program_key("vector_jacobian"), data, options)
 
@@ -402,6 +410,34 @@ class SeparatelyCompiled:
         """The prediction at ``material`` on the host, through the same compiled function the
         fit calls (no extra compilation); NaN where the evaluation fails."""
         return self._host_f(np.array([float(v) for v in self._values(material)]))
+
+    def predict_and_tangents_on_host(self, material, tangents: dict) -> tuple[np.ndarray, np.ndarray]:
+        """The prediction at ``material`` and its derivatives along ``K`` material tangents,
+        solved on the host by the same function the fit's compiled code calls (one model solve;
+        only where :attr:`solves_on_host`). NaN where the evaluation fails.
+
+        Args:
+            material: the material (scalar fields).
+            tangents: ``{field: (K,)}``, the tangent of each material field (fields left out:
+                zero).
+
+        Returns:
+            ``(prediction (n,), tangents (K, n))`` (NumPy, float64).
+        """
+        if not self.solves_on_host:
+            raise ConfigError(f"{self.name}: this scenario does not solve on the host (solves_on_host is False)")
+        unknown = [f for f in tangents if f not in self._leaves and f != "pre_stretch_y"]
+        if unknown:
+            raise ConfigError(f"{self.name}: tangents of unknown material fields {unknown} (choose from {list(self._leaves)})")
+        K = len(next(iter(tangents.values()))) if tangents else 0
+        T = np.zeros((K, len(self._leaves)))
+        for i, k in enumerate(self._leaves):
+            # the leaf's value is _values' (pre_stretch_y without one: pre_stretch), so is its tangent
+            source = "pre_stretch" if (k == "pre_stretch_y" and material.pre_stretch_y is None) else k
+            if source in tangents:
+                T[:, i] = np.asarray(tangents[source], dtype=float)
+        v = np.array([float(x) for x in self._values(material)])
+        return self._host_tangents(v, T)
 
     def _values(self, material):
         """The material's leaves in the compiled order (``pre_stretch_y``: see ``__init__``)."""

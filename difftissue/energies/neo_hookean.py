@@ -23,7 +23,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from .springs import safe_norm
-from .volume import cross, dot, tet_signed_volume
+from .volume import array_namespace, cross, dot, tet_signed_volume
 
 __all__ = [
     "det3",
@@ -45,7 +45,7 @@ def det3(A):
     det = 0, unlike an LU-based determinant) and free of matrix-unit (TF32) rounding on
     accelerators in float32.
     """
-    A = jnp.asarray(A)
+    A = array_namespace(A).asarray(A)
     return dot(A[..., 0, :], cross(A[..., 1, :], A[..., 2, :]))
 
 
@@ -70,7 +70,7 @@ def _adjugate3(A):
     """Adjugate ``adj A = det(A) A^-1`` of ``(..., 3, 3)`` matrices: its columns are the
     cross products ``a1 x a2, a2 x a0, a0 x a1`` of the rows ``a_i`` of ``A``."""
     a0, a1, a2 = A[..., 0, :], A[..., 1, :], A[..., 2, :]
-    return jnp.stack([cross(a1, a2), cross(a2, a0), cross(a0, a1)], axis=-1)
+    return array_namespace(A).stack([cross(a1, a2), cross(a2, a0), cross(a0, a1)], axis=-1)
 
 
 def _matmul3(A, B):
@@ -80,7 +80,7 @@ def _matmul3(A, B):
 
 def edge_matrix(x):
     """Edge matrix ``D`` [m] with columns ``x1 - x0, x2 - x0, x3 - x0``: ``(..., 4, 3) -> (..., 3, 3)``."""
-    return jnp.swapaxes(x[..., 1:, :] - x[..., :1, :], -1, -2)
+    return array_namespace(x).swapaxes(x[..., 1:, :] - x[..., :1, :], -1, -2)
 
 
 def rest_shape(X):

@@ -8,15 +8,25 @@ leading batch dimensions ``(...)``; parameters broadcast against ``(...)``.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 
-__all__ = ["cross", "dot", "tet_signed_volume", "volume_constraint", "volume_energy"]
+__all__ = ["array_namespace", "cross", "dot", "tet_signed_volume", "volume_constraint", "volume_energy"]
+
+
+def array_namespace(*arrays):
+    """NumPy when every argument is NumPy (floats, ints, NumPy arrays and scalars: computed on
+    the host, nothing dispatched to JAX, no one-operation program compiled), else ``jax.numpy``
+    (JAX arrays, tracers). The geometry helpers here and in :mod:`.neo_hookean` take both."""
+    if all(isinstance(a, (float, int, np.ndarray, np.generic)) for a in arrays):
+        return np
+    return jnp
 
 
 def cross(a, b):
     """Cross product ``a x b`` of arrays of 3-vectors ``(..., 3)``, written out explicitly."""
     a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
     b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
-    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+    return array_namespace(a, b).stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
 def dot(a, b):

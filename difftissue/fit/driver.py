@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import CheckpointError, FitError, FitQualityWarning, IdentifiabilityWarning
 from ..materials import Material, MaterialParameterization
 from .checkpoint import load_checkpoint, save_checkpoint
+from .host import HostEngine, host_capable
 from .engine import Engine, LoopState, METHODS, cached_engine, final_evaluation, progress_bar, run_steps, tolerances
 from .problem import FitProblem, UNITS
 from .result import plot_layout, FitProgress, FitResult, ScenarioFit
@@ -25,7 +26,10 @@ from .statistics import assess_quality, effective_modulus, identifiability_diagn
 
 # ============================================================================ fit
 def initial_starts(parameterization, initial: Material, starts, seed: int, spread: float):
-    u0 = jnp.asarray(parameterization.pack(initial))
+    """The unconstrained starts ``(S, p)``: NumPy where the materials are concrete (nothing
+    dispatched to JAX), JAX arrays otherwise."""
+    u0 = parameterization.pack(initial)
+    xp = np if isinstance(u0, np.ndarray) else jnp
     if isinstance(starts, Material):
         starts = [starts]
     if isinstance(starts, (int, np.integer)) and not isinstance(starts, bool):
@@ -35,9 +39,12 @@ def initial_starts(parameterization, initial: Material, starts, seed: int, sprea
             return u0[None, :]
         rng = np.random.default_rng(seed)
         extra = rng.normal(0.0, spread, size=(int(starts) - 1, u0.shape[0]))
-        return jnp.concatenate([u0[None, :], u0[None, :] + jnp.asarray(extra, dtype=u0.dtype)])
+        return xp.concatenate([u0[None, :], u0[None, :] + xp.asarray(extra, dtype=u0.dtype)])
     if isinstance(starts, Sequence) and starts and all(isinstance(m, Material) for m in starts):
-        return jnp.stack([jnp.asarray(parameterization.pack(m), dtype=u0.dtype) for m in starts])
+        packed = [parameterization.pack(m) for m in starts]
+        if all(isinstance(u, np.ndarray) for u in packed):
+            return np.stack([np.asarray(u, dtype=u0.dtype) for u in packed])
+        return jnp.stack([jnp.asarray(u, dtype=u0.dtype) for u in packed])
     raise FitError(f"starts must be an int >= 1 or a non-empty sequence of Material, got {starts!r}")
 
 
@@ -125,10 +132,18 @@ def fit(
     rtol, atol = tolerances(U.dtype, rtol, atol)
     fingerprint, components = problem.fingerprint(method, n_starts)
 
-    engine = cached_engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
+    if host_capable(problem, method, loss, jac, U.dtype):
+        # every scenario solves on the host: the same Levenberg--Marquardt steps in NumPy,
+        # nothing compiled (difftissue.fit.host)
+        engine = HostEngine(problem, rtol=rtol, atol=atol)
+        U = np.asarray(U)
+        done0 = np.zeros(n_starts, dtype=bool)
+    else:
+        engine = cached_engine(problem, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)
+        done0 = jnp.zeros(n_starts, dtype=bool)
     traces_before = engine.traces
     data = problem.data()
-    state = LoopState(U, engine.init(U, data), jnp.zeros(n_starts, dtype=bool), np.zeros(n_starts, dtype=np.int32))
+    state = LoopState(U, engine.init(U, data), done0, np.zeros(n_starts, dtype=np.int32))
     step_fn = engine.make_step()
     resumed_from = 0
     ckpt = Path(checkpoint) if checkpoint is not None else None
@@ -207,7 +222,7 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
     covariance, identifiability diagnostics (emitted as warnings, prefixed by
     ``warning_prefix``) and per-scenario outputs. ``history`` is a list of ``(S,)`` loss rows."""
     fields = problem.fields
-    U = jnp.asarray(U)
+    U = U if isinstance(U, np.ndarray) else jnp.asarray(U)  # NumPy (the host engine): no JAX dispatch
     history = list(history)
     final = np.asarray(final)
     history[-1] = final

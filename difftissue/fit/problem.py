@@ -244,7 +244,9 @@ class FitProblem:
         ``eps_k`` the ``prediction_rtol`` of row k's scenario (0 where a scenario states none,
         e.g. closed forms). Below it the steps fit the models' round-off (noise-free,
         simulated data), and the fit engine stops (see :mod:`difftissue.fit.engine`)."""
-        return jnp.sqrt(sum(jnp.sum((eps * obs / sig) ** 2) for eps, obs, sig in zip(self.prediction_rtol, self._observed, self._sigma)))
+        arrays = (*self._observed, *self._sigma)
+        xp = np if all(isinstance(a, np.ndarray) for a in arrays) else jnp  # NumPy data: nothing dispatched to JAX
+        return xp.sqrt(sum(xp.sum((eps * obs / sig) ** 2) for eps, obs, sig in zip(self.prediction_rtol, self._observed, self._sigma)))
 
     def scaled_residuals_of(self, material: Material) -> jax.Array:
         """``(predict - observed) / sigma`` of all scenarios, concatenated, shape ``(n,)`` [-]."""
