@@ -1505,11 +1505,14 @@ class AxisymmetricIndentation(eqx.Module):
         depths = jnp.asarray(self.abscissa) + contact_offset
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
 
-        def step(history, depth):
-            f, u_new = self._force_at(material, depth, _extrapolate(history, depth))
-            return _advance(history, u_new, depth), (f, u_new)
+        # Each depth starts from the previous equilibrium, not from the secant extrapolation
+        # of Indentation (_extrapolate): under a cone the extrapolated state made the line
+        # search fail at the second depth (measured, 4 cells per contact radius, 70 deg).
+        def step(u_prev, depth):
+            f, u_new = self._force_at(material, depth, u_prev)
+            return u_new, (f, u_new)
 
-        _, (forces, us) = jax.lax.scan(step, _history(u0), jnp.asarray(depths, dtype=u0.dtype))
+        _, (forces, us) = jax.lax.scan(step, u0, jnp.asarray(depths, dtype=u0.dtype))
         return forces, us
 
     def resolution(self, min_cells_per_contact_radius: float = MIN_CELLS_PER_CONTACT_RADIUS) -> IndentationResolution:
