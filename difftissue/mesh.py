@@ -15,6 +15,7 @@ import contextlib
 import dataclasses
 import io
 import itertools
+import math
 import warnings
 from pathlib import Path
 from typing import Any, Sequence
@@ -51,6 +52,7 @@ __all__ = [
     "curved_top",
     "structured_grid",
     "graded_axis",
+    "graded_cells",
     "refined_axis",
     "layered_skin",
     "layer_node_heights",
@@ -544,6 +546,16 @@ def structured_grid(
     return TetMesh(points, tets, np.repeat(cid, 6), region_names, lattice=lattice)
 
 
+def graded_cells(length: float, first: float, core: float, growth: float) -> int:
+    """Cells of :func:`graded_axis` over ``length`` [m]: ``core / first`` uniform ones plus the
+    fewest geometric ones (ratio <= ``growth``) that reach ``length``."""
+    n_core = max(1, int(round(core / first)))
+    rest = length - n_core * first
+    if rest <= first:
+        return n_core + 1
+    return n_core + int(math.ceil(math.log1p(rest * (growth - 1.0) / first) / math.log(growth) - 1e-9))
+
+
 def graded_axis(length: float, cells: int, first: float | None = None, *, core: float | None = None) -> np.ndarray:
     """Node coordinates ``0 .. length`` [m] with ``cells`` cells growing geometrically from
     ``first`` [m] (uniform when ``first`` is None or ``>= length / cells``).
@@ -571,7 +583,9 @@ def graded_axis(length: float, cells: int, first: float | None = None, *, core: 
         raise ModelError(f"first cell size must be > 0 m, got {first}")
     from scipy.optimize import brentq
 
-    q = brentq(lambda q: first * (q**cells - 1.0) / (q - 1.0) - length, 1.0 + 1e-12, 1e3)
+    # the sum first (q^n - 1)/(q - 1) exceeds first q^(n-1): the root lies below (length/first)^(1/(n-1))
+    hi = min(1e3, 1.0001 * (length / first) ** (1.0 / (cells - 1)))
+    q = brentq(lambda q: first * (q**cells - 1.0) / (q - 1.0) - length, 1.0 + 1e-12, hi)
     x = np.concatenate([[0.0], np.cumsum(first * q ** np.arange(cells))])
     x[-1] = length
     return x

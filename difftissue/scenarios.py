@@ -44,12 +44,14 @@ import numpy as np
 
 from . import analytic
 from .boundary import BoundaryConditions, apply_rollers, check_rigid_modes, pin_free_rigid_modes
+from .axisymmetric import (AXISYMMETRIC_MODELS, AxisymmetricContactModel, AxisymmetricMesh, AxisymmetricModel,
+                           axisymmetric_boundary_conditions, axisymmetric_cylinder)
 from .contact import (ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, facing_surface_nodes, place_indenter,
                       top_surface_nodes)
 from .energies.volume import tet_signed_volume
 from .errors import BoundaryConditionError, ConfigError, ConvergenceError, DataError, ModelError, ReactionSignError, SelectorError, UnderResolvedContactWarning
 from .materials import Material
-from .mesh import TetMesh, graded_axis, structured_grid
+from .mesh import TetMesh, graded_axis, graded_cells as _graded_cells, structured_grid
 from .interpolation import interpolation_operator
 from .models import ElasticModel, make_model
 from .selectors import select_nodes
@@ -62,6 +64,9 @@ from .structure_keys import data_leaf_indices, hash_scenario_leaves
 __all__ = [
     "AnalyticIndentation",
     "Indentation",
+    "AxisymmetricIndentation",
+    "AxisymmetricSpecimen",
+    "axisymmetric_specimen_for",
     "Compression",
     "FEMField",
     "graded_axis",
@@ -308,16 +313,6 @@ class IndentationSpecimen:
         n_z = _graded_cells(self.size[2], h0, self.core, CELL_GROWTH)
         return dataclasses.replace(self, cells=(n_xy, n_xy, n_z), refine=h0, cells_per_contact_radius=m,
                                    force_error=_tabulated_force_error(self.indenter, m))
-
-
-def _graded_cells(length: float, first: float, core: float, growth: float) -> int:
-    """Cells of :func:`graded_axis` over ``length`` [m]: ``core / first`` uniform ones plus the
-    fewest geometric ones (ratio <= ``growth``) that reach ``length``."""
-    n_core = max(1, int(round(core / first)))
-    rest = length - n_core * first
-    if rest <= first:
-        return n_core + 1
-    return n_core + int(math.ceil(math.log1p(rest * (growth - 1.0) / first) / math.log(growth) - 1e-9))
 
 
 def indentation_specimen_for(indenter: str, *, radius: float | None = None, half_angle: float | None = None, max_depth: float,
@@ -1322,6 +1317,252 @@ class Indentation(eqx.Module):
             rec["penalty"] = float(self.model.penalty)
             if not self.model.indenter.on_flat_top:
                 rec["surface"] = "boundary"
+        return _with_depths(rec, self.abscissa, every=True)
+
+
+#: Cells per contact radius (at the largest depth) of the automatic axisymmetric specimen
+#: (:func:`axisymmetric_specimen_for`), from ``experiments/axisymmetric_indentation.py``
+#: (docs/experiments.md, "Axisymmetric indentation").
+AXISYMMETRIC_CELLS_PER_CONTACT_RADIUS = 8
+#: Largest ratio of neighbouring cell sizes outside the core of the automatic axisymmetric specimen [-].
+AXISYMMETRIC_CELL_GROWTH = 1.15
+
+
+@dataclasses.dataclass(frozen=True)
+class AxisymmetricSpecimen:
+    """A cylinder's meridian mesh for axisymmetric indentation chosen from the indenter and the
+    depth (:func:`axisymmetric_specimen_for`): the arguments of
+    :func:`~difftissue.axisymmetric.axisymmetric_cylinder` and why.
+
+    Attributes:
+        radius, height: the cylinder [m].
+        first: cell size [m] at the contact (uniform within ``core`` of the axis and the top).
+        core: width [m] of the uniform core.
+        growth: largest ratio of neighbouring cell sizes beyond the core [-].
+        contact_radius: half-space contact radius ``a`` [m] at the largest depth.
+        cells_per_contact_radius: ``a / first`` [-].
+        thickness_given: True when the height is the specimen's own (a layer), False for the
+            half-space approximation (radius and height ``extent * a``).
+        indenter: ``"sphere"`` or ``"cone"``.
+    """
+
+    radius: float
+    height: float
+    first: float
+    core: float
+    growth: float
+    contact_radius: float
+    cells_per_contact_radius: float
+    thickness_given: bool
+    indenter: str
+
+    def mesh(self) -> AxisymmetricMesh:
+        """The meridian mesh (:func:`~difftissue.axisymmetric.axisymmetric_cylinder`)."""
+        return axisymmetric_cylinder(self.radius, self.height, first=self.first, core=self.core, growth=self.growth)
+
+    def refined(self, factor: float) -> "AxisymmetricSpecimen":
+        """Every cell divided by ``factor`` (> 0; < 1 coarsens): first cells ``first / factor``
+        and growth ``growth ** (1 / factor)`` (the graded cells shrink alike), same size and
+        core: the sequence of a convergence study with cell size ratio ``factor``."""
+        f = float(factor)
+        if not (math.isfinite(f) and f > 0):
+            raise ConfigError(f"factor must be a positive number, got {factor!r}")
+        return dataclasses.replace(self, first=self.first / f, growth=self.growth ** (1.0 / f),
+                                   cells_per_contact_radius=self.cells_per_contact_radius * f)
+
+    def record(self) -> dict:
+        """The choice as plain numbers (SI) for reports and ``fit.json``."""
+        return {"rule": "axisymmetric_specimen_for", "geometry": "axisymmetric", "radius": self.radius, "height": self.height,
+                "first": self.first, "core": self.core, "growth": self.growth, "contact_radius": self.contact_radius,
+                "cells_per_contact_radius": self.cells_per_contact_radius, "thickness_given": self.thickness_given,
+                "indenter": self.indenter}
+
+
+def axisymmetric_specimen_for(indenter: str, *, radius: float | None = None, half_angle: float | None = None, max_depth: float,
+                              thickness: float | None = None, cells_per_contact_radius: float = AXISYMMETRIC_CELLS_PER_CONTACT_RADIUS,
+                              growth: float = AXISYMMETRIC_CELL_GROWTH, extent: float = HALF_SPACE_EXTENT) -> AxisymmetricSpecimen:
+    """The cylinder to simulate a sphere or cone indentation to ``max_depth`` [m] axisymmetrically.
+
+    The half-space contact radius ``a`` at ``max_depth`` (:func:`indentation_contact_radius`)
+    sets the scale: cells of ``a / cells_per_contact_radius`` within ``CONTACT_CORE * a`` of the
+    axis and the surface, growing by at most ``growth`` beyond, out to a radius of
+    ``extent * a`` and a height of ``extent * a`` (a half-space) or ``thickness`` [m] (a
+    bonded layer of that thickness).
+
+    Raises:
+        ConfigError: an unknown indenter, a missing size, a non-positive depth or thickness.
+    """
+    if indenter not in ("sphere", "cone"):
+        raise ConfigError(f"the axisymmetric specimen is for a sphere or a cone, got {indenter!r}")
+    d = float(max_depth)
+    if not (math.isfinite(d) and d > 0):
+        raise ConfigError(f"max_depth must be > 0 m, got {max_depth!r}")
+    m = float(cells_per_contact_radius)
+    if not (math.isfinite(m) and m >= 1):
+        raise ConfigError(f"cells_per_contact_radius must be >= 1, got {cells_per_contact_radius!r}")
+    if not (math.isfinite(float(growth)) and float(growth) > 1):
+        raise ConfigError(f"growth must be > 1, got {growth!r}")
+    a = float(indentation_contact_radius(indenter, d, radius=radius, half_angle=half_angle))
+    H = extent * a if thickness is None else float(thickness)
+    if not (math.isfinite(H) and H > 0):
+        raise ConfigError(f"thickness must be > 0 m, got {thickness!r}")
+    return AxisymmetricSpecimen(radius=float(extent * a), height=H, first=a / m, core=CONTACT_CORE * a, growth=float(growth),
+                                contact_radius=a, cells_per_contact_radius=m, thickness_given=thickness is not None, indenter=indenter)
+
+
+class AxisymmetricIndentation(eqx.Module):
+    """Simulated indentation of a cylinder by a sphere or cone on its axis, solved in the
+    meridian plane (:mod:`difftissue.axisymmetric`): force at each depth of a protocol.
+
+    The specimen is a cylinder with its top at ``z = height`` and its base ``"bonded"`` or
+    ``"sliding"``; its outer radius is free. By default it is the half-space-like cylinder of
+    :func:`axisymmetric_specimen_for` (``thickness`` makes it a layer), or give ``mesh`` (an
+    :class:`~difftissue.axisymmetric.AxisymmetricMesh`). Frictionless penalty contact as in
+    :class:`Indentation` (:class:`~difftissue.axisymmetric.AxisymmetricContactModel`); the
+    depths are solved in order, each from the previous equilibrium, with a Newton solve of the
+    whole meridian mesh and a sparse direct factorisation (``options.linear_solver="auto"``
+    means ``"sparse"`` here); the gradient with respect to the material is implicit at every
+    depth. Models: ``fem_linear`` and ``fem_neo_hookean`` (the springs_volume lattice and the
+    stable neo-Hookean element have no axisymmetric form: use :class:`Indentation`).
+    """
+
+    name: str = eqx.field(static=True)
+    abscissa: np.ndarray
+    observed: np.ndarray
+    sigma: np.ndarray
+    model: AxisymmetricContactModel
+    bc: BoundaryConditions
+    specimen: AxisymmetricSpecimen | None = eqx.field(static=True)
+    options: SolverOptions = eqx.field(static=True)
+    x_label: str = eqx.field(static=True, default="depth [m]")
+    y_label: str = eqx.field(static=True, default="force [N]")
+
+    def __init__(self, depths, forces=None, *, indenter: str = "sphere", radius: float | None = None, half_angle: float | None = None,
+                 model: str = "fem_linear", mesh: AxisymmetricMesh | None = None, thickness: float | None = None,
+                 cells_per_contact_radius: float = AXISYMMETRIC_CELLS_PER_CONTACT_RADIUS, base: str = "bonded", penalty: float = 100.0,
+                 sigma=None, options: SolverOptions = SolverOptions(), name: str = "indentation"):
+        """
+        Args:
+            depths: depth protocol [m], non-decreasing, from the contact point.
+            forces: measured forces [N] (None: predictions only, ``observed`` is zeros).
+            indenter: ``"sphere"`` (``radius`` [m]) or ``"cone"`` (``half_angle`` [rad]).
+            model: ``"fem_linear"`` or ``"fem_neo_hookean"``.
+            mesh: the cylinder's meridian mesh; default :func:`axisymmetric_specimen_for`
+                at the largest depth with ``thickness`` and ``cells_per_contact_radius``.
+            base: ``"bonded"`` or ``"sliding"``.
+            penalty: contact penalty (see :class:`~difftissue.contact.ContactModel`).
+        """
+        self.name = str(name)
+        d = _as_1d("depths", depths)
+        _check_depths(d)
+        self.abscissa = d
+        self.observed = np.zeros_like(d) if forces is None else _as_1d("forces", forces)
+        if self.observed.shape != d.shape:
+            raise DataError(f"{d.size} depths but {self.observed.size} forces")
+        self.sigma = _sigma(self.observed, sigma) if forces is not None else np.ones_like(d)
+        self.options = options if options.linear_solver != "auto" else dataclasses.replace(options, linear_solver="sparse")
+        self.x_label, self.y_label = "depth [m]", "force [N]"
+        if model not in AXISYMMETRIC_MODELS:
+            raise ConfigError(f"the axisymmetric indentation supports the models {AXISYMMETRIC_MODELS}, got {model!r}"
+                              + (": a lattice has no axisymmetric form, use Indentation (3-D)" if model == "springs_volume" else ""))
+        if indenter not in ("sphere", "cone"):
+            raise ConfigError(f"the axisymmetric indentation takes indenter 'sphere' or 'cone', got {indenter!r}")
+        if mesh is None:
+            self.specimen = axisymmetric_specimen_for(indenter, radius=radius, half_angle=half_angle, max_depth=float(d.max()),
+                                                      thickness=thickness, cells_per_contact_radius=cells_per_contact_radius)
+            mesh = self.specimen.mesh()
+        else:
+            if not isinstance(mesh, AxisymmetricMesh):
+                raise ConfigError(f"mesh must be an AxisymmetricMesh (difftissue.axisymmetric), got {type(mesh).__name__}")
+            if thickness is not None:
+                raise ConfigError("thickness sets the automatic specimen's height; with a mesh given, leave it unset")
+            self.specimen = None
+        top = float(mesh.points[:, 1].max())
+        if indenter == "sphere":
+            if radius is None:
+                raise ConfigError("a sphere indenter needs radius [m]")
+            geom = SphereIndenter(float(radius), surface_z=top)
+        else:
+            if half_angle is None:
+                raise ConfigError("a cone indenter needs half_angle [rad]")
+            geom = ConeIndenter(float(half_angle), surface_z=top)
+        self.model = AxisymmetricContactModel(AxisymmetricModel(mesh, model), geom, mesh, penalty=penalty)
+        self.bc = axisymmetric_boundary_conditions(mesh, base=base)
+
+    def _force_at(self, material, depth, u0):
+        model = self.model.with_depth(depth)
+        sol = _solve(model, material, self.bc, u0, self.options)
+        return model.reaction_force(jnp.asarray(model.rest_points) + sol.displacement, material), sol.displacement
+
+    def solve(self, material: Material, contact_offset=0.0):
+        """``(forces (n,) [N], displacements (n, N, 3) [m])`` along the protocol; the
+        displacements are ``(u_r, 0, u_z)`` of the meridian nodes. ``contact_offset`` [m] is
+        added to every depth (see :meth:`Indentation.solve`)."""
+        material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+        return _jitted_solve(self)(material, jnp.asarray(contact_offset, dtype=float))
+
+    def _solve_protocol(self, material: Material, contact_offset=0.0):
+        depths = jnp.asarray(self.abscissa) + contact_offset
+        u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
+
+        # Each depth starts from the previous equilibrium, not from the secant extrapolation
+        # of Indentation (_extrapolate): under a cone the extrapolated state made the line
+        # search fail at the second depth (measured, 4 cells per contact radius, 70 deg).
+        def step(u_prev, depth):
+            f, u_new = self._force_at(material, depth, u_prev)
+            return u_new, (f, u_new)
+
+        _, (forces, us) = jax.lax.scan(step, u0, jnp.asarray(depths, dtype=u0.dtype))
+        return forces, us
+
+    def resolution(self, min_cells_per_contact_radius: float = MIN_CELLS_PER_CONTACT_RADIUS) -> IndentationResolution:
+        """Cells per contact radius at each depth (as :meth:`Indentation.resolution`): the
+        half-space contact radius over the median spacing of the top nodes nearest the axis."""
+        m = float(min_cells_per_contact_radius)
+        if not (math.isfinite(m) and m > 0):
+            raise ConfigError(f"min_cells_per_contact_radius must be a positive number of cells, got {min_cells_per_contact_radius!r}")
+        geom = self.model.indenter
+        r = np.asarray(self.model.rest_points)[np.asarray(self.model.contact_nodes), 0]
+        h = float(np.median(np.diff(np.sort(r))[:_AXIS_NODES]))
+        kind = "sphere" if isinstance(geom, SphereIndenter) else "cone"
+        a = indentation_contact_radius(kind, self.abscissa, radius=getattr(geom, "radius", None), half_angle=getattr(geom, "half_angle", None))
+        return IndentationResolution(name=self.name, indenter=kind, depths=np.asarray(self.abscissa, dtype=float), contact_radius=a,
+                                     cell_size=h, cells_per_contact_radius=a / h, min_cells_per_contact_radius=m)
+
+    @property
+    def prediction_rtol(self) -> float:
+        """Relative precision [-] of the predictions (from the solver options)."""
+        return self.options.prediction_rtol
+
+    @property
+    def prediction_scales_with_youngs_modulus(self) -> bool:
+        """True: both models' energies and the penalty are linear in ``E`` and the depths are
+        prescribed (see :attr:`Indentation.prediction_scales_with_youngs_modulus`)."""
+        return _scales_with_youngs_modulus(self.model, self.bc)
+
+    def predict(self, material: Material, contact_offset=0.0):
+        """Indentation force [N] at each depth (positive compressive)."""
+        return self.solve(material, contact_offset)[0]
+
+    def record(self) -> dict:
+        """The experiment as a material card's scenario record: ``name``, ``type``,
+        ``experiment = "indentation"``, ``geometry = "axisymmetric"``, the indenter, ``base``,
+        the cylinder's ``radius_of_specimen`` and ``height`` [m], the mesh's
+        ``cells_per_contact_radius`` and ``growth`` (the automatic specimen's), ``model``,
+        ``penalty`` and the depths."""
+        rec: dict[str, Any] = {"name": self.name, "type": type(self).__name__, "experiment": "indentation", "geometry": "axisymmetric"}
+        rec.update(self.model.indenter.record())
+        rest = np.asarray(self.model.rest_points)
+        fixed = np.asarray(self.bc.fixed)
+        bottom = np.flatnonzero(np.abs(rest[:, 2] - rest[:, 2].min()) <= 1e-9 * float(np.ptp(rest[:, 2])))
+        rec["base"] = "bonded" if np.all(fixed[bottom][:, [0, 2]]) else "sliding"
+        rec["radius_of_specimen"] = float(rest[:, 0].max())
+        rec["height"] = float(np.ptp(rest[:, 2]))
+        rec["nodes"] = int(rest.shape[0])
+        if self.specimen is not None:
+            rec["specimen"] = self.specimen.record()
+        rec["model"] = str(self.model.kind)
+        rec["penalty"] = float(self.model.penalty)
         return _with_depths(rec, self.abscissa, every=True)
 
 
