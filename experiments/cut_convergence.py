@@ -574,8 +574,13 @@ if __name__ == "__main__":
         res["cell"] = c
         res["cpu_seconds_total"] = time.process_time() - t0
         _write(f"cut_convergence_springs_cell{c:.3g}mm.json", res)
-    if a.p2:
-        _write("cut_convergence_p2.json", p2_reference(a.p2))
+    if a.p2:  # merged into the levels already measured (a level given again is replaced)
+        new = p2_reference(a.p2)
+        old = _load("cut_convergence_p2.json")
+        if old is not None and old.get("q") == new["q"]:
+            new["rows"] = [r for r in old["rows"] if r["n"] not in a.p2] + new["rows"]
+        new["rows"].sort(key=lambda r: (r["n"], r["pre_stretch"]))
+        _write("cut_convergence_p2.json", new)
     if a.rotation:
         old = _load("cut_convergence_rotation.json") or []
         for c in a.rotation:
