@@ -607,11 +607,13 @@ class SpringVolumeModel(ElasticModel):
     factors of the mesh cell and shrinks only the rest lengths and the rest volume. Its
     linear response about the stress-free state is isotropic only to O(lambda0 - 1), but at
     finite pre-stretch its response is closer to the neo-Hookean continuum's: the stress-free
-    lattice has stiff out-of-plane edges (factor ``3 V / (4 hz^2)`` per unit of ``s - 1``) and
+    lattice of cubes has in-plane edge factors ``2 - lambda0^-2`` and out-of-plane edge factors
+    ``3 lambda0^-2 - 2`` times a cube's (1.24 and 0.27 at 1.15), and
     carries 3 / 6 / 8 % less surface tension than ``fem_neo_hookean`` at lambda0 = 1.05 / 1.10 /
-    1.15 (nu = 0.45) and opens an incision 4 / 11 / 16 % less; the mesh lattice carries 3 / 6 / 9
-    % more tension and opens the incision within 5 % (docs/experiments.md, "Cut openings at
-    resolution"). Equal to the default at ``lambda0 = 1`` bit for bit; no pre-stretch range limit.
+    1.15 (nu = 0.45) and opens an incision 4 / 11 / 16 % less at any cell size; the mesh lattice
+    carries 3 / 6 / 9 % more tension and opens it 5 / 10 / 14 % wider (docs/experiments.md, "Cut
+    openings at resolution"). Equal to the default at ``lambda0 = 1`` bit for bit; no
+    pre-stretch range limit.
     A spring shared by cells of different regions is one element per region (their rest
     lengths differ when the regions' pre-stretches do).
 
