@@ -407,7 +407,7 @@ class Incision(eqx.Module):
             q = p[np.unique(tets[sel])]
             area = np.ptp(q[:, 0]) * np.ptp(q[:, 1])
             cell = None
-            if self.kind == "springs_volume" and lattice is not None and np.any(np.asarray(lattice.cube_region_ids) == r):
+            if self.kind.startswith("springs_volume") and lattice is not None and np.any(np.asarray(lattice.cube_region_ids) == r):
                 cell = np.median(np.asarray(lattice.cell_size)[np.asarray(lattice.cube_region_ids) == r], axis=0)
             out.append((mesh.region_names[r], float(np.sum(vol[sel]) / area), cell))
         return out

@@ -56,6 +56,8 @@ from .mesh import _CUBE_DIAGONALS, _CUBE_EDGES, _CUBE_CORNERS, TetMesh, node_pat
 __all__ = [
     "MODELS",
     "NODAL_FEM_MODELS",
+    "LATTICE_VARIANTS",
+    "PRE_STRETCH_LATTICES",
     "ElementTerm",
     "ElasticModel",
     "SpringVolumeModel",
@@ -72,6 +74,13 @@ MODELS = ("springs_volume", "stable_neo_hookean", "fem_linear", "fem_neo_hookean
 #: The FEM models with a node-based volumetric term (:class:`FEMModel` with
 #: ``volumetric="nodal"``), also accepted by :func:`make_model`.
 NODAL_FEM_MODELS = ("fem_linear_nodal", "fem_neo_hookean_nodal")
+#: How :class:`SpringVolumeModel` builds the lattice of a pre-stretched region: ``"stress_free"``
+#: (the default: spring factors of the cell shrunk by ``1/lambda0``) or ``"mesh"`` (the mesh
+#: cell's factors, only rest lengths and rest volumes shrunk).
+PRE_STRETCH_LATTICES = ("stress_free", "mesh")
+#: ``springs_volume`` with ``pre_stretch_lattice="mesh"`` (:class:`SpringVolumeModel`), accepted by
+#: :func:`make_model`; its ``kind`` is ``"springs_volume"``.
+LATTICE_VARIANTS = ("springs_volume_mesh_lattice",)
 
 
 class ElementTerm(eqx.Module):
@@ -596,6 +605,18 @@ class SpringVolumeModel(ElasticModel):
     ``L0 sqrt(1 + c (sx - 1) + c_y (sy - sx))`` (``s = lambda^-2``, ``c_y`` the y fraction),
     factors of :func:`_cell_spring_factor_ratio_slopes`, rest volume ``V / (lambda_x lambda_y)``;
     with ``lambda_y = lambda_x`` all of it is bit for bit the equibiaxial model.
+
+    ``pre_stretch_lattice="mesh"`` (model name ``"springs_volume_mesh_lattice"``) keeps the spring
+    factors of the mesh cell and shrinks only the rest lengths and the rest volume. Its
+    linear response about the stress-free state is isotropic only to O(lambda0 - 1), but at
+    finite pre-stretch its response is closer to the neo-Hookean continuum's: the stress-free
+    lattice of cubes has in-plane edge factors ``2 - lambda0^-2`` and out-of-plane edge factors
+    ``3 lambda0^-2 - 2`` times a cube's (1.24 and 0.27 at 1.15), and
+    carries 3 / 6 / 8 % less surface tension than ``fem_neo_hookean`` at lambda0 = 1.05 / 1.10 /
+    1.15 (nu = 0.45) and opens an incision 4 / 11 / 16 % less at any cell size; the mesh lattice
+    carries 3 / 6 / 9 % more tension and opens it 5 / 10 / 14 % wider (docs/experiments.md, "Cut
+    openings at resolution"). Equal to the default at ``lambda0 = 1`` bit for bit; no
+    pre-stretch range limit.
     A spring shared by cells of different regions is one element per region (their rest
     lengths differ when the regions' pre-stretches do).
 
@@ -615,6 +636,7 @@ class SpringVolumeModel(ElasticModel):
             mesh [m^3] (the reference of :meth:`min_volume_ratio`).
         pre_stretch_range: ``(n_regions, 2)`` range of ``lambda0`` per region for which no
             spring factor of its cells turns negative.
+        pre_stretch_lattice: one of :data:`PRE_STRETCH_LATTICES` (see above).
     """
 
     springs: np.ndarray
@@ -632,8 +654,12 @@ class SpringVolumeModel(ElasticModel):
     cell_volumes: np.ndarray
     cell_jacobians: np.ndarray
     pre_stretch_range: np.ndarray
+    pre_stretch_lattice: str = eqx.field(static=True)
 
-    def __init__(self, mesh: TetMesh):
+    def __init__(self, mesh: TetMesh, *, pre_stretch_lattice: str = "stress_free"):
+        if pre_stretch_lattice not in PRE_STRETCH_LATTICES:
+            raise ModelError(f"pre_stretch_lattice must be one of {PRE_STRETCH_LATTICES}, got {pre_stretch_lattice!r}")
+        self.pre_stretch_lattice = pre_stretch_lattice
         for k, v in _base_fields(mesh, "springs_volume", 0.25).items():
             setattr(self, k, v)
         lat = mesh.lattice
@@ -653,6 +679,8 @@ class SpringVolumeModel(ElasticModel):
             )
         slope = _cell_spring_factor_slopes(lat.cell_size)
         ratio = _cell_spring_factor_ratio_slopes(lat.cell_size)
+        if pre_stretch_lattice == "mesh":  # the mesh cell's factors at every pre-stretch
+            slope, ratio = np.zeros_like(slope), np.zeros_like(ratio)
         R = len(mesh.region_names)
         rows = (lat.cube_springs.reshape(-1), np.repeat(lat.cube_region_ids, 24))
         factors = np.zeros((lat.n_springs, R))
@@ -785,9 +813,12 @@ class SpringVolumeModel(ElasticModel):
 
 
 def make_model(mesh: TetMesh, kind: str = "springs_volume") -> ElasticModel:
-    """Build a model of ``mesh``: one of :data:`MODELS` or :data:`NODAL_FEM_MODELS`
-    (``"fem_linear_nodal"`` is ``FEMModel(mesh, "fem_linear", volumetric="nodal")``, its
-    ``kind`` is ``"fem_linear"``: the same continuum law)."""
+    """Build a model of ``mesh``: one of :data:`MODELS`, :data:`NODAL_FEM_MODELS` or
+    :data:`LATTICE_VARIANTS` (``"fem_linear_nodal"`` is ``FEMModel(mesh, "fem_linear",
+    volumetric="nodal")``, its ``kind`` is ``"fem_linear"``: the same continuum law;
+    ``"springs_volume_mesh_lattice"`` is ``SpringVolumeModel(mesh, pre_stretch_lattice="mesh")``)."""
+    if kind == "springs_volume_mesh_lattice":
+        return SpringVolumeModel(mesh, pre_stretch_lattice="mesh")
     if kind in NODAL_FEM_MODELS:
         return FEMModel(mesh, kind.removesuffix("_nodal"), volumetric="nodal")
     if kind == "springs_volume":
@@ -796,4 +827,4 @@ def make_model(mesh: TetMesh, kind: str = "springs_volume") -> ElasticModel:
         return StableNeoHookeanModel(mesh)
     if kind in ("fem_linear", "fem_neo_hookean"):
         return FEMModel(mesh, kind)
-    raise ModelError(f"unknown model {kind!r}; choose one of {MODELS + NODAL_FEM_MODELS}")
+    raise ModelError(f"unknown model {kind!r}; choose one of {MODELS + NODAL_FEM_MODELS + LATTICE_VARIANTS}")

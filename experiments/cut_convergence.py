@@ -58,8 +58,9 @@ def _write(name, data):
 # springs_volume on the staircase cut
 
 
-def springs_cell(cell, lams=LAMS, angles=(0.0, 25.0), size=SIZE):
-    """Max / mean surface width of springs_volume on the staircase cut at one cell size [m]."""
+def springs_cell(cell, lams=LAMS, angles=(0.0, 25.0), size=SIZE, model="springs_volume"):
+    """Max / mean surface width of springs_volume (or ``model``, e.g. its variant
+    ``springs_volume_mesh_lattice``) on the staircase cut at one cell size [m]."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -73,10 +74,10 @@ def springs_cell(cell, lams=LAMS, angles=(0.0, 25.0), size=SIZE):
     skin = Material(E_DERMIS, NU)
     spec = specimen(cell)
     opts = IncisionOptions(scalpel_steps=1, linear_solver="sparse")
-    out = {"cell": cell, "nodes": spec.mesh.n_nodes, "rows": []}
+    out = {"cell": cell, "model": model, "nodes": spec.mesh.n_nodes, "rows": []}
     for angle in angles:
         cut = cut_specimen(spec, path(angle), method="staircase")
-        inc = Incision(cut, model="springs_volume", fitted_regions=("dermis",), options=opts)
+        inc = Incision(cut, model=model, fitted_regions=("dermis",), options=opts)
         for lam in lams:
             t0 = time.process_time()
             res = inc.solve(skin.replace(pre_stretch=lam))
@@ -448,9 +449,17 @@ def rotation_ratio():
     return out
 
 
-def springs_table(quantity="max_width"):
+def _springs_runs(model="springs_volume"):
+    return sorted((json.loads(p.read_text()) for p in RESULTS.glob(f"cut_convergence_{_tag(model)}_cell*mm.json")), key=lambda d: -d["cell"])
+
+
+def _tag(model):
+    return "springs" if model == "springs_volume" else model.replace("springs_volume", "springs")
+
+
+def springs_table(quantity="max_width", model="springs_volume"):
     """Markdown rows: springs_volume (staircase) at each cell size against the reference."""
-    runs = sorted((json.loads(p.read_text()) for p in RESULTS.glob("cut_convergence_springs_cell*mm.json")), key=lambda d: -d["cell"])
+    runs = _springs_runs(model)
     ref = reference()
     rot = rotation_ratio()
     q = quantity + "_mm"
@@ -465,10 +474,12 @@ def springs_table(quantity="max_width"):
                 target *= ratios[-1][1] if ratios else float("nan")
             hs, vals = [], []
             for d in runs:
-                hit = [x for x in d["rows"] if x["angle"] == angle and x["pre_stretch"] == lam]
+                hit = [x for x in d["rows"] if x["angle"] == angle and abs(x["pre_stretch"] - lam) < 1e-9]
                 if hit:
                     hs.append(d["cell"])
                     vals.append(hit[0][quantity] * 1e3)
+            if not vals:
+                continue
             err = [v / target - 1.0 for v in vals]
             p_ref = float(np.log(abs(err[-2] / err[-1])) / np.log(hs[-2] / hs[-1])) if len(err) >= 2 and err[-1] * err[-2] > 0 else float("nan")
             p3, rich = order3(vals[-3:], hs[-3:]) if len(vals) >= 3 else (float("nan"), float("nan"))
@@ -479,8 +490,8 @@ def springs_table(quantity="max_width"):
     return lines
 
 
-def markdown():
-    """The two tables of docs/experiments.md (max surface width)."""
+def markdown(models=("springs_volume", "springs_volume_mesh_lattice")):
+    """The tables of docs/experiments.md (max surface width)."""
     ref = reference()
     rot = rotation_ratio()
     lines = ["| λ0 | P2 levels n (quarter): max surface width | observed order | extrapolated (± estimate) | 25° / 0° (whole square, P2) |", "|---|---|---|---|---|"]
@@ -493,17 +504,23 @@ def markdown():
         lab = "linear limit" if lam == LINEAR else f"{lam:.2f}"
         lines.append(f"| {lab} | {vals} | {o} | {r['value'] * sc:.4f} ± {r['error'] * sc:.4f} ({100 * r['error'] / r['value']:.1f} %) | {ratio} |")
     print("\n".join(lines) + "\n")
-    runs = sorted((json.loads(p.read_text()) for p in RESULTS.glob("cut_convergence_springs_cell*mm.json")), key=lambda d: -d["cell"])
-    hs = [d["cell"] for d in runs]
+    for model in models:
+        if _springs_runs(model):
+            print(f"\n{model}\n")
+            _springs_markdown(model)
+
+
+def _springs_markdown(model):
+    hs = [d["cell"] for d in _springs_runs(model)]
     lines = ["| cut | λ0 | reference | " + " | ".join(f"h = {h:.3g} mm" for h in hs) + " | own order | extrapolated | h for 5 % |",
              "|---|---|---|" + "---|" * (len(hs) + 3)]
-    for ln in springs_table("max_width"):
+    for ln in springs_table("max_width", model):
         vals = {h: (v, e) for h, v, e in zip(ln["cells"], ln["values"], ln["errors"])}
         cells = " | ".join(f"{vals[h][0]:.4f} ({100 * vals[h][1]:+.1f} %)" if h in vals else "-" for h in hs)
         lab = "linear limit" if ln["pre_stretch"] == LINEAR else f"{ln['pre_stretch']:.2f}"
         o = f"{ln['order_own']:.2f}" if np.isfinite(ln["order_own"]) else "-"
         ex = f"{ln['richardson']:.4f} ({100 * ln['richardson_error']:+.1f} %)" if np.isfinite(ln["richardson"]) else "-"
-        if len(ln["cells"]) < len(hs):
+        if len(ln["cells"]) < len(hs) and abs(ln["errors"][-1]) > 0.05:
             h5 = "-"
         elif abs(ln["errors"][-1]) <= 0.05:
             h5 = "met"
@@ -562,6 +579,7 @@ def plot(out=HERE.parent / "docs" / "img" / "cut_convergence.png"):
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--springs", type=float, nargs="*", default=[], help="cell sizes [mm]")
+    ap.add_argument("--model", default="springs_volume", help="model of --springs (springs_volume or springs_volume_mesh_lattice)")
     ap.add_argument("--p2", type=int, nargs="*", default=[], help="quarter-model levels n (e.g. 3 4 6 8)")
     ap.add_argument("--rotation", type=float, nargs="*", default=[], help="cell sizes [mm] of the whole-square P2 (linear limit)")
     ap.add_argument("--rotation-lams", type=float, nargs="*", default=[LINEAR], help="lambda0 values of --rotation")
@@ -570,12 +588,17 @@ if __name__ == "__main__":
     a = ap.parse_args()
     for c in a.springs:
         t0 = time.process_time()
-        res = springs_cell(c * 1e-3)
+        res = springs_cell(c * 1e-3, model=a.model)
         res["cell"] = c
         res["cpu_seconds_total"] = time.process_time() - t0
-        _write(f"cut_convergence_springs_cell{c:.3g}mm.json", res)
-    if a.p2:
-        _write("cut_convergence_p2.json", p2_reference(a.p2))
+        _write(f"cut_convergence_{_tag(a.model)}_cell{c:.3g}mm.json", res)
+    if a.p2:  # merged into the levels already measured (a level given again is replaced)
+        new = p2_reference(a.p2)
+        old = _load("cut_convergence_p2.json")
+        if old is not None and old.get("q") == new["q"]:
+            new["rows"] = [r for r in old["rows"] if r["n"] not in a.p2] + new["rows"]
+        new["rows"].sort(key=lambda r: (r["n"], r["pre_stretch"]))
+        _write("cut_convergence_p2.json", new)
     if a.rotation:
         old = _load("cut_convergence_rotation.json") or []
         for c in a.rotation:
