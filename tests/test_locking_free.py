@@ -89,16 +89,17 @@ def _patch_args(kind, seed):
 @pytest.mark.parametrize("energy,kind", [(nodal_dilatation_energy, "fem_linear"), (nodal_volume_energy, "fem_neo_hookean")])
 def test_nodal_energy_gradient_and_hessian_match_central_differences(energy, kind):
     x, params = _patch_args(kind, 0)
-    f = lambda y: energy(y, *params)  # noqa: E731
-    g = jax.grad(f)(x)
-    Hm = jax.hessian(f)(x).reshape(x.size, x.size)
+    f = jax.jit(lambda y: energy(y, *params))  # jitted: one program each for f, its gradient, its Hessian
+    grad = jax.jit(jax.grad(f))
+    g = grad(x)
+    Hm = jax.jit(jax.hessian(f))(x).reshape(x.size, x.size)
     h = 1e-9
     rng = np.random.default_rng(1)
     for _ in range(3):
         d = jnp.asarray(rng.standard_normal(x.shape))
         fd = (f(x + h * d) - f(x - h * d)) / (2 * h)
         assert abs(float(fd - jnp.sum(g * d))) <= 1e-6 * float(jnp.linalg.norm(g) * jnp.linalg.norm(d))
-        fd_h = (jax.grad(f)(x + h * d) - jax.grad(f)(x - h * d)).reshape(-1) / (2 * h)
+        fd_h = (grad(x + h * d) - grad(x - h * d)).reshape(-1) / (2 * h)
         np.testing.assert_allclose(fd_h, Hm @ d.reshape(-1), rtol=0, atol=1e-6 * float(jnp.abs(Hm).max() * jnp.abs(d).max()))
 
 
@@ -141,6 +142,7 @@ def test_implicit_gradient_through_the_closed_form_hessian_matches_finite_differ
     top = mesh.points[:, 2] == 1.0
     base_bc = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"}).fix(mesh, {"face": "z-max"}, "xy", (0.03, 0.0, 0.0))
 
+    @jax.jit  # one program for the eight difference evaluations
     def output(p):
         E, nu, pre, depth = p
         bc = base_bc.fix(mesh, {"face": "z-max"}, "z", (0.0, 0.0, depth))
@@ -148,8 +150,8 @@ def test_implicit_gradient_through_the_closed_form_hessian_matches_finite_differ
         return jnp.sum(sol.reaction[:, 2] * top) + 1e3 * jnp.sum(sol.displacement[:, 0] ** 2)
 
     p0 = jnp.array([1.0e3, 0.49, 1.05, -0.05])
-    reverse = np.asarray(jax.grad(output)(p0))
-    forward = np.asarray(jax.jacfwd(output)(p0))
+    reverse = np.asarray(jax.jit(jax.grad(output))(p0))
+    forward = np.asarray(jax.jit(jax.jacfwd(output))(p0))
     for i in range(4):
         h = 1e-6 * abs(float(p0[i]))
         e = jnp.zeros(4).at[i].set(h)
