@@ -622,8 +622,10 @@ class MaterialParameterization(eqx.Module):
         self.fields = fields
         self.transforms = tuple(transforms.get(f, DEFAULT_TRANSFORMS[f]) for f in fields)
 
-    def pack(self, material: Material) -> jax.Array:
-        """Unconstrained vector ``u`` (shape ``(len(fields),)``) of the fitted fields."""
+    def pack(self, material: Material) -> jax.Array | np.ndarray:
+        """Unconstrained vector ``u`` (shape ``(len(fields),)``) of the fitted fields: a NumPy
+        array for a material of concrete values (nothing is dispatched to JAX), a JAX array
+        when a field is traced."""
         values = [_field_value(material, f) for f in self.fields]
         if _is_concrete(values):  # NumPy: nothing dispatched to JAX (one compiled program per operation)
             dtype = jax.dtypes.canonicalize_dtype(float)
