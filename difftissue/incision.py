@@ -538,7 +538,7 @@ class Incision(eqx.Module):
         ``name``, ``type``, ``experiment = "incision"``, difftissue's ``model``, the fitted
         ``quantity``, ``cut_length`` and ``cut_depth`` [m]; the cut mesh, its duplicated pairs
         and boundary conditions go into a specimen file (:mod:`difftissue.export.fitted`)."""
-        return {"name": self.name, "type": type(self).__name__, "experiment": "incision", "model": str(self.model.base.kind),
+        return {"name": self.name, "type": type(self).__name__, "experiment": "incision", "model": str(self.model.base.model_name),
                 "quantity": self.quantity, "cut_length": float(self.cut.length), "cut_depth": float(self.cut.depth)}
 
 

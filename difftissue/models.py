@@ -275,6 +275,14 @@ class ElasticModel(eqx.Module):
         return int(self.rest_points.shape[0])
 
     @property
+    def model_name(self) -> str:
+        """The name :func:`make_model` builds this model from, recorded by the scenarios
+        (``kind`` unless a variant of the same law; a wrapper such as a contact model reports
+        its ``base``'s)."""
+        base = getattr(self, "base", None)
+        return base.model_name if isinstance(base, ElasticModel) else self.kind
+
+    @property
     def n_regions(self) -> int:
         return len(self.region_names)
 
@@ -389,13 +397,12 @@ class ElasticModel(eqx.Module):
 # NumPy input, see difftissue.energies.volume.array_namespace): nothing compiled. The cells'
 # Gauss-point Jacobians and volumes as one compiled program each (not one per operation): a
 # NumPy evaluation differs from it in the last bit, which moves a fit by round-off.
-_host_rest_shape = rest_shape
-_host_hexahedron_volumes = jax.jit(jax.vmap(hexahedron_volume))
-_host_hexahedron_jacobians = jax.jit(jax.vmap(hexahedron_jacobians))
+_jit_hexahedron_volumes = jax.jit(jax.vmap(hexahedron_volume))
+_jit_hexahedron_jacobians = jax.jit(jax.vmap(hexahedron_jacobians))
 
 
 def _tet_geometry(mesh: TetMesh):
-    Dm_inv, V0 = _host_rest_shape(np.asarray(mesh.points, dtype=float)[mesh.tets])
+    Dm_inv, V0 = rest_shape(np.asarray(mesh.points, dtype=float)[mesh.tets])
     Dm_inv, V0 = np.asarray(Dm_inv), np.asarray(V0)
     bad = np.flatnonzero(~(V0 > 0))
     if bad.size:
@@ -656,6 +663,12 @@ class SpringVolumeModel(ElasticModel):
     pre_stretch_range: np.ndarray
     pre_stretch_lattice: str = eqx.field(static=True)
 
+    @property
+    def model_name(self) -> str:
+        """``"springs_volume"``, or ``"springs_volume_mesh_lattice"`` for the mesh lattice
+        (:data:`LATTICE_VARIANTS`): a fit's record names the variant it ran."""
+        return "springs_volume_mesh_lattice" if self.pre_stretch_lattice == "mesh" else self.kind
+
     def __init__(self, mesh: TetMesh, *, pre_stretch_lattice: str = "stress_free"):
         if pre_stretch_lattice not in PRE_STRETCH_LATTICES:
             raise ModelError(f"pre_stretch_lattice must be one of {PRE_STRETCH_LATTICES}, got {pre_stretch_lattice!r}")
@@ -709,8 +722,8 @@ class SpringVolumeModel(ElasticModel):
         self.cell_factor_terms = np.concatenate([g[..., None], slope[..., None], ratio], axis=-1)
         self.cells = lat.cubes
         self.cell_regions = lat.cube_region_ids
-        self.cell_jacobians = np.asarray(_host_hexahedron_jacobians(np.asarray(p[lat.cubes], dtype=float)))
-        self.cell_volumes = np.asarray(_host_hexahedron_volumes(np.asarray(p[lat.cubes], dtype=float)))
+        self.cell_jacobians = np.asarray(_jit_hexahedron_jacobians(np.asarray(p[lat.cubes], dtype=float)))
+        self.cell_volumes = np.asarray(_jit_hexahedron_volumes(np.asarray(p[lat.cubes], dtype=float)))
         self.pre_stretch_range = ranges
 
     def checked(self, material: Material) -> "CheckedMaterial":

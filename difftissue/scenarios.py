@@ -1312,7 +1312,7 @@ class Indentation(eqx.Module):
             rec["cells"] = cells
             rec["cells_note"] = ("the fit's mesh: indentation_block(block_size, cells, symmetry='none') of uniform cells"
                                  + (" (the fit modelled the x >= 0, y >= 0 quarter with half the x and y cells)" if k == 2 else ""))
-        rec["model"] = str(self.model.kind) or None
+        rec["model"] = str(self.model.model_name) or None
         if self.punch is None:
             rec["penalty"] = float(self.model.penalty)
             if not self.model.indenter.on_flat_top:
@@ -1794,7 +1794,7 @@ class Compression(eqx.Module):
         ``name``, ``type``, ``experiment = "compression"``, difftissue's ``model`` and the
         :meth:`protocol`; the mesh and boundary conditions go into a specimen file
         (:mod:`difftissue.export.fitted`)."""
-        return {"name": self.name, "type": type(self).__name__, "experiment": "compression", "model": str(self.model.kind),
+        return {"name": self.name, "type": type(self).__name__, "experiment": "compression", "model": str(self.model.model_name),
                 **self.protocol()}
 
 
@@ -2020,7 +2020,7 @@ class FEMField(eqx.Module):
         """The experiment as a material card's scenario record (:func:`difftissue.export.card.scenario_record`):
         ``name``, ``type``, ``experiment = "fem_field"`` and difftissue's ``model``; the mesh and
         boundary conditions go into a specimen file (:mod:`difftissue.export.fitted`)."""
-        return {"name": self.name, "type": type(self).__name__, "experiment": "fem_field", "model": str(self.model.kind)}
+        return {"name": self.name, "type": type(self).__name__, "experiment": "fem_field", "model": str(self.model.model_name)}
 
 
 def _components_of(entry_components, key: str) -> list[int]:
