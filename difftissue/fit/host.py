@@ -29,9 +29,13 @@ compiled engine's to round-off (tests/test_fit_host.py: fitted values to 1e-10).
 
 from __future__ import annotations
 
+import lineax as lx
 import numpy as np
+import optimistix as optx
 
+from .._enumerations import result_code, result_message
 from ..errors import FitError
+from .engine import KINK_NEIGHBOURHOOD, STATIONARY_STEP
 from .marquardt import INITIAL_DAMPING
 from .problem import FitProblem
 
@@ -189,8 +193,6 @@ class HostEngine:
     def _one(self, problem: FitProblem, u, st: dict):
         """One step of one start: ``(u_new, state_new, finished, status, loss)``; ``st`` holds
         this start's rows of the state."""
-        from .engine import KINK_NEIGHBOURHOOD, STATIONARY_STEP
-
         rtol, atol = self.rtol, self.atol
         y_eval = st["y_eval"]
         r_eval, J_eval, preds_eval = self._residual_jacobian(problem, y_eval)
@@ -320,19 +322,10 @@ class HostEngine:
         return final
 
     def status_message(self, code: int) -> str:
-        import optimistix as optx
-
-        from .._enumerations import result_message
-
         msg = result_message(optx.RESULTS, code).strip().split("\n")[0]
         return f"optimistix: {msg}"
 
 
 def _result_codes() -> dict[str, int]:
     """The codes of optimistix's results of a failed linear solve (lineax's, promoted)."""
-    import lineax as lx
-    import optimistix as optx
-
-    from .._enumerations import result_code
-
     return {k: int(result_code(optx.RESULTS.promote(getattr(lx.RESULTS, k)))) for k in ("singular", "nonfinite_input")}
