@@ -432,7 +432,7 @@ def _axisymmetric_indentation(e, path, name, kw, model, base, penalty, options, 
                 "refinement_ratio": coarse.first / auto.first, "order": AXISYMMETRIC_DISCRETISATION_ORDER, "specimen": auto.record()}
         return make(depth, force, sigma, specimen=coarse), info
 
-    return _resolved_indentation(e, path, name, model, kw, make, make_coarse, None, curve, [file], notes, depth, force, sigma, prov)
+    return _resolved_indentation(e, path, name, model, kw, make, make_coarse, None, curve, [file], notes, depth, force, sigma, prov, stacklevel=5)
 
 
 #: Order of convergence the discretisation check assumes for the axisymmetric model [-]: the
@@ -464,7 +464,7 @@ def _axisymmetric_note(auto) -> str:
             f"{err}; the discretisation check after the fit estimates it for this fit")
 
 
-def _resolved_indentation(e, path, name, model, kw, make, make_coarse, skip, curve, files, notes, depth, force, sigma, prov) -> Experiment:
+def _resolved_indentation(e, path, name, model, kw, make, make_coarse, skip, curve, files, notes, depth, force, sigma, prov, stacklevel=4) -> Experiment:
     """The indentation scenario ``make(depth, force, sigma)`` with its resolution check
     (``min_cells_per_contact_radius``, ``under_resolved``: warn or drop the depths) and its
     coarser version ``make_coarse(depth, force, sigma) -> (scenario, info)`` (None: ``skip`` says why)."""
@@ -482,7 +482,7 @@ def _resolved_indentation(e, path, name, model, kw, make, make_coarse, skip, cur
         f["row"] = int(prov["used"][f["index"]])  # the data file's row (its name: provenance row_names)
     if res.flagged.size:
         if under == "warn":
-            resolution_warnings = (res.warn(path, stacklevel=4),)
+            resolution_warnings = (res.warn(path, stacklevel=stacklevel),)
         else:
             depth, force, sigma, prov, notes = _drop_under_resolved(res, path, depth, force, sigma, prov, notes)
             try:
