@@ -199,6 +199,8 @@ def test_config_without_axisymmetric_form_keeps_the_3d_block(curve_dir, model, e
     exp = load_config(curve_dir / "three.toml").experiments[0]
     sc = getattr(exp.scenario, "scenario", exp.scenario)
     assert isinstance(sc, Indentation) and sc.symmetry == "quarter"
+    note = next(n for n in exp.notes if "specimen chosen automatically" in n)
+    assert ("not axisymmetric" in note) == (extra == "")  # the fallback says why
 
 
 @pytest.mark.parametrize("model, shape, size, extra, match", [

@@ -365,7 +365,7 @@ def _indentation(e, path, name, base_dir, *, material=None, fitted=()) -> Experi
             _reraise(p, err)
         symmetry = auto.symmetry
         coarse_mesh, skip = _coarse_auto_specimen(auto)
-        notes = (*notes, _auto_specimen_note(auto))
+        notes = (*notes, _auto_specimen_note(auto) + (f" (3-D, not axisymmetric: {'; '.join(obstacles)})" if obstacles else ""))
     elif "mesh" in spec:
         mesh, mfile = _mesh_file({k: v for k, v in spec.items() if k != "geometry"}, p, base_dir)
         files.append(mfile)
