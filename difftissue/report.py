@@ -419,6 +419,29 @@ def _quality_md(quality: "FitQuality | None") -> list[str]:
     return lines
 
 
+def simulation_record(scenario) -> dict | None:
+    """How a simulated indentation was modelled, for ``fit.json`` (``simulation``) and the
+    report: ``{"name", "model", "geometry": "axisymmetric" | "3d", "cells_per_contact_radius"
+    (at the deepest point) [-], "resolution"}`` with ``resolution`` e.g. ``"axisymmetric, 8
+    cells per contact radius"``; None for other scenarios (closed forms, compression, ...)."""
+    record, resolution = getattr(scenario, "record", None), getattr(scenario, "resolution", None)
+    if not callable(record) or not callable(resolution):
+        return None
+    rec = record()
+    if rec.get("experiment") != "indentation":
+        return None
+    spec = rec.get("specimen") or {}
+    geometry = rec.get("geometry", "3d")
+    try:
+        m = float(spec["cells_per_contact_radius"]) if geometry == "axisymmetric" and "cells_per_contact_radius" in spec \
+            else float(np.max(resolution().cells_per_contact_radius))
+    except DifftissueError:
+        return None
+    where = "axisymmetric" if geometry == "axisymmetric" else "3-D block"
+    return {"name": rec.get("name"), "model": rec.get("model"), "geometry": geometry, "cells_per_contact_radius": m,
+            "resolution": f"{where}, {m:.3g} cells per contact radius"}
+
+
 def _discretisation_md(rec: Mapping | None) -> list[str]:
     """The report's "Discretisation error" section (nothing when the check was off)."""
     if rec is None or rec.get("status") == "not applicable":
@@ -439,14 +462,21 @@ def _discretisation_md(rec: Mapping | None) -> list[str]:
             lines.append(f"| {k} | not estimated | - | - | {v['reason']} |")
     for k, v in rec["scenarios"].items():
         a = v.get("specimen")
-        if a:
+        if a and a.get("geometry") == "axisymmetric":
+            lines += ["", f"{k}: specimen chosen automatically ({a['rule']}): axisymmetric, {a['cells_per_contact_radius']:g} cells per contact "
+                      f"radius (first cells {a['first']:.4g} m = contact radius {a['contact_radius']:.4g} m / {a['cells_per_contact_radius']:g}; "
+                      f"a cylinder of radius {a['radius']:.4g} m and height {a['height']:.4g} m); the coarser mesh doubles every cell; "
+                      f"Richardson order {v.get('order', 2):g} (the sphere's observed order)."]
+        elif a:
             lines += ["", f"{k}: specimen chosen automatically ({a['rule']}): cells {a['cells']}, first cells {a['refine']:.4g} m = contact radius "
                       f"{a['contact_radius']:.4g} m / {a['cells_per_contact_radius']:g}; "
                       + (f"the convergence study's force error at this resolution is {100 * a['force_error']:+.2g} % (a fitted E about "
                          f"{-100 * a['force_error'] / (1 + a['force_error']):+.2g} %)." if a.get("force_error") is not None
                          else "no tabulated force error for this indenter.")]
+    orders = sorted({float(v.get("order", 1.0)) for v in rec["scenarios"].values() if v["status"] == "estimated"})
+    how = "first-order" if orders in ([], [1.0]) else "order-" + " / ".join(f"{q:g}" for q in orders)
     lines += ["", "One evaluation at the fitted values on a mesh of about half the cells in each direction, no refit; "
-              "Richardson extrapolation assuming first-order convergence in the cell size gives the fit mesh's error in the "
+              f"Richardson extrapolation assuming {how} convergence in the cell size gives the fit mesh's error in the "
               "predictions, converted to the parameters through the fit's Jacobian (linearised). An estimate, not a bound: "
               "see docs/fitting.md, \"Discretisation error\"."]
     return lines
@@ -466,6 +496,8 @@ def _start_md(start) -> list[str]:
 def _report_md(result: FitResult, record: dict, names: Sequence[str]) -> str:
     lines = ["# Fit report", ""]
     lines.append(f"Model: {record['model'] or '(not given)'}; scenarios: {', '.join(names)}.")
+    for sim in record.get("simulation") or ():
+        lines.append(f"Simulation of {sim['name']}: {sim['model']}, {sim['resolution']}.")
     lines.append(
         f"Method {result.method}, loss {result.loss_function}"
         + (f" (f_scale {result.f_scale:g})" if result.loss_function != "linear" else "")
@@ -604,6 +636,7 @@ def write_fit_outputs(
     record["data_rows"] = [dict(d) for d in data]
     record["start"] = jsonable(start) if start else None
     record["derived"] = jsonable(derived_quantities(result, model=model_name, scenarios=scenarios))
+    record["simulation"] = [r for r in (simulation_record(s) for s in scenarios or ()) if r is not None]
     out.mkdir(parents=True, exist_ok=True)
     with atomic_output(paths["fit.json"], overwrite=force) as tmp:
         tmp.write_text(json.dumps(record, indent=2, allow_nan=False) + "\n", encoding="utf-8")

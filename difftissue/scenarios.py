@@ -1440,7 +1440,7 @@ class AxisymmetricIndentation(eqx.Module):
     def __init__(self, depths, forces=None, *, indenter: str = "sphere", radius: float | None = None, half_angle: float | None = None,
                  model: str = "fem_linear", mesh: AxisymmetricMesh | None = None, thickness: float | None = None,
                  cells_per_contact_radius: float = AXISYMMETRIC_CELLS_PER_CONTACT_RADIUS, base: str = "bonded", penalty: float = 100.0,
-                 sigma=None, options: SolverOptions = SolverOptions(), name: str = "indentation"):
+                 sigma=None, options: SolverOptions = SolverOptions(), name: str = "indentation", specimen: AxisymmetricSpecimen | None = None):
         """
         Args:
             depths: depth protocol [m], non-decreasing, from the contact point.
@@ -1451,6 +1451,10 @@ class AxisymmetricIndentation(eqx.Module):
                 at the largest depth with ``thickness`` and ``cells_per_contact_radius``.
             base: ``"bonded"`` or ``"sliding"``.
             penalty: contact penalty (see :class:`~difftissue.contact.ContactModel`).
+            specimen: an :class:`AxisymmetricSpecimen` to mesh instead of the automatic one
+                (e.g. ``axisymmetric_specimen_for(...).refined(0.5)``, or the specimen of a
+                protocol whose depths were later thinned); recorded like the automatic one.
+                Not with ``mesh`` or ``thickness``.
         """
         self.name = str(name)
         d = _as_1d("depths", depths)
@@ -1467,7 +1471,16 @@ class AxisymmetricIndentation(eqx.Module):
                               + (": a lattice has no axisymmetric form, use Indentation (3-D)" if model == "springs_volume" else ""))
         if indenter not in ("sphere", "cone"):
             raise ConfigError(f"the axisymmetric indentation takes indenter 'sphere' or 'cone', got {indenter!r}")
-        if mesh is None:
+        if specimen is not None:
+            if not isinstance(specimen, AxisymmetricSpecimen):
+                raise ConfigError(f"specimen must be an AxisymmetricSpecimen, got {type(specimen).__name__}")
+            if mesh is not None or thickness is not None:
+                raise ConfigError("give the specimen, or a mesh (or thickness for the automatic specimen), not both")
+            if specimen.indenter != indenter:
+                raise ConfigError(f"the specimen was chosen for a {specimen.indenter}, the indenter is a {indenter}")
+            self.specimen = specimen
+            mesh = specimen.mesh()
+        elif mesh is None:
             self.specimen = axisymmetric_specimen_for(indenter, radius=radius, half_angle=half_angle, max_depth=float(d.max()),
                                                       thickness=thickness, cells_per_contact_radius=cells_per_contact_radius)
             mesh = self.specimen.mesh()

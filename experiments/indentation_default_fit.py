@@ -44,6 +44,7 @@ scenario = "indentation"
 model = "{model}"
 data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
 indenter = {ind_t}
+specimen = {{ geometry = "3d" }}  # the automatic 3-D block (the config default is axisymmetric for fem sphere/cone)
 ''')
 cfg = load_config(tmp / "fit.toml")
 ex = cfg.experiments[0]

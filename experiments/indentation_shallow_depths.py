@@ -29,6 +29,7 @@ scenario = "indentation"
 model = "fem_linear"
 data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
 indenter = {t}
+specimen = {{ geometry = "3d" }}  # the automatic 3-D block (the config default is axisymmetric for fem sphere/cone)
 ''')
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")

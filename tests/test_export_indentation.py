@@ -459,3 +459,31 @@ def test_export_refuses_an_effective_modulus_fitted_at_nu_0_unless_nu_is_stated(
     assert err.count("\n") == 1 and "--nu 0.45" in err and "--approximate" in err and "refit with poisson_ratio fixed" in err
     assert main(["export", str(paths["material.json"]), "--to", "febio", "--out", str(tmp_path / "c.feb"), "--nu", "0.49"]) == 0
     assert "<v>0.49</v>" in (tmp_path / "c.feb").read_text()
+
+
+def test_cli_export_indentation_from_an_axisymmetric_fit_record(tmp_path, capsys):
+    """A card fitted with the axisymmetric model (the config's default for a FEM sphere) exports
+    a 3-D block: the half-space block of the defaults, the record's indenter, depth, base and
+    penalty, and a source line saying the fit was axisymmetric; a layer keeps its thickness."""
+    from difftissue.scenarios import AxisymmetricIndentation
+
+    axi = AxisymmetricIndentation([5e-5, 1e-4], indenter="sphere", radius=1e-3, model="fem_linear", base="sliding", penalty=50.0, name="axi",
+                                  cells_per_contact_radius=2)
+    rec = scenario_record(axi)
+    assert rec["geometry"] == "axisymmetric" and "block_size" not in rec
+    card = _card(tmp_path, provenance={"scenario_records": [rec]})
+    spec = indentation_specimen(card, cells=(4, 4, 2))
+    a = math.sqrt(1e-3 * 1e-4)
+    assert (spec.indenter, spec.radius, spec.depth, spec.base, spec.penalty) == ("sphere", 1e-3, 1e-4, "sliding", 50.0)
+    assert spec.size == pytest.approx((20 * a, 20 * a, 10 * a)) and "simulated a half-space axisymmetrically" in spec.sources["size"]
+    cpath = tmp_path / "axi-card.json"
+    write_card(card, cpath)
+    inp = tmp_path / "axi.inp"
+    assert main(["export", str(cpath), "--to", "abaqus", "--specimen", "indentation", "--cells", "4,4,2", "--out", str(inp)]) == 0
+    assert "sphere indentation specimen, depth 0.0001 m" in capsys.readouterr().out
+    assert "axisymmetrically" in inp.read_text()
+    # the fit's cylinder a layer of 3 mm: the block keeps that thickness
+    layer = AxisymmetricIndentation([5e-5, 1e-4], indenter="sphere", radius=1e-3, model="fem_linear", thickness=3e-3, name="layer",
+                                    cells_per_contact_radius=2)
+    spec = indentation_specimen(_card(tmp_path, name="layer", provenance={"scenario_records": [scenario_record(layer)]}), cells=(4, 4, 2))
+    assert spec.size[2] == pytest.approx(3e-3) and spec.size[0] == pytest.approx(max(6e-3, 20 * a))

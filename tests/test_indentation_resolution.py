@@ -108,6 +108,7 @@ scenario = "indentation"
 data = {{ format = "table", path = "curve.csv", columns = {{ depth = "depth (um)", force = "force (uN)" }} }}
 indenter = {{ shape = "{shape}", {size} length_unit = "mm" }}
 length_unit = "um"
+{extra}
 """
 
 
@@ -122,10 +123,11 @@ def curve_dir(tmp_path_factory):
     return path.parent
 
 
-def test_config_without_specimen_builds_the_chosen_block(curve_dir):
+def test_config_3d_automatic_specimen_builds_the_chosen_block(curve_dir):
     from difftissue.config import load_config
 
-    (curve_dir / "auto.toml").write_text(_TOML.format(model='model = "fem_linear"', shape="sphere", size="radius = 1.0,"))
+    (curve_dir / "auto.toml").write_text(_TOML.format(model='model = "fem_linear"', shape="sphere", size="radius = 1.0,",
+                                                      extra='specimen = { geometry = "3d" }'))
     exp = load_config(curve_dir / "auto.toml").experiments[0]
     chosen = indentation_specimen_for("sphere", radius=R, max_depth=D)
     sc = getattr(exp.scenario, "scenario", exp.scenario)
@@ -148,7 +150,81 @@ def test_config_without_specimen_builds_the_chosen_block(curve_dir):
 def test_config_without_specimen_refuses_with_the_key(curve_dir, model, shape, size, match):
     from difftissue.config import load_config
 
-    (curve_dir / "bad.toml").write_text(_TOML.format(model=model, shape=shape, size=size))
+    (curve_dir / "bad.toml").write_text(_TOML.format(model=model, shape=shape, size=size, extra=""))
     with pytest.raises(ConfigError, match=match) as err:
         load_config(curve_dir / "bad.toml")
     assert "specimen" in str(err.value)
+
+
+def test_config_without_specimen_is_axisymmetric_for_a_fem_sphere(curve_dir):
+    """The default for a sphere or a cone with a FEM model: the axisymmetric specimen of
+    axisymmetric_specimen_for, its coarser mesh every cell doubled (refined(0.5)), order 2."""
+    from difftissue.config import load_config
+    from difftissue.scenarios import AxisymmetricIndentation, axisymmetric_specimen_for
+
+    (curve_dir / "axi.toml").write_text(_TOML.format(model='model = "fem_neo_hookean"', shape="sphere", size="radius = 1.0,", extra=""))
+    exp = load_config(curve_dir / "axi.toml").experiments[0]
+    sc = exp.scenario
+    chosen = axisymmetric_specimen_for("sphere", radius=R, max_depth=D)
+    assert isinstance(sc, AxisymmetricIndentation) and sc.specimen == chosen and exp.model == "fem_neo_hookean"
+    assert sc.record()["geometry"] == "axisymmetric"
+    assert any("specimen chosen automatically" in n and "axisymmetric, 8 cells per contact radius" in n for n in exp.notes)
+    coarse_sc, info = exp.coarsen()
+    assert coarse_sc.specimen == chosen.refined(0.5) and info["refinement_ratio"] == pytest.approx(2.0, rel=1e-12)
+    assert info["order"] == 2.0 and info["specimen"] == chosen.record()
+    assert info["fine_cells"] == "axisymmetric, 8 cells per contact radius" and info["coarse_cells"] == "axisymmetric, 4 cells per contact radius"
+    np.testing.assert_allclose(exp.provenance["resolution"]["cells_per_contact_radius_range"][1], 8.0, rtol=1e-6)
+
+
+def test_config_cells_per_contact_radius_sets_the_automatic_resolution(curve_dir):
+    from difftissue.config import load_config
+
+    (curve_dir / "axi12.toml").write_text(_TOML.format(model='model = "fem_linear"', shape="sphere", size="radius = 1.0,",
+                                                       extra='specimen = { geometry = "axisymmetric", cells_per_contact_radius = 12 }'))
+    sc = load_config(curve_dir / "axi12.toml").experiments[0].scenario
+    assert sc.specimen.cells_per_contact_radius == 12.0
+
+
+@pytest.mark.parametrize("model, extra, material", [
+    ('model = "stable_neo_hookean"', "", ""),  # no axisymmetric form: the 3-D block
+    ('model = "fem_linear"', 'specimen = { geometry = "3d" }', ""),
+    ('model = "fem_linear"', "", "pre_stretch = 1.1"),  # pre-tension: 3-D
+])
+def test_config_without_axisymmetric_form_keeps_the_3d_block(curve_dir, model, extra, material):
+    from difftissue.config import load_config
+    from difftissue.scenarios import Indentation
+
+    text = _TOML.format(model=model, shape="sphere", size="radius = 1.0,", extra=extra).replace("poisson_ratio = 0.45", "poisson_ratio = 0.45\n" + material)
+    (curve_dir / "three.toml").write_text(text)
+    exp = load_config(curve_dir / "three.toml").experiments[0]
+    sc = getattr(exp.scenario, "scenario", exp.scenario)
+    assert isinstance(sc, Indentation) and sc.symmetry == "quarter"
+    note = next(n for n in exp.notes if "specimen chosen automatically" in n)
+    assert ("not axisymmetric" in note) == (extra == "")  # the fallback says why
+
+
+@pytest.mark.parametrize("model, shape, size, extra, match", [
+    ('model = "springs_volume"', "sphere", "radius = 1.0,", 'specimen = { geometry = "axisymmetric" }', "model 'springs_volume'"),
+    ('model = "fem_linear"', "flat_punch", "radius = 0.5,", 'specimen = { geometry = "axisymmetric" }', "a flat_punch indenter"),
+    ('model = "fem_linear"', "sphere", "radius = 1.0,", 'specimen = { geometry = "axisymmetric", size = [2, 2, 1] }', r"specimen\.size: not used"),
+    ('model = "fem_linear"', "sphere", "radius = 1.0,", 'specimen = { geometry = "2d" }', r"specimen\.geometry"),
+    ('model = "fem_linear"', "sphere", "radius = 1.0,", 'specimen = { size = [2, 2, 1], cells_per_contact_radius = 8 }', "cells_per_contact_radius"),
+    ('model = "fem_linear"', "sphere", "radius = 1.0,", 'specimen = { geometry = "axisymmetric" }\nrollers = ["x-min"]', "rollers"),
+])
+def test_config_axisymmetric_refuses_what_it_cannot_simulate(curve_dir, model, shape, size, extra, match):
+    from difftissue.config import load_config
+
+    (curve_dir / "badaxi.toml").write_text(_TOML.format(model=model, shape=shape, size=size, extra=extra))
+    with pytest.raises(ConfigError, match=match) as err:
+        load_config(curve_dir / "badaxi.toml")
+    assert "specimen" in str(err.value) or "rollers" in str(err.value)
+
+
+def test_config_axisymmetric_refuses_a_fitted_pre_stretch(curve_dir):
+    from difftissue.config import load_config
+
+    text = _TOML.format(model='model = "fem_linear"', shape="sphere", size="radius = 1.0,", extra='specimen = { geometry = "axisymmetric" }')
+    text = text.replace('parameters = ["youngs_modulus"]', 'parameters = ["youngs_modulus", "pre_stretch"]\nbounds = { pre_stretch = [0.9, 1.5] }')
+    (curve_dir / "prestretch.toml").write_text(text)
+    with pytest.raises(ConfigError, match=r"specimen\.geometry.*pre-stretch \(pre_stretch set or fitted"):
+        load_config(curve_dir / "prestretch.toml")

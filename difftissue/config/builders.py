@@ -23,8 +23,9 @@ from ..incision import Incision, IncisionOptions
 from ..materials import Material
 from ..mesh import Specimen, block, layered_skin, read_mesh
 from ..models import MODELS, NODAL_FEM_MODELS
-from ..scenarios import (MIN_CELLS_PER_CONTACT_RADIUS, AnalyticIndentation, Compression, FEMField, Indentation, SolverOptions, cylinder, indentation_block,
-                         indentation_specimen_for)
+from ..axisymmetric import AXISYMMETRIC_MODELS
+from ..scenarios import (MIN_CELLS_PER_CONTACT_RADIUS, AnalyticIndentation, AxisymmetricIndentation, Compression, FEMField, Indentation, SolverOptions,
+                         axisymmetric_specimen_for, cylinder, indentation_block, indentation_specimen_for)
 from ..selectors import selector_from_dict
 from .estimates import _compression_estimate, _compression_plausibility, _indentation_estimate, _plausibility
 from .experiment import Experiment
@@ -75,10 +76,14 @@ def _model(e: Mapping, path: str, default: str) -> str:
     return _choice(e.get("model", default), _join(path, "model"), MODELS + NODAL_FEM_MODELS)
 
 
-def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path, *, material=None) -> Experiment:
+def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path, *, material=None, fitted: tuple[str, ...] = ()) -> Experiment:
+    """One experiment; ``material`` is the config's [material] and ``fitted`` its fitted fields
+    (an indentation's automatic specimen is axisymmetric only without pre-stretch)."""
     kind = e["scenario"]
     if kind == "incision":
         return _incision(e, path, name, base_dir, material)
+    if kind == "indentation":
+        return _indentation(e, path, name, base_dir, material=material, fitted=tuple(fitted))
     builder = {"analytic_indentation": _analytic, "indentation": _indentation, "compression": _compression, "fem_field": _fem_field}[kind]
     return builder(e, path, name, base_dir)
 
@@ -277,7 +282,31 @@ def _mesh_file(spec: dict, p: str, base_dir: Path):
         _reraise(_join(p, "mesh"), err)
 
 
-def _indentation(e, path, name, base_dir) -> Experiment:
+#: ``specimen.geometry`` of a simulated indentation: the 2-D meridian model of a cylinder
+#: (:class:`~difftissue.scenarios.AxisymmetricIndentation`) or a 3-D tetrahedral block.
+SPECIMEN_GEOMETRIES = ("axisymmetric", "3d")
+_AXISYMMETRIC_SPECIMEN_KEYS = ("geometry", "cells_per_contact_radius")
+
+
+def _axisymmetric_obstacles(kw: Mapping, model: str, rollers, material, fitted) -> list[str]:
+    """Why this indentation cannot be simulated axisymmetrically (empty: it can)."""
+    why = []
+    if kw["indenter"] not in ("sphere", "cone"):
+        why.append(f"a {kw['indenter']} indenter (axisymmetric: a sphere or a cone)")
+    if model not in AXISYMMETRIC_MODELS:
+        why.append(f"model {model!r} (axisymmetric: {' or '.join(AXISYMMETRIC_MODELS)}; a lattice or the stable neo-Hookean element is 3-D only)")
+    if rollers:
+        why.append("rollers (boundary conditions of a 3-D block)")
+    if kw.get("surface") == "boundary":
+        why.append("an indenter placed on a curved surface (surface = \"boundary\")")
+    stretch = [f for f in ("pre_stretch", "pre_stretch_y") if material is not None and getattr(material, f, None) not in (None, 1.0)]
+    stretch += [f for f in ("pre_stretch", "pre_stretch_y") if f in fitted and f not in stretch]
+    if stretch:
+        why.append(f"a pre-stretch ({', '.join(stretch)} set or fitted; the axisymmetric model has no pre-tension)")
+    return why
+
+
+def _indentation(e, path, name, base_dir, *, material=None, fitted=()) -> Experiment:
     curve, file, notes, depth, force, sigma, unit, prov = _force_depth(e, path, base_dir, "indentation")
     kw = _indenter(e, path, curve, "indentation")
     model = _model(e, path, "springs_volume")
@@ -288,12 +317,37 @@ def _indentation(e, path, name, base_dir) -> Experiment:
         _fail(_join(path, "penalty"), "not used by a flat punch (its displacement is prescribed)")
     options = _solver_options(e, path)
     p = _join(path, "specimen")
-    spec = _table(e["specimen"], p, ("shape", "size", "cells", "symmetry", "refine", "core", "mesh", "length_unit", "reorient")) if "specimen" in e else None
+    spec = _table(e["specimen"], p, ("geometry", "cells_per_contact_radius", "shape", "size", "cells", "symmetry", "refine", "core", "mesh",
+                                      "length_unit", "reorient")) if "specimen" in e else None
     files = [file]
     symmetry = "none"
     coarse_mesh, skip = None, _MESH_FILE_SKIP
     auto = None
-    if spec is None:
+    # geometry: axisymmetric (explicit, or the default for an automatic specimen it can simulate) or 3-D
+    geometry = _choice(spec["geometry"], _join(p, "geometry"), SPECIMEN_GEOMETRIES) if spec is not None and "geometry" in spec else None
+    automatic = spec is None or set(spec) <= set(_AXISYMMETRIC_SPECIMEN_KEYS)
+    obstacles = _axisymmetric_obstacles(kw, model, rollers, material, fitted)
+    if geometry == "axisymmetric":
+        for k in spec:
+            if k not in _AXISYMMETRIC_SPECIMEN_KEYS:
+                _fail(_join(p, k), "not used with geometry = \"axisymmetric\" (the cylinder's meridian mesh is chosen from the indenter and "
+                      "the deepest point; cells_per_contact_radius sets its resolution)")
+        if obstacles:
+            _fail(_join(p, "geometry"), "\"axisymmetric\" cannot simulate this experiment: " + "; ".join(obstacles)
+                  + ". Use geometry = \"3d\" (or leave the specimen out)")
+    elif geometry is None and automatic and not obstacles:
+        geometry = "axisymmetric"
+    else:
+        geometry = "3d"
+    cells_per_a = None
+    if spec is not None and "cells_per_contact_radius" in spec:
+        if not automatic:
+            _fail(_join(p, "cells_per_contact_radius"), "sets the automatic specimen's resolution: not used with size, cells or a mesh file")
+        cells_per_a = _number(spec["cells_per_contact_radius"], _join(p, "cells_per_contact_radius"), check=lambda v: v >= 1,
+                              rule="a number of cells >= 1")
+    if geometry == "axisymmetric":
+        return _axisymmetric_indentation(e, path, name, kw, model, base, penalty, options, cells_per_a, curve, file, notes, depth, force, sigma, prov)
+    if automatic:
         # no specimen: the block the resolution rule chooses from the indenter and the deepest point
         if kw["indenter"] == "flat_punch":
             _fail(p, "missing (required for a flat punch): e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" } "
@@ -304,15 +358,16 @@ def _indentation(e, path, name, base_dir) -> Experiment:
                   "(e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" })")
         try:
             auto = indentation_specimen_for(kw["indenter"], radius=kw.get("radius"), half_angle=kw.get("half_angle"),
-                                            max_depth=float(depth.max()), model=model)
+                                            max_depth=float(depth.max()), model=model,
+                                            **({} if cells_per_a is None else {"cells_per_contact_radius": cells_per_a}))
             mesh = auto.block()
         except DifftissueError as err:
             _reraise(p, err)
         symmetry = auto.symmetry
         coarse_mesh, skip = _coarse_auto_specimen(auto)
-        notes = (*notes, _auto_specimen_note(auto))
+        notes = (*notes, _auto_specimen_note(auto) + (f" (3-D, not axisymmetric: {'; '.join(obstacles)})" if obstacles else ""))
     elif "mesh" in spec:
-        mesh, mfile = _mesh_file(spec, p, base_dir)
+        mesh, mfile = _mesh_file({k: v for k, v in spec.items() if k != "geometry"}, p, base_dir)
         files.append(mfile)
     else:
         _choice(spec.get("shape", "block"), _join(p, "shape"), ("block",))
@@ -341,11 +396,83 @@ def _indentation(e, path, name, base_dir) -> Experiment:
         coarse_mesh, skip = _coarse_indentation_block(size, cells, symmetry, refine, core)
         if depth.max() >= size[2]:
             _fail(_join(path, "max_depth"), f"the deepest point ({depth.max():.3g} m) reaches the specimen's height ({size[2]:.3g} m)")
+    def make(depth, force, sigma, mesh=mesh):
+        return Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma,
+                           options=options, name=name, **kw)
+
+    def make_coarse(depth, force, sigma):
+        m, info = coarse_mesh()
+        return make(depth, force, sigma, mesh=m), info
+
+    return _resolved_indentation(e, path, name, model, kw, make, None if coarse_mesh is None else make_coarse, skip, curve, files, notes,
+                                 depth, force, sigma, prov)
+
+
+def _axisymmetric_indentation(e, path, name, kw, model, base, penalty, options, cells_per_a, curve, file, notes, depth, force, sigma, prov) -> Experiment:
+    """A sphere or cone indentation simulated in the meridian plane of a cylinder
+    (:class:`~difftissue.scenarios.AxisymmetricIndentation`) on the automatic specimen
+    (:func:`~difftissue.scenarios.axisymmetric_specimen_for`); its discretisation check evaluates
+    the same rule with every cell doubled (``refined(0.5)``)."""
+    p = _join(path, "specimen")
+    ind = {"indenter": kw["indenter"], "radius": kw.get("radius"), "half_angle": kw.get("half_angle")}
+    try:
+        auto = axisymmetric_specimen_for(kw["indenter"], radius=kw.get("radius"), half_angle=kw.get("half_angle"), max_depth=float(depth.max()),
+                                         **({} if cells_per_a is None else {"cells_per_contact_radius": cells_per_a}))
+    except DifftissueError as err:
+        _reraise(p, err)
+    notes = (*notes, _axisymmetric_note(auto))
+
+    def make(depth, force, sigma, specimen=auto):
+        return AxisymmetricIndentation(depth, force, model=model, specimen=specimen, base=base, penalty=penalty, sigma=sigma, options=options,
+                                       name=name, **ind)
+
+    def make_coarse(depth, force, sigma):
+        coarse = auto.refined(0.5)
+        info = {"fine_cells": axisymmetric_resolution(auto), "coarse_cells": axisymmetric_resolution(coarse),
+                "refinement_ratio": coarse.first / auto.first, "order": AXISYMMETRIC_DISCRETISATION_ORDER, "specimen": auto.record()}
+        return make(depth, force, sigma, specimen=coarse), info
+
+    return _resolved_indentation(e, path, name, model, kw, make, make_coarse, None, curve, [file], notes, depth, force, sigma, prov, stacklevel=5)
+
+
+#: Order of convergence the discretisation check assumes for the axisymmetric model [-]: the
+#: observed order of the force under a sphere (1.93 from 4 / 8 / 16 cells per contact radius,
+#: docs/experiments.md, "Axisymmetric indentation").
+AXISYMMETRIC_DISCRETISATION_ORDER = 2.0
+
+
+def axisymmetric_resolution(specimen) -> str:
+    """``"axisymmetric, N cells per contact radius"`` of an :class:`~difftissue.scenarios.AxisymmetricSpecimen`."""
+    return f"axisymmetric, {specimen.cells_per_contact_radius:g} cells per contact radius"
+
+
+def _axisymmetric_note(auto) -> str:
+    """The console note of the automatic axisymmetric specimen, with the convergence study's
+    force error where it has one for this indenter and resolution."""
+    m = auto.cells_per_contact_radius
+    if auto.indenter == "sphere" and m == 8:
+        err = ("estimated discretisation error of the force +0.6 %, of a fitted E about -0.6 % (sphere convergence study, against "
+               "the Richardson-extrapolated force)")
+    elif auto.indenter == "cone" and m == 8:
+        err = ("the cone convergence study has no converged value (the element under the apex is crushed at 16 cells); the force "
+               "at 8 cells is 0.9 % below Sneddon's")
+    else:
+        err = f"no tabulated discretisation error at {m:g} cells per contact radius"
+    return (f"specimen chosen automatically (no 'specimen' given): axisymmetric, {m:g} cells per contact radius (the meridian plane of a "
+            f"cylinder of radius and height {auto.radius:.4g} m; {auto.first:.4g} m cells within {auto.core:.4g} m of the axis and the "
+            f"surface, contact radius {auto.contact_radius:.4g} m at the deepest point, growing by at most {auto.growth:g} beyond); "
+            f"{err}; the discretisation check after the fit estimates it for this fit")
+
+
+def _resolved_indentation(e, path, name, model, kw, make, make_coarse, skip, curve, files, notes, depth, force, sigma, prov, stacklevel=4) -> Experiment:
+    """The indentation scenario ``make(depth, force, sigma)`` with its resolution check
+    (``min_cells_per_contact_radius``, ``under_resolved``: warn or drop the depths) and its
+    coarser version ``make_coarse(depth, force, sigma) -> (scenario, info)`` (None: ``skip`` says why)."""
     min_cells = _positive(e["min_cells_per_contact_radius"], _join(path, "min_cells_per_contact_radius")) if "min_cells_per_contact_radius" in e \
         else MIN_CELLS_PER_CONTACT_RADIUS
     under = _choice(e.get("under_resolved", "warn"), _join(path, "under_resolved"), ("warn", "drop"))
     try:
-        sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
+        sc = make(depth, force, sigma)
         res = sc.resolution(min_cells)
     except DifftissueError as err:
         _reraise(path, err)
@@ -355,19 +482,18 @@ def _indentation(e, path, name, base_dir) -> Experiment:
         f["row"] = int(prov["used"][f["index"]])  # the data file's row (its name: provenance row_names)
     if res.flagged.size:
         if under == "warn":
-            resolution_warnings = (res.warn(path, stacklevel=3),)
+            resolution_warnings = (res.warn(path, stacklevel=stacklevel),)
         else:
             depth, force, sigma, prov, notes = _drop_under_resolved(res, path, depth, force, sigma, prov, notes)
             try:
-                sc = Indentation(mesh, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw)
+                sc = make(depth, force, sigma)
             except DifftissueError as err:
                 _reraise(path, err)
     prov = {**prov, "resolution": res_record}
     coarsen = None
-    if coarse_mesh is not None:
+    if make_coarse is not None:
         def coarsen():
-            m, info = coarse_mesh()
-            return Indentation(m, depth, force, model=model, base=base, symmetry=symmetry, rollers=rollers, penalty=penalty, sigma=sigma, options=options, name=name, **kw), info
+            return make_coarse(depth, force, sigma)
     return Experiment(name, "indentation", model, sc, tuple(files), notes, prov, _plausibility(path, depth, force, kw, curve) + resolution_warnings,
                       _indentation_estimate(depth, force, sigma, kw), coarsen=coarsen, coarsen_skip=skip)
 

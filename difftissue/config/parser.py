@@ -72,7 +72,7 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
         if name in names:
             _fail(_join(p, "name"), f"{name!r} is used by experiment[{names.index(name)}] too; names must be unique")
         names.append(name)
-    built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir, material=material) for i, e in enumerate(exps))
+    built = tuple(_build_experiment(e, f"experiment[{i}]", names[i], base_dir, material=material, fitted=param.fields) for i, e in enumerate(exps))
     _check_model_ranges(built, material, param)
     start = None
     start_mode = options.pop("start", "data")

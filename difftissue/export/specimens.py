@@ -217,7 +217,10 @@ def indentation_specimen(card: MaterialCard | None = None, *, indenter: str | No
     ``bonded`` (an analytic ``lubricated`` base becomes ``sliding``); ``bonded_punch`` the
     record's (a simulated flat punch), else False (frictionless punch face). A simulated
     record's block comes with the fit's uniform ``cells`` (used unless ``cells`` is given) and
-    contact ``penalty`` (used unless ``penalty`` is given; else 100).
+    contact ``penalty`` (used unless ``penalty`` is given; else 100). An axisymmetric record
+    (:meth:`~difftissue.scenarios.AxisymmetricIndentation.record`: the fit simulated the
+    meridian plane of a cylinder) gives a 3-D block by the same defaults (its layer thickness
+    when its cylinder was a layer, else the half-space block): the fitted E is the continuum's.
     """
     rec: Mapping = {}
     recs = indentation_records(card) if card is not None else []
@@ -263,6 +266,9 @@ def indentation_specimen(card: MaterialCard | None = None, *, indenter: str | No
     else:
         thick = rec.get("thickness") if rec else None
         blk = rec.get("block_size") if rec else None
+        axi = rec.get("geometry") == "axisymmetric" if rec else False
+        if axi and (rec.get("specimen") or {}).get("thickness_given") and rec.get("height"):
+            thick = rec["height"]  # the fit's axisymmetric cylinder was a layer of its own thickness
         if blk:
             size = tuple(float(v) for v in blk)
             src["size"] = where + " (simulated block)"
@@ -275,7 +281,9 @@ def indentation_specimen(card: MaterialCard | None = None, *, indenter: str | No
             H = max(10.0 * a, 5.0 * float(d))
             L = max(2.0 * H, 20.0 * a)
             size = (L, L, H)
-            src["size"] = (f"ASSUMED: the fitted model is a half-space; block H = max(10 a, 5 depth), lateral max(2 H, 20 a) "
+            fitted = (f"the fit simulated a half-space axisymmetrically ({where}: a cylinder of radius {float(rec.get('radius_of_specimen', 0.0)):.6g} m); "
+                      if axi else "")
+            src["size"] = (f"ASSUMED: {fitted}the fitted model is a half-space; block H = max(10 a, 5 depth), lateral max(2 H, 20 a) "
                            f"with the contact radius a = {a:.6g} m at the final depth (Hertz/Sneddon); the finite block is stiffer "
                            "than the half-space (see docs/export.md)")
     refine = core = None

@@ -378,7 +378,8 @@ def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], 
 
     Per scenario with a coarse prediction ``p_c`` (fine prediction ``p_f`` at the optimum, cell
     size ratio ``r = h_coarse / h_fine``), Richardson extrapolation with the assumed order
-    ``q`` (:data:`DISCRETISATION_ORDER`, first order) estimates the fine mesh's error in the
+    ``q`` (:data:`DISCRETISATION_ORDER`, first order, unless the scenario's entry gives its
+    ``order``) estimates the fine mesh's error in the
     prediction: ``e = p_f - p_exact ~ (p_c - p_f) / (r^q - 1)``. The fit matched ``p_f`` to the
     data, so the mesh-converged model would have needed parameters differing by the linearised
     ``theta_fit - theta_converged ~ -(J^T J)^-1 J^T (e / sigma)`` (``J``: the fit's Jacobian of
@@ -387,7 +388,8 @@ def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], 
     Args:
         result: the fit (its predictions, sigmas, Jacobian, values and standard errors).
         coarse: ``{scenario name: {"prediction": array (unit of the data), "fine_cells",
-            "coarse_cells", "refinement_ratio": r [-]}}``.
+            "coarse_cells", "refinement_ratio": r [-]}}``, optionally ``"order"`` (that
+            scenario's order of convergence ``q`` [-], default :data:`DISCRETISATION_ORDER`).
         skipped: ``{scenario name: reason}`` for the scenarios without an estimate.
 
     Returns:
@@ -432,9 +434,10 @@ def _fine_mesh_error(s: "ScenarioFit", c: Mapping) -> tuple[np.ndarray, dict]:
     pf = np.asarray(s.predicted, dtype=float)
     pc = np.asarray(c["prediction"], dtype=float)
     r = float(c["refinement_ratio"])
-    e = (pc - pf) / (r**DISCRETISATION_ORDER - 1.0)
+    q = float(c.get("order", DISCRETISATION_ORDER))
+    e = (pc - pf) / (r**q - 1.0)
     norm = float(np.linalg.norm(pf))
-    info = {"status": "estimated", "fine_cells": c.get("fine_cells"), "coarse_cells": c.get("coarse_cells"), "refinement_ratio": r,
+    info = {"status": "estimated", "fine_cells": c.get("fine_cells"), "coarse_cells": c.get("coarse_cells"), "refinement_ratio": r, "order": q,
             "prediction_change_relative": float(np.linalg.norm(pc - pf) / norm) if norm > 0 else float("nan"),
             "rms_error_over_sigma": float(np.sqrt(np.mean((e / np.asarray(s.sigma, dtype=float)) ** 2)))}
     if "specimen" in c:  # an automatically chosen specimen: its rule's record (resolution, tabulated force error)
@@ -479,8 +482,15 @@ def discretisation_line(rec: Mapping) -> str:
     if rec.get("status") != "estimated":
         return f"discretisation error: not estimated ({rec.get('reason', '')})"
     parts = [f"{f} {100 * rec['relative'][f]:+.3g} % ({rec['ratio_to_standard_error'][f]:.3g} x its standard error)" for f in rec["estimate"]]
-    cells = "; ".join(f"{k} cells {v['fine_cells']} vs {v['coarse_cells']}" for k, v in rec["scenarios"].items() if v["status"] == "estimated")
-    return f"discretisation error (mesh, Richardson first order from {cells}): " + ", ".join(parts)
+    est = {k: v for k, v in rec["scenarios"].items() if v["status"] == "estimated"}
+    orders = {float(v.get("order", DISCRETISATION_ORDER)) for v in est.values()}
+    if orders == {1.0}:
+        how, cells = "first order", "; ".join(f"{k} cells {v['fine_cells']} vs {v['coarse_cells']}" for k, v in est.items())
+    else:
+        how = "order " + " / ".join(f"{q:g}" for q in sorted(orders))
+        cells = "; ".join(f"{k} cells {v['fine_cells']} vs {v['coarse_cells']} (order {float(v.get('order', DISCRETISATION_ORDER)):g})"
+                          for k, v in est.items())
+    return f"discretisation error (mesh, Richardson {how} from {cells}): " + ", ".join(parts)
 
 
 # ============================================================================ effective modulus
