@@ -45,11 +45,11 @@ if _CACHE is not None:
 # A worker that dies (a SIGSEGV inside XLA-compiled code, seen once late in a full run) is
 # replaced by xdist; with ``--dist loadfile`` the dead worker's files go back to the queue with
 # the test it was running still pending, so the replacement runs that test again. xdist reports
-# the crash as a failure all the same, and pytest-rerunfailures (``--reruns 1 --only-rerun
+# the crash as a failure all the same, and pytest-rerunfailures (``--reruns 2 --only-rerun
 # crashed``) cannot turn it into a re-run because the file scheduler does not implement
 # ``mark_test_pending``. The scheduler below does: the crashed test is already pending again,
 # so marking it is a no-op that tells rerunfailures the re-run will happen. A test that crashes
-# its worker twice still fails.
+# its worker three times still fails.
 
 try:
     from xdist.scheduler import LoadFileScheduling
