@@ -393,16 +393,18 @@ class ElasticModel(eqx.Module):
         return m
 
 
-# Mesh set-up on concrete arrays. The tets' rest shapes in NumPy (the geometry helpers take
-# NumPy input, see difftissue.energies.volume.array_namespace): nothing compiled. The cells'
-# Gauss-point Jacobians and volumes as one compiled program each (not one per operation): a
-# NumPy evaluation differs from it in the last bit, which moves a fit by round-off.
+# Mesh set-up on concrete arrays: one compiled program each (not one per operation). Not in
+# NumPy, although the geometry helpers take NumPy input (difftissue.energies.volume.array_namespace):
+# a NumPy evaluation differs in the last bit, which moves a fit by round-off and took a
+# degenerate static solve (an unheld node under a cone's apex, tests/test_static.py) past its
+# Newton step limit.
+_jit_rest_shape = jax.jit(rest_shape)
 _jit_hexahedron_volumes = jax.jit(jax.vmap(hexahedron_volume))
 _jit_hexahedron_jacobians = jax.jit(jax.vmap(hexahedron_jacobians))
 
 
 def _tet_geometry(mesh: TetMesh):
-    Dm_inv, V0 = rest_shape(np.asarray(mesh.points, dtype=float)[mesh.tets])
+    Dm_inv, V0 = _jit_rest_shape(np.asarray(mesh.points, dtype=float)[mesh.tets])
     Dm_inv, V0 = np.asarray(Dm_inv), np.asarray(V0)
     bad = np.flatnonzero(~(V0 > 0))
     if bad.size:
