@@ -24,7 +24,7 @@ from ..materials import Material
 from ..mesh import Specimen, block, layered_skin, read_mesh
 from ..models import MODELS, NODAL_FEM_MODELS
 from ..axisymmetric import AXISYMMETRIC_MODELS
-from ..scenarios import (MIN_CELLS_PER_CONTACT_RADIUS, AnalyticIndentation, AxisymmetricIndentation, Compression, FEMField, Indentation, SolverOptions,
+from ..scenarios import (AXISYMMETRIC_CELLS_PER_CONTACT_RADIUS, MIN_CELLS_PER_CONTACT_RADIUS, AnalyticIndentation, AxisymmetricIndentation, Compression, FEMField, Indentation, SolverOptions,
                          axisymmetric_specimen_for, cylinder, indentation_block, indentation_specimen_for)
 from ..selectors import selector_from_dict
 from .estimates import _compression_estimate, _compression_plausibility, _indentation_estimate, _plausibility
@@ -450,10 +450,11 @@ def _axisymmetric_note(auto) -> str:
     """The console note of the automatic axisymmetric specimen, with the convergence study's
     force error where it has one for this indenter and resolution."""
     m = auto.cells_per_contact_radius
-    if auto.indenter == "sphere" and m == 8:
+    tabulated = m == AXISYMMETRIC_CELLS_PER_CONTACT_RADIUS  # the resolution of the convergence study's numbers below
+    if auto.indenter == "sphere" and tabulated:
         err = ("estimated discretisation error of the force +0.6 %, of a fitted E about -0.6 % (sphere convergence study, against "
                "the Richardson-extrapolated force)")
-    elif auto.indenter == "cone" and m == 8:
+    elif auto.indenter == "cone" and tabulated:
         err = ("the cone convergence study has no converged value (the element under the apex is crushed at 16 cells); the force "
                "at 8 cells is 0.9 % below Sneddon's")
     else:
