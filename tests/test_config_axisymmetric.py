@@ -52,6 +52,7 @@ def test_sphere_default_specimen_fits_hertz_within_2_percent(tmp_path):
                                   "resolution": "axisymmetric, 8 cells per contact radius"}]
     disc = rec["discretisation"]
     assert disc["status"] == "estimated" and disc["scenarios"]["sphere"]["order"] == 2.0
+    assert disc["method"] == "richardson" and disc["order"] == 2.0  # not labelled first order
     assert disc["scenarios"]["sphere"]["coarse_cells"] == "axisymmetric, 4 cells per contact radius"
     # the estimate brings the fitted E closer to the exact one (sphere: order 2 observed)
     corrected = disc["corrected"]["youngs_modulus"]

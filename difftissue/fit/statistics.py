@@ -393,7 +393,8 @@ def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], 
         skipped: ``{scenario name: reason}`` for the scenarios without an estimate.
 
     Returns:
-        ``{"method", "order", "status": "estimated" | "not estimated", "reason" (when not),
+        ``{"method" (``"richardson_first_order"``, or ``"richardson"`` when a scenario gives
+        another order), "order" (the order used, or ``"per scenario"``), "status": "estimated" | "not estimated", "reason" (when not),
         "scenarios": {name: {"status", "reason" | "fine_cells", "coarse_cells",
         "refinement_ratio", "prediction_change_relative", "rms_error_over_sigma"}},
         "estimate": {field: theta_fit - theta_converged (SI)}, "relative": {field: estimate /
@@ -412,6 +413,10 @@ def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], 
         e, info = _fine_mesh_error(s, c)
         rec["scenarios"][s.name] = info
         rows.append(e / np.asarray(s.sigma, dtype=float))
+    orders = {v["order"] for v in rec["scenarios"].values() if v["status"] == "estimated"}
+    if orders and orders != {DISCRETISATION_ORDER}:  # not first order throughout: say which
+        rec["method"] = "richardson"
+        rec["order"] = orders.pop() if len(orders) == 1 else "per scenario"
     if not any(v["status"] == "estimated" for v in rec["scenarios"].values()):
         reasons = "; ".join(f"{k}: {v['reason']}" for k, v in rec["scenarios"].items())
         return {**rec, "status": "not estimated", "reason": reasons}
