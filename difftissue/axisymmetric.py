@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .boundary import BoundaryConditions
-from .contact import ConeIndenter, ContactModel, SphereIndenter
+from .contact import ConeIndenter, ContactModel, SphereIndenter, adopt_base_fields
 from .energies.fem import linear_elastic_energy_density, neo_hookean_energy_density
 from .errors import BoundaryConditionError, InvertedElementError, ModelError
 from .materials import Material, _is_concrete, lame_parameters
@@ -282,8 +282,7 @@ class AxisymmetricContactModel(ContactModel):
         ids, area, length = top_edge_rings(mesh)
         if ids.size < 2:
             raise BoundaryConditionError("the axisymmetric mesh has no top edge")
-        for k in ("kind", "rest_points", "tets", "tet_regions", "tet_Dm_inv", "tet_volumes", "region_names", "nu_min"):
-            setattr(self, k, getattr(base, k))
+        adopt_base_fields(self, base)
         self.base = base
         self.indenter = indenter
         self.depth = jnp.asarray(depth, dtype=float)

@@ -47,6 +47,8 @@ from .models import ElasticModel, ElementTerm
 from .selectors import BoundingBoxFace
 
 __all__ = [
+    "BASE_FIELDS",
+    "adopt_base_fields",
     "Indenter",
     "SphereIndenter",
     "ConeIndenter",
@@ -420,6 +422,16 @@ class _PenaltyEnergy:
         return 0.5 * kappa * jnp.maximum(self.indenter.penetration(x_e[0], depth), 0.0) ** 2
 
 
+#: The :class:`~difftissue.models.ElasticModel` fields a contact model takes from its base model.
+BASE_FIELDS = ("kind", "rest_points", "tets", "tet_regions", "tet_Dm_inv", "tet_volumes", "region_names", "nu_min")
+
+
+def adopt_base_fields(model, base) -> None:
+    """Set ``model``'s :data:`BASE_FIELDS` to ``base``'s (in a contact model's ``__init__``)."""
+    for k in BASE_FIELDS:
+        setattr(model, k, getattr(base, k))
+
+
 class ContactModel(ElasticModel):
     """An :class:`~difftissue.models.ElasticModel` plus frictionless penalty contact with a
     rigid indenter: pass it to :func:`~difftissue.solvers.static.solve_static` instead of
@@ -480,8 +492,7 @@ class ContactModel(ElasticModel):
         copies = np.ones(len(ids))
         if mirror_planes:
             area, copies = _mirrored_areas(mesh, ids, mirror_planes)
-        for k in ("kind", "rest_points", "tets", "tet_regions", "tet_Dm_inv", "tet_volumes", "region_names", "nu_min"):
-            setattr(self, k, getattr(base, k))
+        adopt_base_fields(self, base)
         self.base = base
         self.indenter = indenter
         self.depth = jnp.asarray(depth, dtype=float)

@@ -1535,8 +1535,8 @@ class AxisymmetricIndentation(eqx.Module):
         if not (math.isfinite(m) and m > 0):
             raise ConfigError(f"min_cells_per_contact_radius must be a positive number of cells, got {min_cells_per_contact_radius!r}")
         geom = self.model.indenter
-        r = np.asarray(self.model.rest_points)[np.asarray(self.model.contact_nodes), 0]
-        h = float(np.median(np.diff(np.sort(r))[:_AXIS_NODES]))
+        X, nodes = np.asarray(self.model.rest_points), np.asarray(self.model.contact_nodes)
+        h = _cell_size_at_axis(X, nodes, X[nodes, 0])  # the meridian's r is the distance from the axis
         kind = "sphere" if isinstance(geom, SphereIndenter) else "cone"
         a = indentation_contact_radius(kind, self.abscissa, radius=getattr(geom, "radius", None), half_angle=getattr(geom, "half_angle", None))
         return IndentationResolution(name=self.name, indenter=kind, depths=np.asarray(self.abscissa, dtype=float), contact_radius=a,
