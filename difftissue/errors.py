@@ -421,3 +421,14 @@ class UnderResolvedContactWarning(DifftissueWarning):
     enter the fit as if they were as good as the others. The message names the depths, their
     cells per contact radius, and the options: refine the mesh under the indenter, or leave the
     depths out (config ``under_resolved = "drop"``)."""
+
+
+# ===================================================================== thin automatic specimen
+__all__ += ["ThinSpecimenWarning"]
+
+
+class ThinSpecimenWarning(DifftissueWarning):
+    """An automatically chosen indentation specimen was given a thickness of only a few contact
+    radii (:func:`difftissue.scenarios.thin_specimen_warning`): the simulated layer is then
+    markedly stiffer than a half-space, which the model includes, so the fitted modulus depends
+    on the thickness and the base condition given as much as on the data."""

@@ -453,20 +453,26 @@ def _discretisation_md(rec: Mapping | None) -> list[str]:
             lines.append(f"| {f} | {d:+.4g} | {100 * rec['relative'][f]:+.3g} % | {rec['standard_error'][f]:.4g} | "
                          f"{rec['ratio_to_standard_error'][f]:.3g} | {rec['corrected'][f]:.6g} |")
         lines.append("")
-    lines.append("| scenario | status | cells (fit / coarse) | prediction change | reason |")
-    lines.append("|---|---|---|---|---|")
+    lines.append("| scenario | status | cells (fit / coarse) | prediction change | order | reason |")
+    lines.append("|---|---|---|---|---|---|")
     for k, v in rec["scenarios"].items():
+        cells = f"{v.get('fine_cells')} / {v.get('coarse_cells')}" + (f" / {v['coarser_cells']}" if v.get("coarser_cells") is not None else "")
         if v["status"] == "estimated":
-            lines.append(f"| {k} | estimated | {v['fine_cells']} / {v['coarse_cells']} | {100 * v['prediction_change_relative']:.3g} % | - |")
+            order = f"{v['order']:.3g} ({v.get('order_source', 'assumed')})"
+            lines.append(f"| {k} | estimated | {cells} | {100 * v['prediction_change_relative']:.3g} % | {order} | - |")
+        elif "fine_cells" in v:  # evaluated on the coarser meshes, refused by the three-level check
+            lines.append(f"| {k} | not estimated | {cells} | {100 * v['prediction_change_relative']:.3g} % | - | {v['reason']} |")
         else:
-            lines.append(f"| {k} | not estimated | - | - | {v['reason']} |")
+            lines.append(f"| {k} | not estimated | - | - | - | {v['reason']} |")
     for k, v in rec["scenarios"].items():
         a = v.get("specimen")
         if a and a.get("geometry") == "axisymmetric":
             lines += ["", f"{k}: specimen chosen automatically ({a['rule']}): axisymmetric, {a['cells_per_contact_radius']:g} cells per contact "
                       f"radius (first cells {a['first']:.4g} m = contact radius {a['contact_radius']:.4g} m / {a['cells_per_contact_radius']:g}; "
-                      f"a cylinder of radius {a['radius']:.4g} m and height {a['height']:.4g} m); the coarser mesh doubles every cell; "
-                      f"Richardson order {v.get('order', 2):g} (the sphere's observed order)."]
+                      f"a cylinder of radius {a['radius']:.4g} m and height {a['height']:.4g} m"
+                      + ("" if not a.get("thickness_given") else ", the specimen's thickness") + "); "
+                      + ("the coarser meshes multiply every cell by sqrt(2) and 2; the order of convergence is the one these three levels show."
+                         if v.get("coarser_cells") is not None else f"the coarser mesh doubles every cell; Richardson order {v.get('order', 2):g}.")]
         elif a:
             lines += ["", f"{k}: specimen chosen automatically ({a['rule']}): cells {a['cells']}, first cells {a['refine']:.4g} m = contact radius "
                       f"{a['contact_radius']:.4g} m / {a['cells_per_contact_radius']:g}; "
@@ -474,9 +480,10 @@ def _discretisation_md(rec: Mapping | None) -> list[str]:
                          f"{-100 * a['force_error'] / (1 + a['force_error']):+.2g} %)." if a.get("force_error") is not None
                          else "no tabulated force error for this indenter.")]
     orders = sorted({float(v.get("order", 1.0)) for v in rec["scenarios"].values() if v["status"] == "estimated"})
-    how = "first-order" if orders in ([], [1.0]) else "order-" + " / ".join(f"{q:g}" for q in orders)
-    lines += ["", "One evaluation at the fitted values on a mesh of about half the cells in each direction, no refit; "
-              f"Richardson extrapolation assuming {how} convergence in the cell size gives the fit mesh's error in the "
+    how = "first-order" if orders in ([], [1.0]) else "order-" + " / ".join(f"{q:.3g}" for q in orders)
+    lines += ["", "One evaluation at the fitted values on a coarser mesh (about half the cells in each direction; two coarser meshes where "
+              "the order is observed), no refit; "
+              f"Richardson extrapolation with {how} convergence in the cell size gives the fit mesh's error in the "
               "predictions, converted to the parameters through the fit's Jacobian (linearised). An estimate, not a bound: "
               "see docs/fitting.md, \"Discretisation error\"."]
     return lines

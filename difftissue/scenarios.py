@@ -49,7 +49,7 @@ from .axisymmetric import (AXISYMMETRIC_MODELS, AxisymmetricContactModel, Axisym
 from .contact import (ConeIndenter, ContactModel, FlatPunch, Platens, SphereIndenter, _PenaltyEnergy, facing_surface_nodes, place_indenter,
                       top_surface_nodes)
 from .energies.volume import tet_signed_volume
-from .errors import BoundaryConditionError, ConfigError, ConvergenceError, DataError, ModelError, ReactionSignError, SelectorError, UnderResolvedContactWarning
+from .errors import BoundaryConditionError, ConfigError, ConvergenceError, DataError, ModelError, ReactionSignError, SelectorError, ThinSpecimenWarning, UnderResolvedContactWarning
 from .materials import Material
 from .mesh import TetMesh, graded_axis, graded_cells as _graded_cells, structured_grid
 from .interpolation import interpolation_operator
@@ -66,6 +66,8 @@ __all__ = [
     "Indentation",
     "AxisymmetricIndentation",
     "AxisymmetricSpecimen",
+    "THIN_SPECIMEN_CONTACT_RADII",
+    "thin_specimen_warning",
     "axisymmetric_specimen_for",
     "Compression",
     "FEMField",
@@ -1387,10 +1389,13 @@ def axisymmetric_specimen_for(indenter: str, *, radius: float | None = None, hal
     sets the scale: cells of ``a / cells_per_contact_radius`` within ``CONTACT_CORE * a`` of the
     axis and the surface, growing by at most ``growth`` beyond, out to a radius of
     ``extent * a`` and a height of ``extent * a`` (a half-space) or ``thickness`` [m] (a
-    bonded layer of that thickness).
+    layer of that thickness on the scenario's base: its finite-thickness stiffening is then
+    part of the model; :func:`thin_specimen_warning` says when it is large).
 
     Raises:
-        ConfigError: an unknown indenter, a missing size, a non-positive depth or thickness.
+        ConfigError: an unknown indenter, a missing size, a non-positive depth, or a
+            thickness that leaves no room below the contact core (``CONTACT_CORE * a`` plus
+            one cell, and more than ``max_depth``), as :func:`indentation_specimen_for`.
     """
     if indenter not in ("sphere", "cone"):
         raise ConfigError(f"the axisymmetric specimen is for a sphere or a cone, got {indenter!r}")
@@ -1406,8 +1411,36 @@ def axisymmetric_specimen_for(indenter: str, *, radius: float | None = None, hal
     H = extent * a if thickness is None else float(thickness)
     if not (math.isfinite(H) and H > 0):
         raise ConfigError(f"thickness must be > 0 m, got {thickness!r}")
+    if thickness is not None and not (H > CONTACT_CORE * a + a / m and H > d):
+        raise ConfigError(f"thickness {H:.4g} m leaves no room below the contact core ({CONTACT_CORE * a + a / m:.4g} m deep: {CONTACT_CORE:g} contact "
+                          f"radii of {a:.4g} m and one cell, at max_depth {d:.4g} m): a layer that thin is outside the automatic specimen; "
+                          "give a mesh (AxisymmetricIndentation(mesh=axisymmetric_cylinder(...)))")
     return AxisymmetricSpecimen(radius=float(extent * a), height=H, first=a / m, core=CONTACT_CORE * a, growth=float(growth),
                                 contact_radius=a, cells_per_contact_radius=m, thickness_given=thickness is not None, indenter=indenter)
+
+
+#: Specimen thickness in contact radii (at the deepest point) below which
+#: :func:`thin_specimen_warning` warns [-]: at 10 a a bonded layer raises a sphere's force by
+#: 12 % over the half-space's at nu = 0.45 (``analytic.layer_sphere_factor(0.1, 0.45)``).
+THIN_SPECIMEN_CONTACT_RADII = 10.0
+
+
+def thin_specimen_warning(specimen, where: str | None = None, stacklevel: int = 2) -> str | None:
+    """Emit :class:`~difftissue.errors.ThinSpecimenWarning` when an automatic specimen
+    (:class:`AxisymmetricSpecimen` or :class:`IndentationSpecimen`) was given a thickness of
+    less than :data:`THIN_SPECIMEN_CONTACT_RADII` contact radii; returns its message (None
+    when the specimen is a half-space or thick enough)."""
+    if not specimen.thickness_given:
+        return None
+    H = float(specimen.height if isinstance(specimen, AxisymmetricSpecimen) else specimen.size[2])
+    a = float(specimen.contact_radius)
+    if H >= THIN_SPECIMEN_CONTACT_RADII * a:
+        return None
+    msg = ((f"{where}: " if where else "") + f"the specimen is {H / a:.3g} contact radii thick ({H:.4g} m, contact radius {a:.4g} m at the deepest "
+           f"point; < {THIN_SPECIMEN_CONTACT_RADII:g}): the base stiffens the force markedly (a sphere on a bonded layer 10 contact radii thick: "
+           "+12 % over the half-space at nu = 0.45), so the fitted modulus is only as good as the thickness and base condition given")
+    warnings.warn(msg, ThinSpecimenWarning, stacklevel=stacklevel + 1)
+    return msg
 
 
 class AxisymmetricIndentation(eqx.Module):
@@ -1483,6 +1516,7 @@ class AxisymmetricIndentation(eqx.Module):
         elif mesh is None:
             self.specimen = axisymmetric_specimen_for(indenter, radius=radius, half_angle=half_angle, max_depth=float(d.max()),
                                                       thickness=thickness, cells_per_contact_radius=cells_per_contact_radius)
+            thin_specimen_warning(self.specimen, stacklevel=2)
             mesh = self.specimen.mesh()
         else:
             if not isinstance(mesh, AxisymmetricMesh):

@@ -86,7 +86,7 @@ def test_skipped_scenarios_say_why(hertz_fit, tmp_path):
     assert not out.quality.flags
     write_fit_outputs(out, tmp_path, config={"title": "t"})
     report = (tmp_path / "report.md").read_text()
-    assert "## Discretisation error" in report and "| sphere | not estimated | - | - | the specimen is a mesh file |" in report
+    assert "## Discretisation error" in report and "| sphere | not estimated | - | - | - | the specimen is a mesh file |" in report
     # the example configs: fem_field and incision cannot be coarsened and say why
     root = Path(__file__).resolve().parents[1] / "experiments" / "configs"
     from difftissue.config import load_config
@@ -143,3 +143,65 @@ def test_lattice_sphere_fit_reports_discretisation(tmp_path):
     assert any(w.category is DiscretisationWarning for w in caught)
     write_fit_outputs(r, tmp_path / "out", config={"title": "t"})
     assert json.loads((tmp_path / "out" / "fit.json").read_text())["discretisation"]["estimate"]["youngs_modulus"] == pytest.approx(est)
+
+
+def test_three_levels_observe_the_order_and_refuse_what_does_not_converge(hertz_fit, tmp_path):
+    """A third level (cell size ratio r again): the order is observed. Predictions that
+    converge at order 2 with r = sqrt(2) (changes 10 % then 20 % of the force): the observed
+    order is 2 and the fine mesh's error 10 % / (r^2 - 1) = 10 %, so E is 10 % low. Changes of
+    the opposite sign (not monotone), or an observed order outside the accepted range, give no
+    estimate and say why; the record keeps the levels."""
+    from difftissue.fit.statistics import OBSERVED_ORDER_RANGE
+
+    r = hertz_fit
+    p = r.predictions["sphere"]
+    r2 = 2 ** 0.5
+    three = {"sphere": {"prediction": 1.10 * p, "prediction_coarser": 1.30 * p, "fine_cells": "8", "coarse_cells": "5.7", "coarser_cells": "4",
+                        "refinement_ratio": r2}}
+    rec = discretisation_estimate(r, three)
+    sc = rec["scenarios"]["sphere"]
+    assert rec["status"] == "estimated" and rec["method"] == "richardson" and sc["order_source"] == "observed (three levels)"
+    assert sc["order"] == pytest.approx(2.0, rel=1e-9) and sc["change_ratio"] == pytest.approx(2.0, rel=1e-9) and sc["misfit"] < 1e-9
+    assert rec["relative"]["youngs_modulus"] == pytest.approx(-0.10, rel=1e-6)
+    # order 1 with the same first change: error 10 % / (sqrt(2) - 1) = 24 %
+    first = discretisation_estimate(r, {"sphere": {**three["sphere"], "prediction_coarser": p * (1.10 + 0.10 * r2)}})
+    assert first["scenarios"]["sphere"]["order"] == pytest.approx(1.0, rel=1e-9)
+    assert first["relative"]["youngs_modulus"] == pytest.approx(-0.10 / (r2 - 1), rel=1e-6)
+    # not monotone: the coarser mesh goes back (+10 % then -5 %)
+    back = discretisation_estimate(r, {"sphere": {**three["sphere"], "prediction_coarser": 1.05 * p}})
+    assert back["status"] == "not estimated" and "estimate" not in back
+    why = back["scenarios"]["sphere"]["reason"]
+    assert why.startswith("no estimate: not monotone") and back["reason"] == f"sphere: {why}"
+    assert back["scenarios"]["sphere"]["coarser_cells"] == "4" and back["scenarios"]["sphere"]["change_ratio"] == pytest.approx(-0.5, rel=1e-9)
+    # monotone but an implausible order (change ratio 2^3 per sqrt(2): order 6)
+    steep = discretisation_estimate(r, {"sphere": {**three["sphere"], "prediction_coarser": p * (1.10 + 0.10 * r2 ** 6)}})
+    assert 6 > OBSERVED_ORDER_RANGE[1] and steep["status"] == "not estimated"
+    assert "observed order 6 outside" in steep["scenarios"]["sphere"]["reason"]
+    out = with_discretisation(r, back)
+    assert not out.quality.flags
+    write_fit_outputs(out, tmp_path, config={"title": "t"})
+    report = (tmp_path / "report.md").read_text()
+    assert "| sphere | not estimated | 8 / 5.7 / 4 | 10 % | - | no estimate: not monotone" in report
+    assert json.loads((tmp_path / "fit.json").read_text())["discretisation"]["scenarios"]["sphere"]["status"] == "not estimated"
+
+
+def test_three_level_order_comes_from_what_moves_the_parameters(hertz_fit):
+    """The changes are projected onto the fit's Jacobian: a large non-monotone change at one
+    point that the fit barely sees (orthogonal to the force's sensitivity to E) does not decide
+    the order; unprojected it would make the levels look non-monotone."""
+    from difftissue.fit.statistics import _observed_order
+
+    r = hertz_fit
+    s = r.scenarios[0]
+    p, sig = np.asarray(s.predicted), np.asarray(s.sigma)
+    J = np.asarray(r.jacobian)
+    f = J[:, 0]
+    noise = np.zeros_like(p)
+    noise[0] = 1.0
+    noise -= f * (f @ noise) / (f @ f)  # orthogonal to the sensitivity, in the weighted space
+    bump = 50.0 * noise * sig * float(np.linalg.norm(0.1 * p / sig))
+    pc, pcc = 1.1 * p, 1.3 * p - bump
+    q, rec, why = _observed_order(p, pc, pcc, sig, 2 ** 0.5, J)
+    assert why is None and q == pytest.approx(2.0, rel=1e-6)
+    q_raw, rec_raw, why_raw = _observed_order(p, pc, pcc, sig, 2 ** 0.5)
+    assert why_raw is not None

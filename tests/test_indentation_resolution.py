@@ -158,7 +158,8 @@ def test_config_without_specimen_refuses_with_the_key(curve_dir, model, shape, s
 
 def test_config_without_specimen_is_axisymmetric_for_a_fem_sphere(curve_dir):
     """The default for a sphere or a cone with a FEM model: the axisymmetric specimen of
-    axisymmetric_specimen_for, its coarser mesh every cell doubled (refined(0.5)), order 2."""
+    axisymmetric_specimen_for; its discretisation check's coarser meshes every cell times sqrt(2)
+    and 2 (refined(1 / sqrt(2)), refined(0.5)), the order observed on the three levels."""
     from difftissue.config import load_config
     from difftissue.scenarios import AxisymmetricIndentation, axisymmetric_specimen_for
 
@@ -170,9 +171,14 @@ def test_config_without_specimen_is_axisymmetric_for_a_fem_sphere(curve_dir):
     assert sc.record()["geometry"] == "axisymmetric"
     assert any("specimen chosen automatically" in n and "axisymmetric, 8 cells per contact radius" in n for n in exp.notes)
     coarse_sc, info = exp.coarsen()
-    assert coarse_sc.specimen == chosen.refined(0.5) and info["refinement_ratio"] == pytest.approx(2.0, rel=1e-12)
-    assert info["order"] == 2.0 and info["specimen"] == chosen.record()
-    assert info["fine_cells"] == "axisymmetric, 8 cells per contact radius" and info["coarse_cells"] == "axisymmetric, 4 cells per contact radius"
+    expected = chosen.refined(2 ** -0.5)
+    assert coarse_sc.specimen.first == pytest.approx(expected.first, rel=1e-12) and coarse_sc.specimen.growth == pytest.approx(expected.growth, rel=1e-12)
+    assert coarse_sc.specimen.height == chosen.height and info["refinement_ratio"] == pytest.approx(2 ** 0.5, rel=1e-12)
+    assert "order" not in info and info["specimen"] == chosen.record()
+    coarser_sc, coarser_cells = info["coarser"]()
+    assert coarser_sc.specimen == chosen.refined(0.5) and coarser_sc.specimen.first / coarse_sc.specimen.first == pytest.approx(2 ** 0.5, rel=1e-12)
+    assert info["fine_cells"] == "axisymmetric, 8 cells per contact radius" and info["coarse_cells"] == "axisymmetric, 5.65685 cells per contact radius"
+    assert coarser_cells == "axisymmetric, 4 cells per contact radius"
     np.testing.assert_allclose(exp.provenance["resolution"]["cells_per_contact_radius_range"][1], 8.0, rtol=1e-6)
 
 

@@ -135,7 +135,9 @@ class FitConfig:
         forward evaluation each, no refit), for :func:`~difftissue.fit.discretisation_estimate`.
 
         Returns ``(coarse, skipped)``: ``{name: {"prediction" (unit of the data), "fine_cells",
-        "coarse_cells", "refinement_ratio"}}`` and ``{name: reason}`` for the experiments
+        "coarse_cells", "refinement_ratio"}}`` (plus ``"prediction_coarser"`` and
+        ``"coarser_cells"`` where the experiment's coarsening gives a third level, ``info["coarser"]``:
+        a callable returning ``(scenario, cells)``) and ``{name: reason}`` for the experiments
         without an estimate (no mesh, a mesh file, observed on given nodes, or a coarse
         evaluation that failed: its message is the reason)."""
         coarse, skipped = {}, {}
@@ -145,16 +147,29 @@ class FitConfig:
                 continue
             try:
                 sc, info = e.coarsen()
-                wrapped = SeparatelyCompiled(sc, pre_stretch_y=material.pre_stretch_y is not None)
-                pred = np.asarray(wrapped.evaluate(material), dtype=float)
+                info = dict(info)
+                coarser = info.pop("coarser", None)
+                levels = [(sc, info["coarse_cells"], "prediction")]
+                if coarser is not None:  # a third level: the order is observed, not assumed
+                    sc2, info["coarser_cells"] = coarser()
+                    levels.append((sc2, info["coarser_cells"], "prediction_coarser"))
             except DifftissueError as err:
                 skipped[e.name] = f"the coarser mesh could not be built: {err}"
                 continue
-            if not np.all(np.isfinite(pred)):
-                why = wrapped.failures[-1] if getattr(wrapped, "failures", None) else "non-finite prediction"
-                skipped[e.name] = f"the evaluation on the coarser mesh {info['coarse_cells']} failed: {why}"
-                continue
-            coarse[e.name] = {**info, "prediction": pred}
+            for sc_level, cells, key in levels:
+                wrapped = SeparatelyCompiled(sc_level, pre_stretch_y=material.pre_stretch_y is not None)
+                try:
+                    pred = np.asarray(wrapped.evaluate(material), dtype=float)
+                except DifftissueError as err:
+                    pred, why = None, str(err)
+                else:
+                    why = None if np.all(np.isfinite(pred)) else (wrapped.failures[-1] if getattr(wrapped, "failures", None) else "non-finite prediction")
+                if why is not None:
+                    skipped[e.name] = f"the evaluation on the coarser mesh {cells} failed: {why}"
+                    break
+                info[key] = pred
+            else:
+                coarse[e.name] = info
         return coarse, skipped
 
     def check_discretisation(self, result):

@@ -370,6 +370,12 @@ DISCRETISATION_METHOD = "richardson_first_order"
 #: Assumed order of convergence of the predictions in the cell size h [-] (P1 tets and the
 #: spring lattice converge at first order in force: docs/experiments.md, experiment 1).
 DISCRETISATION_ORDER = 1.0
+#: Observed orders [-] a three-level estimate accepts (:func:`discretisation_estimate` with a
+#: ``"prediction_coarser"``); outside it the levels are not taken to be in the asymptotic range.
+OBSERVED_ORDER_RANGE = (0.5, 4.0)
+#: Largest relative misfit [-] of the coarser pair's change against the finer pair's change
+#: scaled by one factor (``|d2 - rho d1| / |d2|``, sigma-weighted) a three-level estimate accepts.
+OBSERVED_ORDER_MISFIT = 0.5
 
 
 def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], skipped: Mapping[str, str] | None = None) -> dict:
@@ -390,6 +396,15 @@ def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], 
         coarse: ``{scenario name: {"prediction": array (unit of the data), "fine_cells",
             "coarse_cells", "refinement_ratio": r [-]}}``, optionally ``"order"`` (that
             scenario's order of convergence ``q`` [-], default :data:`DISCRETISATION_ORDER`).
+            With ``"prediction_coarser"`` (a third level, cell size ratio ``r`` again to the
+            coarse mesh) the order is observed instead of assumed: with the sigma-weighted
+            changes ``d1 = p_c - p_f`` and ``d2 = p_cc - p_c`` projected onto the columns of
+            the scenario's Jacobian (the part that moves the parameters), ``rho = d1.d2 /
+            d1.d1`` and ``q = ln(rho) / ln(r)``. The scenario gets no estimate (status ``"not estimated"``
+            and the reason in its record, its rows count as zero) where the levels are not
+            monotone (``rho <= 1``: the change does not shrink as the cells do), ``q`` lies
+            outside :data:`OBSERVED_ORDER_RANGE`, or the two changes are not proportional
+            (misfit above :data:`OBSERVED_ORDER_MISFIT`).
         skipped: ``{scenario name: reason}`` for the scenarios without an estimate.
 
     Returns:
@@ -404,15 +419,18 @@ def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], 
     skipped = dict(skipped or {})
     rec: dict = {"method": DISCRETISATION_METHOD, "order": DISCRETISATION_ORDER, "scenarios": {}}
     rows = []
+    J_all = np.asarray(result.jacobian, dtype=float)
+    start = 0
     for s in result.scenarios:
+        J_s, start = J_all[start:start + s.observed.size], start + s.observed.size
         c = coarse.get(s.name)
         if c is None:
             rec["scenarios"][s.name] = {"status": "not estimated", "reason": skipped.get(s.name, "no coarse-mesh prediction")}
             rows.append(np.zeros(s.observed.size))
             continue
-        e, info = _fine_mesh_error(s, c)
+        e, info = _fine_mesh_error(s, c, J_s)
         rec["scenarios"][s.name] = info
-        rows.append(e / np.asarray(s.sigma, dtype=float))
+        rows.append(np.zeros(s.observed.size) if e is None else e / np.asarray(s.sigma, dtype=float))
     orders = {v["order"] for v in rec["scenarios"].values() if v["status"] == "estimated"}
     if orders and orders != {DISCRETISATION_ORDER}:  # not first order throughout: say which
         rec["method"] = "richardson"
@@ -433,21 +451,67 @@ def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], 
             "ratio_to_standard_error": {f: abs(est[f]) / se[f] if se[f] > 0 and math.isfinite(se[f]) else float("nan") for f in est}}
 
 
-def _fine_mesh_error(s: "ScenarioFit", c: Mapping) -> tuple[np.ndarray, dict]:
+def _fine_mesh_error(s: "ScenarioFit", c: Mapping, J_s: np.ndarray | None = None) -> tuple[np.ndarray | None, dict]:
     """Richardson estimate of the fine mesh's error ``p_f - p_exact`` (unit of the data) of one
-    scenario, and its record (cells, ratio, relative change of the prediction [-])."""
+    scenario, and its record (cells, ratio, order and where it came from, relative change of
+    the prediction [-]); ``(None, record)`` when a three-level check refuses (the record says
+    why). ``J_s``: the fit's Jacobian rows of this scenario (scaled residuals), for the
+    three-level check."""
     pf = np.asarray(s.predicted, dtype=float)
     pc = np.asarray(c["prediction"], dtype=float)
+    sigma = np.asarray(s.sigma, dtype=float)
     r = float(c["refinement_ratio"])
-    q = float(c.get("order", DISCRETISATION_ORDER))
-    e = (pc - pf) / (r**q - 1.0)
     norm = float(np.linalg.norm(pf))
-    info = {"status": "estimated", "fine_cells": c.get("fine_cells"), "coarse_cells": c.get("coarse_cells"), "refinement_ratio": r, "order": q,
-            "prediction_change_relative": float(np.linalg.norm(pc - pf) / norm) if norm > 0 else float("nan"),
-            "rms_error_over_sigma": float(np.sqrt(np.mean((e / np.asarray(s.sigma, dtype=float)) ** 2)))}
+    base = {"fine_cells": c.get("fine_cells"), "coarse_cells": c.get("coarse_cells"), "refinement_ratio": r,
+            "prediction_change_relative": float(np.linalg.norm(pc - pf) / norm) if norm > 0 else float("nan")}
     if "specimen" in c:  # an automatically chosen specimen: its rule's record (resolution, tabulated force error)
-        info["specimen"] = dict(c["specimen"])
+        base["specimen"] = dict(c["specimen"])
+    if "prediction_coarser" in c:
+        q, levels, why = _observed_order(pf, pc, np.asarray(c["prediction_coarser"], dtype=float), sigma, r, J_s)
+        base.update(coarser_cells=c.get("coarser_cells"), order_source="observed (three levels)", **levels)
+        if why is not None:
+            return None, {"status": "not estimated", "reason": why, **base}
+    else:
+        q = float(c.get("order", DISCRETISATION_ORDER))
+        base["order_source"] = "assumed"
+    e = (pc - pf) / (r**q - 1.0)
+    info = {"status": "estimated", **base, "order": q, "rms_error_over_sigma": float(np.sqrt(np.mean((e / sigma) ** 2)))}
     return e, info
+
+
+def _observed_order(pf, pc, pcc, sigma, r, J_s=None) -> tuple[float, dict, str | None]:
+    """Order of convergence observed on three levels of cell size ratio ``r`` (fine, coarse,
+    coarser predictions): ``(q, record, reason it is refused or None)``. The sigma-weighted
+    changes are projected onto the columns of ``J_s`` (the scenario's Jacobian of the scaled
+    residuals; None: not projected): the part of the mesh error the fitted parameters absorb.
+    Unprojected, the shallow depths of an indentation (a contact radius of one or two cells on
+    the coarser meshes, far from the asymptotic range) decide the ratio though they barely move
+    the fit."""
+    d1, d2 = (pc - pf) / sigma, (pcc - pc) / sigma
+    if J_s is not None and J_s.size and np.all(np.isfinite(J_s)):
+        proj = J_s @ np.linalg.pinv(J_s)
+        d1, d2 = proj @ d1, proj @ d2
+    n1, n2 = float(d1 @ d1), float(d2 @ d2)
+    if not (math.isfinite(n1) and math.isfinite(n2)):
+        return float("nan"), {}, "no estimate: a prediction on the coarse or coarser mesh is not finite"
+    if n1 == 0.0:  # the coarse mesh changed nothing: no discretisation error measurable
+        return 1.0, {"change_ratio": float("nan"), "observed_order": float("nan"), "misfit": 0.0}, None
+    rho = float(d1 @ d2) / n1
+    misfit = float(np.linalg.norm(d2 - rho * d1) / math.sqrt(n2)) if n2 > 0 else 0.0
+    rec = {"change_ratio": rho, "misfit": misfit}
+    if not rho > 1.0:
+        return float("nan"), {**rec, "observed_order": float("nan")}, (
+            f"no estimate: not monotone (the change from the coarse to the coarser mesh is {rho:.3g} x the change from the fit mesh "
+            "to the coarse; converging predictions need > 1)")
+    q = math.log(rho) / math.log(r)
+    rec["observed_order"] = q
+    lo, hi = OBSERVED_ORDER_RANGE
+    if not lo <= q <= hi:
+        return q, rec, f"no estimate: observed order {q:.3g} outside [{lo:g}, {hi:g}] (the levels are not in the asymptotic range)"
+    if misfit > OBSERVED_ORDER_MISFIT:
+        return q, rec, (f"no estimate: the changes between the three levels are not proportional (misfit {misfit:.2g} > {OBSERVED_ORDER_MISFIT:g}; "
+                        "the depths converge differently)")
+    return q, rec, None
 
 
 def _discretisation_flags(rec: Mapping, units: Mapping[str, str]) -> list[QualityFlag]:
