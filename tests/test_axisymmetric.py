@@ -3,6 +3,8 @@ the ring kinematics (homogeneous patch tests), sphere and cone against Hertz and
 small meshes, float64 gradients of the force in E and nu against central differences, and
 the refusals. The convergence study is experiments/axisymmetric_indentation.py."""
 
+import warnings
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -159,3 +161,26 @@ def test_refusals():
         AxisymmetricContactModel(model, SphereIndenter(R, axis_xy=(1e-4, 0.0), surface_z=1e-3), mesh)
     with pytest.raises(ModelError, match="r >= 0"):
         type(mesh)(np.array([[-1.0, 0.0], [1.0, 0.0], [0.0, 1.0]]), np.array([[0, 1, 2]]))
+
+
+def test_thickness_makes_a_layer_that_follows_the_exact_layer_solution():
+    """thickness = 5 contact radii (chi = a / t = 0.2), bonded base: the force follows the exact
+    bonded-layer solution (``analytic.layer_sphere_force``, 26.6 % above Hertz here) within
+    2 %, as the half-space specimen follows Hertz (+1.2 % at this resolution); the thin layer is
+    named by ThinSpecimenWarning. Too thin for the contact core: refused."""
+    from difftissue.errors import ThinSpecimenWarning
+
+    a = np.sqrt(R * D)
+    t = 5 * a
+    with pytest.warns(ThinSpecimenWarning, match="5 contact radii thick"):
+        sc = AxisymmetricIndentation([D], indenter="sphere", radius=R, thickness=t)
+    assert sc.specimen.thickness_given and sc.record()["height"] == pytest.approx(t, rel=1e-12)
+    F = float(np.asarray(sc.predict(Material(E, NU)))[0])
+    layer = float(np.asarray(analytic.layer_sphere_force(D, E, NU, R, t)))
+    assert layer / float(_hertz(D)) == pytest.approx(1.266, abs=0.005)
+    assert F / layer - 1 == pytest.approx(0.0, abs=0.02)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ThinSpecimenWarning)  # 20 contact radii: no warning
+        AxisymmetricIndentation([D], indenter="sphere", radius=R, thickness=20 * a, cells_per_contact_radius=2)
+    with pytest.raises(ConfigError, match="leaves no room below the contact core"):
+        AxisymmetricIndentation([D], indenter="sphere", radius=R, thickness=1.2 * a)

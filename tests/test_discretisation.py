@@ -167,6 +167,12 @@ def test_three_levels_observe_the_order_and_refuse_what_does_not_converge(hertz_
     first = discretisation_estimate(r, {"sphere": {**three["sphere"], "prediction_coarser": p * (1.10 + 0.10 * r2)}})
     assert first["scenarios"]["sphere"]["order"] == pytest.approx(1.0, rel=1e-9)
     assert first["relative"]["youngs_modulus"] == pytest.approx(-0.10 / (r2 - 1), rel=1e-6)
+    # an observed order above the element's ("max_order"): capped, the larger error taken
+    fast = {"sphere": {**three["sphere"], "prediction_coarser": p * (1.10 + 0.10 * r2 ** 3), "max_order": 2.0}}
+    capped = discretisation_estimate(r, fast)
+    assert capped["scenarios"]["sphere"]["observed_order"] == pytest.approx(3.0, rel=1e-9) and capped["scenarios"]["sphere"]["order"] == 2.0
+    assert capped["relative"]["youngs_modulus"] == pytest.approx(-0.10, rel=1e-6)
+    assert "capped at the element's 2" in capped["scenarios"]["sphere"]["order_source"]
     # not monotone: the coarser mesh goes back (+10 % then -5 %)
     back = discretisation_estimate(r, {"sphere": {**three["sphere"], "prediction_coarser": 1.05 * p}})
     assert back["status"] == "not estimated" and "estimate" not in back

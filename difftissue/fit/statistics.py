@@ -400,7 +400,9 @@ def discretisation_estimate(result: "FitResult", coarse: Mapping[str, Mapping], 
             coarse mesh) the order is observed instead of assumed: with the sigma-weighted
             changes ``d1 = p_c - p_f`` and ``d2 = p_cc - p_c`` projected onto the columns of
             the scenario's Jacobian (the part that moves the parameters), ``rho = d1.d2 /
-            d1.d1`` and ``q = ln(rho) / ln(r)``. The scenario gets no estimate (status ``"not estimated"``
+            d1.d1`` and ``q = ln(rho) / ln(r)``, capped at the entry's ``"max_order"`` where given (the
+            element's order: a faster observed order means one level was luckily accurate, and
+            the cap gives the larger, safer error). The scenario gets no estimate (status ``"not estimated"``
             and the reason in its record, its rows count as zero) where the levels are not
             monotone (``rho <= 1``: the change does not shrink as the cells do), ``q`` lies
             outside :data:`OBSERVED_ORDER_RANGE`, or the two changes are not proportional
@@ -471,6 +473,9 @@ def _fine_mesh_error(s: "ScenarioFit", c: Mapping, J_s: np.ndarray | None = None
         base.update(coarser_cells=c.get("coarser_cells"), order_source="observed (three levels)", **levels)
         if why is not None:
             return None, {"status": "not estimated", "reason": why, **base}
+        if "max_order" in c and q > float(c["max_order"]):  # faster than the element can converge: a lucky level; take the element's order
+            q = float(c["max_order"])
+            base["order_source"] = f"observed {levels['observed_order']:.3g}, capped at the element's {q:g} (three levels)"
     else:
         q = float(c.get("order", DISCRETISATION_ORDER))
         base["order_source"] = "assumed"
