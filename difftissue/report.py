@@ -368,7 +368,7 @@ def _plot_fit(result: FitResult, path: Path):
     width, height = 5.0 * cols, 6.0
     fig = Figure(figsize=(width, height))
     # A fixed layout in inches (matplotlib's constrained layout measured every text's extent,
-    # ~0.3 s CPU per report): room for the title's lines, the panel titles, the y labels of each
+    # ~0.2 s CPU per report): room for the title's lines, the panel titles, the y labels of each
     # column and, between the rows, the top panels' tick labels (and a fem_field force panel's
     # x label).
     top_in = 0.1 + 9.0 / 72.0 * 1.25 * (title.count("\n") + 1) + 0.3
