@@ -92,7 +92,11 @@ def _cell_shape(kind: str, cell_size) -> tuple[float, float, float]:
 def _unit_cell(kind: str, shape: tuple[float, float, float]):
     """``(model, rest points (8, 3), cell volume)`` of one cell of ``shape`` (built once, eagerly
     even when first asked for inside ``jit``)."""
-    with jax.ensure_compile_time_eval():
+    if isinstance(jnp.zeros(()), jax.core.Tracer):  # asked for inside a trace: evaluated eagerly
+        with jax.ensure_compile_time_eval():
+            mesh = block(shape, 1)
+            model = make_model(mesh, kind)
+    else:  # the mesh set-up's compiled programs, shared with every model (under ensure_compile_time_eval: ~0.25 s CPU)
         mesh = block(shape, 1)
         model = make_model(mesh, kind)
     return model, np.asarray(mesh.points, dtype=float), float(np.prod(shape))
@@ -394,10 +398,7 @@ def uniaxial_stress(kind: str, material: Material, strain, *, direction: str = "
     """
     shape = _cell_shape(kind, cell_size)
     _frame(direction, shape)
-    if material.pre_stretch_y is not None:  # ignored like pre_stretch: the bar starts stress-free
-        material = material.replace(pre_stretch_y=None)
-    mat = _checked(kind, shape, material)
-    mat = eqx.tree_at(lambda m: m.pre_stretch, mat, jnp.ones_like(mat.pre_stretch))
+    mat = _bar_material(kind, shape, material)
     eps = jnp.asarray(strain, dtype=jnp.result_type(float))
     if _is_concrete(eps) and not np.all(np.asarray(eps) > -1.0):
         raise ModelError(f"strain must be > -1 (engineering strain, stretch 1 + strain > 0), got {np.asarray(eps)}")
@@ -422,6 +423,15 @@ def uniaxial_stress(kind: str, material: Material, strain, *, direction: str = "
     return _uniaxial_stress(kind, shape, Q, mat, flat)[:n].reshape(eps.shape)
 
 
+def _bar_material(kind, shape, material: Material) -> Material:
+    """The checked scalar material of :func:`uniaxial_stress`'s bar: the pre-stretches ignored
+    (the bar starts stress-free)."""
+    if material.pre_stretch_y is not None:
+        material = material.replace(pre_stretch_y=None)
+    mat = _checked(kind, shape, material)
+    return eqx.tree_at(lambda m: m.pre_stretch, mat, jnp.ones_like(mat.pre_stretch))
+
+
 @functools.partial(jax.jit, static_argnums=(0, 1))
 def _uniaxial_stress(kind, shape, Q, mat, eps):
     """Nominal stress along ``Q[:, 0]`` at the strains ``eps`` (one program for every direction)."""
@@ -442,7 +452,7 @@ def _uniaxial_stress(kind, shape, Q, mat, eps):
     return jax.vmap(one)(eps)
 
 
-def _uniaxial_stress_host(kind, shape, Q, mat, eps):
+def _uniaxial_stress_host(kind, shape, Q, mat, eps, fields=()):
     """:func:`_uniaxial_stress` for concrete values: the same Newton iteration (``_NEWTON_STEPS``
     limited steps, a residual check, one final step) on the host, the cell's gradient and
     Hessian from :class:`~difftissue.solvers.host.ModelDerivatives` (one compiled program per
@@ -450,8 +460,11 @@ def _uniaxial_stress_host(kind, shape, Q, mat, eps):
     solves of small specimens). The positions are linear in the stretch tensor
     ``S = [[lam, y0, y1], [y0, y2, y3], [y1, y3, y4]]`` (``x = X (Q S Q^T)^T``), so the
     gradient and Hessian in ``(lam, y)`` are ``J^T g`` and ``J^T H J`` with the constant
-    ``J = dx / d(lam, y)`` (24, 6). Returns ``P`` (B,) [Pa]; a point that does not converge
-    raises :class:`ModelError`."""
+    ``J = dx / d(lam, y)`` (24, 6). Returns ``P`` (B,) [Pa]; with ``fields`` (material field
+    names) ``(P, dP)``, ``dP`` ``(len(fields), B)`` the derivatives of ``P`` with respect to
+    those fields at the solution (implicit function theorem: ``dP = dg_lam - H_lam,y
+    H_y,y^-1 dg_y`` with ``dg = J^T d(gradient)/d(field)`` from the same program; zero for the
+    ignored pre-stretches). A point that does not converge raises :class:`ModelError`."""
     model, X, V = _unit_cell(kind, shape)
     checked = model.checked(mat)
     entries = [((0, 0),), ((0, 1), (1, 0)), ((0, 2), (2, 0)), ((1, 1),), ((1, 2), (2, 1)), ((2, 2),)]
@@ -468,12 +481,13 @@ def _uniaxial_stress_host(kind, shape, Q, mat, eps):
     y = np.stack([zero, zero, lt, zero, lt], axis=1)
 
     cell = ModelDerivatives(model)
+    Jy = J[:, 1:]
 
     def derivatives(y):
         p = np.concatenate([lam[:, None], y], axis=1)
         _, g, H, _, _ = cell(checked, (p @ J.T).reshape(-1, *X.shape))
         g, H = g / V, H / V
-        return g @ J, np.einsum("ia,bij,jc->bac", J[:, 1:], H, J[:, 1:])
+        return g @ J, Jy.T @ H @ Jy  # (B, 5, 5); a three-operand np.einsum took ~0.4 ms a call
 
     for _ in range(_NEWTON_STEPS):
         gy, Hy = derivatives(y)
@@ -486,7 +500,45 @@ def _uniaxial_stress_host(kind, shape, Q, mat, eps):
         raise ModelError(f"uniaxial stress of {kind}: Newton's method did not converge at strain {eps[bad].tolist()} (the state is "
                          "outside the model's range, e.g. a strain that inverts or collapses the cell)")
     y = y - np.linalg.solve(Hy, gy[:, 1:, None])[..., 0]
-    return derivatives(y)[0][:, 0]
+    if not fields:
+        return derivatives(y)[0][:, 0]
+    p = np.concatenate([lam[:, None], y], axis=1)
+    _, g, H, dgdm, _ = cell(checked, (p @ J.T).reshape(-1, *X.shape))
+    H_ly, H_yy = np.einsum("i,bij,jc->bc", J[:, 0], H / V, Jy), Jy.T @ (H / V) @ Jy
+    dP = np.zeros((len(fields), eps.shape[0]))
+    for k, name in enumerate(fields):
+        if name in ("pre_stretch", "pre_stretch_y"):
+            continue  # ignored: the bar starts stress-free
+        dg = np.sum(np.asarray(getattr(dgdm, name)), axis=-1) / V @ J  # (B, 6): d(J^T g)/d(field)
+        dP[k] = dg[:, 0] - np.einsum("bc,bc->b", H_ly, np.linalg.solve(H_yy, dg[:, 1:, None])[..., 0])
+    return (g / V @ J)[:, 0], dP
+
+
+def _quadrature(strain_range):
+    """Gauss-Legendre points and weights of :func:`continuum_cubic_coefficient` on ``strain_range``."""
+    lo, hi = (float(v) for v in strain_range)
+    if not (-1.0 < lo < hi and math.isfinite(hi)) or lo == 0.0 and hi == 0.0:
+        raise ModelError(f"strain_range must be (lo, hi) with -1 < lo < hi, got {strain_range!r}")
+    x, w = np.polynomial.legendre.leggauss(_QUADRATURE_POINTS)
+    return 0.5 * (hi - lo) * x + 0.5 * (hi + lo), 0.5 * (hi - lo) * w
+
+
+def _continuum_cubic_coefficient_gradient(kind: str, material: Material, fields, *, strain_range=UNIAXIAL_STRAIN_RANGE,
+                                          direction: str = "[100]", cell_size=None) -> np.ndarray:
+    """Derivatives of :func:`continuum_cubic_coefficient` with respect to the material ``fields``
+    (concrete values), exact: the host Newton's solutions differentiated by the implicit function
+    theorem (:func:`_uniaxial_stress_host`), ``d b_c = int d(P/E) eps^3 / int eps^6``."""
+    eps, w = _quadrature(strain_range)
+    shape = _cell_shape(kind, cell_size)
+    Q = _frame(direction, shape)
+    mat = _bar_material(kind, shape, material)
+    P, dP = _uniaxial_stress_host(kind, shape, Q, mat, eps, tuple(fields))
+    E = float(material.youngs_modulus)
+    d_resid = dP / E
+    for k, f in enumerate(fields):
+        if f == "youngs_modulus":
+            d_resid[k] -= P / E**2
+    return np.sum(w * d_resid * eps**3, axis=1) / np.sum(w * eps**6)
 
 
 def continuum_cubic_coefficient(kind: str, material: Material, *, strain_range=UNIAXIAL_STRAIN_RANGE, direction: str = "[100]", cell_size=None):
@@ -504,12 +556,7 @@ def continuum_cubic_coefficient(kind: str, material: Material, *, strain_range=U
     tet models (which ignore ``cubic_coefficient``) it is their energy's own cubic part
     (``fem_linear``: 0). Returns ``b_c`` [-]; jit-able, differentiable in ``material``.
     """
-    lo, hi = (float(v) for v in strain_range)
-    if not (-1.0 < lo < hi and math.isfinite(hi)) or lo == 0.0 and hi == 0.0:
-        raise ModelError(f"strain_range must be (lo, hi) with -1 < lo < hi, got {strain_range!r}")
-    x, w = np.polynomial.legendre.leggauss(_QUADRATURE_POINTS)
-    eps = 0.5 * (hi - lo) * x + 0.5 * (hi + lo)
-    w = 0.5 * (hi - lo) * w
+    eps, w = _quadrature(strain_range)
     P = uniaxial_stress(kind, material, jnp.asarray(eps), direction=direction, cell_size=cell_size)
     if _is_concrete((P, material.youngs_modulus)):  # NumPy: no compiled program per operation
         resid = np.asarray(P) / float(material.youngs_modulus) - eps
@@ -519,26 +566,36 @@ def continuum_cubic_coefficient(kind: str, material: Material, *, strain_range=U
 
 
 # ------------------------------------------------------------------- report records
+def _linearised_se(gradient, fields, covariance):
+    """``sqrt(g^T C g)`` with ``g = gradient()`` (called only with a usable covariance of the
+    ``fields``); None without a covariance or where a variance is not finite."""
+    if covariance is None or not fields:
+        return None
+    C = np.asarray(covariance, dtype=float)
+    if C.shape != (len(fields), len(fields)) or not np.all(np.isfinite(C)):
+        return None
+    g = np.asarray(gradient(), dtype=float)
+    var = float(g @ C @ g)
+    return math.sqrt(var) if math.isfinite(var) and var >= 0 else None
+
+
 def _delta_se(fn, material: Material, fields, covariance):
     """Standard error of ``fn(material)`` from the covariance [physical units] of the fitted
     ``fields``, linearised: ``sqrt(g^T C g)`` with ``g`` by central differences (relative step
     1e-6: the record needs a few digits, and the compiled forward program is reused; the
     functions' own derivatives are exact and tested). None without a covariance or where a
     variance is not finite."""
-    if covariance is None or not fields:
-        return None
-    C = np.asarray(covariance, dtype=float)
-    if C.shape != (len(fields), len(fields)) or not np.all(np.isfinite(C)):
-        return None
-    grad = []
-    for f in fields:
-        v = float(getattr(material, f))
-        h = 1e-6 * max(abs(v), 1e-3)
-        up, down = (float(fn(eqx.tree_at(lambda m: getattr(m, f), material, jnp.asarray(v + s)))) for s in (h, -h))
-        grad.append((up - down) / (2.0 * h))
-    g = np.array(grad)
-    var = float(g @ C @ g)
-    return math.sqrt(var) if math.isfinite(var) and var >= 0 else None
+
+    def gradient():
+        grad = []
+        for f in fields:
+            v = float(getattr(material, f))
+            h = 1e-6 * max(abs(v), 1e-3)
+            up, down = (float(fn(eqx.tree_at(lambda m: getattr(m, f), material, jnp.asarray(v + s)))) for s in (h, -h))
+            grad.append((up - down) / (2.0 * h))
+        return grad
+
+    return _linearised_se(gradient, tuple(fields), covariance)
 
 
 def surface_tension_record(kind: str, material: Material, layers, *, fields=(), covariance=None) -> dict:
@@ -642,7 +699,11 @@ def cubic_coefficient_record(material: Material, *, cell_size=None, strain_range
     E = float(material.youngs_modulus)
     lattice_ends = np.asarray(uniaxial_stress("springs_volume", material, ends, cell_size=cell_size)) / E
     b100 = by_dir["[100]"]
-    se = _delta_se(lambda m: continuum_cubic_coefficient("springs_volume", m, **kw), material, tuple(fields), covariance)
+    # The exact gradient (implicit function theorem on the host Newton), not central
+    # differences: b_c is a small difference (P/E - eps against eps^3) of Newton solutions, whose
+    # round-off differences of relative step 1e-6 turned into ~1e-7 relative error of the
+    # standard error (and a last-bit change of the compiled cell program moved it by 8e-8).
+    se = _linearised_se(lambda: _continuum_cubic_coefficient_gradient("springs_volume", material, fields, **kw), fields, covariance)
     return {
         "value": b100,
         "unit": "1",

@@ -74,7 +74,7 @@ def test_derived_quantities_of_an_incision_fit(toy_fit, incision):
     assert st["linearised_surface_tension"] == pytest.approx(float(surface_tension_from_pre_stretch(res.material, 1.5 * MM)), rel=1e-12)
     b = d["continuum_uniaxial_cubic_coefficient"]
     assert b["value"] == pytest.approx(float(continuum_cubic_coefficient("springs_volume", res.material)), rel=1e-12)
-    assert b["standard_error"] < 1e-6  # b not fitted here and b_c does not depend on E (round-off of the differences)
+    assert b["standard_error"] < 1e-12  # b not fitted here and b_c does not depend on E (an exact derivative: round-off)
     # not pre-stretched, not the lattice: nothing to derive
     plain = types.SimpleNamespace(material=Material(2e5, 0.45), fields=(), covariance=None)
     assert derived_quantities(plain, model="fem_neo_hookean", scenarios=()) is None
@@ -99,3 +99,23 @@ def test_fit_outputs_carry_the_derived_quantities(tmp_path, toy_fit, incision):
     card = read_card(paths["material.json"])
     assert card.provenance["derived"] == d
     assert card.cubic_coefficient == pytest.approx(2.0, rel=1e-3)  # the card's b stays the lattice's, named as such
+
+
+def test_cubic_coefficient_record_standard_error_is_the_exact_linearisation():
+    """The b_c record's standard error (the host Newton's solutions differentiated by the
+    implicit function theorem) against the derivative of b_c by jax.grad through the jitted
+    uniaxial solve, for a covariance of E and b with correlation."""
+    import jax
+
+    from difftissue.constitutive import cubic_coefficient_record
+
+    E, nu, b = 1.58e4, 0.49, -1.64
+    f = lambda m: continuum_cubic_coefficient("springs_volume", m)  # noqa: E731
+    # the premise of leaving E out: b_c at 7 E is b_c at E (the lattice's energy is linear in E)
+    assert float(f(Material(7 * E, nu, b))) == pytest.approx(float(f(Material(E, nu, b))), rel=1e-12, abs=1e-14)
+    g = jax.jit(jax.grad(lambda e, bb: f(Material(e, nu, bb)), argnums=(0, 1)))(E, b)
+    g = np.array([float(v) for v in g])
+    assert abs(g[0]) < 1e-12 and abs(g[1]) > 0.1
+    C = np.array([[2.6e3, -2.0], [-2.0, 1.8e-3]])
+    rec = cubic_coefficient_record(Material(E, nu, b), fields=("youngs_modulus", "cubic_coefficient"), covariance=C)
+    assert rec["standard_error"] == pytest.approx(float(np.sqrt(g @ C @ g)), rel=1e-10)  # central differences of step 1e-6: 7e-8 off
