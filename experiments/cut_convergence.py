@@ -406,6 +406,25 @@ def order3(f, h):
     return _order(list(f), list(h))
 
 
+def no_order_reason(f, h):
+    """Why three values ``f`` at sizes ``h`` (coarse to fine) give no observed order in
+    `order3` (which searches p in [0.05, 6]): "increments change sign", "increments grow",
+    "increments shrink slower than any power of h" (their ratio at or below that of p = 0.05,
+    i.e. about ln(h1/h2) / ln(h2/h3)) or "increments shrink faster than h^6". Raises
+    ``ValueError`` for a triple that has an observed order."""
+    d1, d2 = f[1] - f[0], f[2] - f[1]
+    if d1 * d2 <= 0:
+        return "increments change sign"
+    if abs(d2) >= abs(d1):
+        return "increments grow"
+    ratio = lambda p: (h[0] ** p - h[1] ** p) / (h[1] ** p - h[2] ** p)  # noqa: E731
+    if d1 / d2 <= ratio(0.05):
+        return "increments shrink slower than any power of h"
+    if d1 / d2 >= ratio(6.0):
+        return "increments shrink faster than h^6"
+    raise ValueError(f"the increments of {f} at {h} give an observed order; no reason to report")
+
+
 def _load(name):
     p = RESULTS / name
     return json.loads(p.read_text()) if p.exists() else None
@@ -500,7 +519,7 @@ def markdown(models=("springs_volume", "springs_volume_mesh_lattice")):
         sc = 1.0 / (lam - 1.0) if lam == LINEAR else 1.0
         vals = ", ".join(f"{n}: {v * sc:.4f}" for n, v in zip(r["levels"], r["values"]))
         ratio = ", ".join(f"{x:.4f} (h = {c * 1e3:.3g} mm)" for c, x in rot.get((lam, "max_width_mm"), [])) or "-"
-        o = f"{r['order']:.2f}" if np.isfinite(r["order"]) else ("1 assumed (2 levels)" if len(r["values"]) < 3 else "none (increments grow; 1 assumed)")
+        o = f"{r['order']:.2f}" if np.isfinite(r["order"]) else ("1 assumed (2 levels)" if len(r["values"]) < 3 else f"none ({no_order_reason(r['values'][-3:], [1.0 / n for n in r['levels'][-3:]])}; 1 assumed)")
         lab = "linear limit" if lam == LINEAR else f"{lam:.2f}"
         lines.append(f"| {lab} | {vals} | {o} | {r['value'] * sc:.4f} ± {r['error'] * sc:.4f} ({100 * r['error'] / r['value']:.1f} %) | {ratio} |")
     print("\n".join(lines) + "\n")
