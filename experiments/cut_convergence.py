@@ -406,6 +406,25 @@ def order3(f, h):
     return _order(list(f), list(h))
 
 
+def no_order_reason(f, h):
+    """Why three values ``f`` at sizes ``h`` (coarse to fine) give no observed order in
+    `order3` (which searches p in [0.05, 6]): "increments change sign", "increments grow",
+    "increments shrink slower than any power of h" (their ratio at or below that of p = 0.05,
+    i.e. about ln(h1/h2) / ln(h2/h3)) or "increments shrink faster than h^6". Raises
+    ``ValueError`` for a triple that has an observed order."""
+    d1, d2 = f[1] - f[0], f[2] - f[1]
+    if d1 * d2 <= 0:
+        return "increments change sign"
+    if abs(d2) >= abs(d1):
+        return "increments grow"
+    ratio = lambda p: (h[0] ** p - h[1] ** p) / (h[1] ** p - h[2] ** p)  # noqa: E731
+    if d1 / d2 <= ratio(0.05):
+        return "increments shrink slower than any power of h"
+    if d1 / d2 >= ratio(6.0):
+        return "increments shrink faster than h^6"
+    raise ValueError(f"the increments of {f} at {h} give an observed order; no reason to report")
+
+
 def _load(name):
     p = RESULTS / name
     return json.loads(p.read_text()) if p.exists() else None
@@ -482,10 +501,15 @@ def springs_table(quantity="max_width", model="springs_volume"):
                 continue
             err = [v / target - 1.0 for v in vals]
             p_ref = float(np.log(abs(err[-2] / err[-1])) / np.log(hs[-2] / hs[-1])) if len(err) >= 2 and err[-1] * err[-2] > 0 else float("nan")
-            p3, rich = order3(vals[-3:], hs[-3:]) if len(vals) >= 3 else (float("nan"), float("nan"))
+            if len(vals) >= 3:
+                p3, rich = order3(vals[-3:], hs[-3:])
+            elif len(vals) == 2 and hs[-2] <= 1.0 + 1e-9:  # two cell sizes <= 1 mm [mm]: springs_volume's second order assumed
+                p3, rich = float("nan"), vals[-1] + (vals[-1] - vals[-2]) * hs[-1] ** 2 / (hs[-2] ** 2 - hs[-1] ** 2)
+            else:
+                p3, rich = float("nan"), float("nan")
             h5 = hs[-1] * (0.05 / abs(err[-1])) ** (1.0 / p_ref) if err and np.isfinite(p_ref) and p_ref > 0 else float("nan")
             lines.append(dict(angle=angle, pre_stretch=lam, reference=target * scale, cells=hs, values=[v * scale for v in vals], errors=err,
-                              order_vs_reference=p_ref, order_own=p3, richardson=rich * scale, richardson_error=rich / target - 1.0,
+                              order_vs_reference=p_ref, order_own=p3, order_assumed=len(vals) == 2 and np.isfinite(rich), richardson=rich * scale, richardson_error=rich / target - 1.0,
                               cell_for_5pct=h5 if abs(err[-1]) > 0.05 else hs[-1]))
     return lines
 
@@ -500,7 +524,7 @@ def markdown(models=("springs_volume", "springs_volume_mesh_lattice")):
         sc = 1.0 / (lam - 1.0) if lam == LINEAR else 1.0
         vals = ", ".join(f"{n}: {v * sc:.4f}" for n, v in zip(r["levels"], r["values"]))
         ratio = ", ".join(f"{x:.4f} (h = {c * 1e3:.3g} mm)" for c, x in rot.get((lam, "max_width_mm"), [])) or "-"
-        o = f"{r['order']:.2f}" if np.isfinite(r["order"]) else ("1 assumed (2 levels)" if len(r["values"]) < 3 else "none (increments grow; 1 assumed)")
+        o = f"{r['order']:.2f}" if np.isfinite(r["order"]) else ("1 assumed (2 levels)" if len(r["values"]) < 3 else f"none ({no_order_reason(r['values'][-3:], [1.0 / n for n in r['levels'][-3:]])}; 1 assumed)")
         lab = "linear limit" if lam == LINEAR else f"{lam:.2f}"
         lines.append(f"| {lab} | {vals} | {o} | {r['value'] * sc:.4f} ± {r['error'] * sc:.4f} ({100 * r['error'] / r['value']:.1f} %) | {ratio} |")
     print("\n".join(lines) + "\n")
@@ -520,12 +544,16 @@ def _springs_markdown(model):
         lab = "linear limit" if ln["pre_stretch"] == LINEAR else f"{ln['pre_stretch']:.2f}"
         o = f"{ln['order_own']:.2f}" if np.isfinite(ln["order_own"]) else "-"
         ex = f"{ln['richardson']:.4f} ({100 * ln['richardson_error']:+.1f} %)" if np.isfinite(ln["richardson"]) else "-"
+        if ln["order_assumed"] and np.isfinite(ln["richardson"]):
+            ex += ", order 2 assumed"
         if len(ln["cells"]) < len(hs) and abs(ln["errors"][-1]) > 0.05:
             h5 = "-"
         elif abs(ln["errors"][-1]) <= 0.05:
             h5 = "met"
         elif np.isfinite(ln["richardson_error"]) and abs(ln["richardson_error"]) > 0.05:
             h5 = "not by refining"  # the model's own h -> 0 limit misses the reference by more than 5 %
+            if ln["order_assumed"]:
+                h5 += " (order 2 assumed)"
         else:
             h5 = f"{ln['cell_for_5pct']:.2f} mm" if np.isfinite(ln["cell_for_5pct"]) else "-"
         lines.append(f"| {ln['angle']:g}° | {lab} | {ln['reference']:.4f} | {cells} | {o} | {ex} | {h5} |")

@@ -89,3 +89,19 @@ def test_quarter_model_equals_the_mirrored_whole():
     ww = np.linalg.norm(p[a] + uw[a] - p[b] - uw[b])
     assert wq > 0.5  # mm: the cut opens (about 0.7 mm at this pre-stretch)
     assert abs(ww / wq - 1.0) < 1e-7
+
+
+def test_no_order_reason_agrees_with_the_observed_order():
+    """The table's label for a level triple without an observed order (the P2 levels 2, 3, 4 of
+    lambda0 = 1.15 and 1.10) matches what `order3` finds; a triple with an order is refused."""
+    h = [1 / 2, 1 / 3, 1 / 4]
+    slow = [1.69241, 1.71190, 1.72598]  # increments 0.0195, 0.0141: ratio 1.38 < ln(3/2)/ln(4/3)
+    grow = [1.26869, 1.27133, 1.27639]
+    ordered = [0.73272, 0.72797, 0.72666]
+    assert np.isnan(cc.order3(slow, h)[0]) and np.isnan(cc.order3(grow, h)[0])
+    assert cc.no_order_reason(slow, h) == "increments shrink slower than any power of h"
+    assert cc.no_order_reason(grow, h) == "increments grow"
+    assert cc.no_order_reason([1.0, 1.1, 1.05], h) == "increments change sign"
+    assert np.isfinite(cc.order3(ordered, h)[0])
+    with pytest.raises(ValueError, match="give an observed order"):
+        cc.no_order_reason(ordered, h)
