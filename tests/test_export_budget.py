@@ -28,6 +28,7 @@ from difftissue.models import make_model
 from difftissue.export.pypbd import write_pbd
 from difftissue.export.pypbd_runner import read_pbd_scene
 from difftissue.solvers.static import solve_static
+from xpbd_budget_memo import remember_xpbd_budget_runs
 
 E, NU = 12.0e3, 0.45
 
@@ -175,11 +176,15 @@ def test_pypbd_field_target_is_met_by_a_chosen_budget_or_refused(tmp_path):
         write_pbd(_card(), tmp_path / "m.json", field_tolerance=0.02)
 
 
-def test_xpbd_block_reproduces_the_card_at_its_budget_and_refuses_a_saturated_one(tmp_path):
+def test_xpbd_block_reproduces_the_card_at_its_budget_and_refuses_a_saturated_one(tmp_path, monkeypatch):
     """The XPBD JSON of the same cube at dt = 2.5e-4 s, 10 iterations: difftissue's XPBD solver
     (standard XPBD, multipliers reset) running the file's per-tet compliances is within 2 % of
     the card's springs_volume reactions; at dt = 1e-3 s no single factor reaches 2 %: refused
-    with a suggested budget, and --approximate states the signed error."""
+    with a suggested budget, and --approximate states the signed error.
+
+    The approximate export repeats the refused one's search (60 XPBD runs to rest): it takes
+    those runs' results from the refused call (tests/xpbd_budget_memo.py; the rest of the
+    exporter runs again). The file check below runs XPBD itself."""
     card = _card()
     mesh = block((0.01,) * 3, (3, 3, 3))
     doc = json.loads(export(card, "xpbd", tmp_path / "x.json", mesh=mesh, displacement=-1e-3, dt=2.5e-4, iterations=10).read_text())
@@ -198,8 +203,10 @@ def test_xpbd_block_reproduces_the_card_at_its_budget_and_refuses_a_saturated_on
     assert rested
     err = got / ref - 1.0
     assert np.max(np.abs(err)) <= MAX_BUDGET_ERROR, err
+    runs = remember_xpbd_budget_runs(monkeypatch)
     with pytest.raises(ExportError, match="a budget that reaches it"):
         xpbd_parameters(card, dt=1e-3, iterations=10, mesh=mesh, displacement=-1e-3)
     approx = xpbd_parameters(card, dt=1e-3, iterations=10, mesh=mesh, displacement=-1e-3, approximate=True)
     assert not approx["budget_calibration"]["within_tolerance"]
     assert any(n.startswith("APPROXIMATION: XPBD at dt = 0.001") for n in approx["notes"])
+    assert runs["reused"] == runs["runs"] > 0  # the approximate export asked for exactly the refused one's runs

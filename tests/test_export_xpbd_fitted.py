@@ -24,6 +24,7 @@ from difftissue.export.fitted import FittedSpecimen, fitted_specimen
 from difftissue.export.xpbd import xpbd_fitted_parameters
 from difftissue.mesh import block
 from difftissue.scenarios import Compression
+from xpbd_budget_memo import remember_xpbd_budget_runs
 
 MM = 1e-3
 E, NU = 12.0e3, 0.42
@@ -40,11 +41,14 @@ def _file_reactions(doc, spec):
     return xpbd_budget_reactions(doc, spec.fixed, spec.prescribed, spec.reaction & spec.fixed, rec["load_fractions"])
 
 
-def test_bonded_compression_xpbd_reproduces_the_fitted_curve_and_refuses_a_coarse_budget(tmp_path):
+def test_bonded_compression_xpbd_reproduces_the_fitted_curve_and_refuses_a_coarse_budget(tmp_path, monkeypatch):
     """Bonded block compression (10 x 10 x 5 mm, 2 x 2 x 2 cells, 2 / 5 / 10 %), fem_linear card:
     at dt = 2.5e-4 s, 10 iterations the file reproduces Compression.predict within 2 % at every
     strain (the card's own compliances are 5 ... 8 % off); at dt = 1e-3 s one factor cannot follow
-    the curve: refused, suggesting dt = 2.5e-4 s; --approximate writes the best factor with its error."""
+    the curve: refused, suggesting dt = 2.5e-4 s; --approximate writes the best factor with its error.
+
+    The approximate export repeats the refused one's search: it takes those XPBD runs' results
+    from the refused call (tests/xpbd_budget_memo.py; the rest of the exporter runs again)."""
     sc = Compression(block((10 * MM, 10 * MM, 5 * MM), (2, 2, 2)), [0.02, 0.05, 0.1], model="fem_linear", bonded=True,
                      name="bonded")
     spec = fitted_specimen(sc)
@@ -63,12 +67,14 @@ def test_bonded_compression_xpbd_reproduces_the_fitted_curve_and_refuses_a_coars
     print(f"\nXPBD fitted bonded compression dt 2.5e-4: factor {rec['factor']:.4f}, before {before}, after {err}")
     assert np.max(np.abs(err)) <= MAX_BUDGET_ERROR, err
     assert np.max(np.abs(before)) > MAX_BUDGET_ERROR  # the card's own compliances do not reproduce it at this budget
+    runs = remember_xpbd_budget_runs(monkeypatch)
     with pytest.raises(ExportError, match=r"one stiffness factor cannot follow.*a budget that reaches it: dt = 0\.00025 s") as e:
         export(card, "xpbd", tmp_path / "coarse.json", fitted=spec, dt=1e-3, iterations=10)
     assert "\n" not in str(e.value) and not (tmp_path / "coarse.json").exists()
     approx = xpbd_fitted_parameters(card, spec, dt=1e-3, iterations=10, approximate=True)
     assert not approx["budget_calibration"]["within_tolerance"] and any(n.startswith("APPROXIMATION: XPBD at dt = 0.001")
                                                                         for n in approx["notes"])
+    assert runs["reused"] == runs["runs"] > 0  # the approximate export asked for exactly the refused one's runs
 
 
 def test_fem_field_punch_xpbd_reproduces_the_fitted_reaction(tmp_path):
