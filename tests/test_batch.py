@@ -249,20 +249,19 @@ CHILD = textwrap.dedent(
     sys.path.insert(0, {here!r})
     import test_batch as tb
     from difftissue.fit import fit_batch
-    from difftissue.fit import fit
     out = {{"devices": len(jax.devices())}}
     specs, starts = tb.hertz_specimens(6, seed=5)           # 6 specimens on 4 devices: 2 padded
     per_device = lambda w: [str(x.message) for x in w if "specimens per CPU device" in str(x.message)]
     with warnings.catch_warnings(record=True) as w:
         warnings.simplefilter("always")
         sharded = fit_batch(specs, tb.P_E, starts, starts=2, devices=4)
-    serial = [fit(s, tb.P_E, m, starts=2) for s, m in zip(specs, starts)]
+    given = json.loads(open({given!r}).read())
+    serial = [tb.fit_from_summary(d) for d in given["hertz_serial"]]  # the parent's serial fits of these specimens
     tb.assert_same_fits(sharded, serial)
     out["hertz"] = {{"padding": sharded.padding, "devices": list(sharded.devices), "compilations": sharded.compilations, "warned": per_device(w)}}
     # simulated specimens (384-tet fem_linear sphere indentations): 5 on 4 devices, 3 padded,
     # two per device (a GSPMD-partitioned batch of this hung in XLA's CPU collectives). The
     # specimens' data and their serial fits come from the parent (tb.indentation_serial).
-    given = json.loads(open({given!r}).read())
     specs = [tb.indentation_scenario(np.asarray(o), s) for o, s in zip(given["observed"], given["sigma"])]
     starts = [tb.Material(E, 0.45) for E in given["starts"]]
     with warnings.catch_warnings(record=True) as w:
@@ -279,8 +278,14 @@ CHILD = textwrap.dedent(
 
 def test_sharded_fits_on_four_simulated_devices_equal_the_serial_loop(tmp_path, indentation_serial):
     specs, starts, serial = indentation_serial
-    given = tmp_path / "indentation.json"
-    given.write_text(json.dumps({"observed": [np.asarray(s.observed).tolist() for s in specs],
+    # The serial Hertz fits the child compares with run here, in this process (whose fit
+    # engine cache already holds the compiled Levenberg-Marquardt step of these Hertz curves
+    # when test_batched_hertz_fits_equal_the_serial_loop ran before): the child compiles only
+    # its sharded programs. Exact floats through JSON (fit_summary).
+    hertz_specs, hertz_starts = hertz_specimens(6, seed=5)
+    hertz_serial = [fit_summary(fit(s, P_E, m, starts=2)) for s, m in zip(hertz_specs, hertz_starts)]
+    given = tmp_path / "given.json"
+    given.write_text(json.dumps({"hertz_serial": hertz_serial, "observed": [np.asarray(s.observed).tolist() for s in specs],
                                  "sigma": [float(np.asarray(s.sigma).flat[0]) for s in specs],
                                  "starts": [float(m.youngs_modulus) for m in starts], "serial": [fit_summary(r) for r in serial]}))
     script = tmp_path / "sharded.py"

@@ -37,18 +37,21 @@ def test_compliance_is_the_inverse_stiffness_restricted(quarter):
     dofs = (3 * top[:, None] + np.arange(3)).reshape(-1)
     assert np.all(free.reshape(-1)[dofs])
     m = Material(10e3, 0.4)
-    Z, G = linear_response_columns(model, m, free, dofs)
+    # Every evaluation below is a jitted program: eagerly, linear_response_columns and the
+    # Hessian assembly dispatch (compile) their operations one by one. One program serves
+    # both moduli (E, nu are its arguments).
+    f = jax.jit(lambda E, nu: linear_response_columns(model, Material(E, nu), free, dofs))
+    Z, G = f(10e3, 0.4)  # = m
     P = free.reshape(-1).astype(float)
-    H = np.asarray(_dense_hessian(model, jnp.asarray(model.rest_points), m))
+    H = np.asarray(jax.jit(lambda x: _dense_hessian(model, x, m))(jnp.asarray(model.rest_points)))
     K = H * P[:, None] * P[None, :] + np.diag(1.0 - P)
     Kinv = np.linalg.inv(K)
     np.testing.assert_allclose(np.asarray(Z), Kinv[dofs], rtol=1e-9, atol=1e-12 * np.abs(Kinv).max())
     np.testing.assert_allclose(np.asarray(G), Kinv[np.ix_(dofs, dofs)], rtol=1e-9)
     # the sparse factorisation gives the same columns
-    Zs, Gs = linear_response_columns(model, m, free, dofs, linear_solver="sparse")
+    Zs, Gs = jax.jit(lambda E, nu: linear_response_columns(model, Material(E, nu), free, dofs, linear_solver="sparse"))(10e3, 0.4)
     np.testing.assert_allclose(np.asarray(Gs), np.asarray(G), rtol=1e-10)
     # G scales as 1/E; its derivatives (no solve for G, one for Z) pass check_grads both ways
-    f = lambda E, nu: linear_response_columns(model, Material(E, nu), free, dofs)  # noqa: E731
     np.testing.assert_allclose(np.asarray(f(20e3, 0.4)[1]), np.asarray(G) / 2, rtol=1e-10)
     # (jitted: check_grads evaluates them many times; one compiled program per mode instead of
     # hundreds of op-by-op dispatches)

@@ -680,10 +680,15 @@ def pull():
     from difftissue.config import SeparatelyCompiled
 
     sc, seen = _pull_scenario()
-    # the prediction and its gradient at E = 40 Pa, in the failing region (each one jitted
-    # program, evaluated once for the four cases)
-    premise = jax.jit(jax.value_and_grad(lambda E: sc.predict(Material(E, 0.3))[0]))(40.0)
-    return sc, seen, SeparatelyCompiled(sc, mode="reverse"), np.array([float(premise[0]), float(premise[1])])
+    separately_compiled = SeparatelyCompiled(sc, mode="reverse")
+    # The prediction and its gradient at E = 40 Pa, in the failing region, evaluated once for
+    # the four cases by the separately compiled prediction and vector-Jacobian programs of the
+    # scenario (the programs the separate=True cases run: no program compiled for the premise
+    # alone). They are NaN, not an exception: SeparatelyCompiled records every exception of an
+    # evaluation in ``failures``.
+    premise = jax.jit(jax.value_and_grad(lambda E: separately_compiled.predict(Material(E, 0.3))[0]))(40.0)
+    assert separately_compiled.failures == []
+    return sc, seen, separately_compiled, np.array([float(premise[0]), float(premise[1])])
 
 
 @pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning", "ignore::difftissue.errors.FitQualityWarning")
