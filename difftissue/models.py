@@ -208,7 +208,10 @@ def _cell_volume_hessian(x, rest_volume, bulk_stiffness):
     ``H = psi''(V) grad V grad V^T + psi'(V) T x`` (one matrix product per cell instead of 24
     reverse passes of ``jax.hessian``)."""
     xf = x.reshape(-1)
-    hess_v = jnp.asarray(_HEX_VOLUME_T, dtype=xf.dtype) @ xf
+    # T x as a (576, 24) matrix times x: under vmap one matrix product for all cells (a
+    # (24, 24, 24) tensor times a vector is batched element by element: 0.30 against 0.17 s
+    # for 32,000 cells).
+    hess_v = (jnp.asarray(_HEX_VOLUME_T.reshape(576, 24), dtype=xf.dtype) @ xf).reshape(24, 24)
     grad_v = 0.5 * (hess_v @ xf)
     volume = jnp.dot(grad_v, xf) / 3.0
     d_psi = jax.grad(_volume_penalty)

@@ -66,15 +66,21 @@ NEWTON_CG_FAILURE = 1e-4
 #: tangent is NaN (never a silently wrong gradient).
 TANGENT_CG_FAILURE = 1e-7
 #: Inexact Newton (iterative linear solvers): the CG tolerance of a Newton step is the forcing
-#: term ``eta = min(NEWTON_FORCING_MAX, max(cg_rtol, |g| / |g_cold|))``, the current residual
-#: relative to the residual scale of the Newton tolerance (Eisenstat & Walker 1996): loose far
-#: from the solution, tightening with the residual, so the convergence stays quadratic while
-#: the early steps cost a few CG iterations instead of a solve to ``cg_rtol``. The last step is
-#: solved nearly exactly on purpose (a safeguard against that "oversolving" made a protocol's
-#: forces a rougher function of the material at the 1e-9 level, and a fit on exact synthetic
-#: data took 24 instead of 19 steps; docs/dev/solver-design.md). The Dirichlet predictor (a
-#: starting guess that Newton corrects) is solved to ``NEWTON_FORCING_MAX``.
+#: term ``eta = min(NEWTON_FORCING_MAX, max(cg_rtol, |g| / |g_cold|, c tol / |g|))``, the
+#: current residual relative to the residual scale of the Newton tolerance (Eisenstat & Walker
+#: 1996): loose far from the solution, tightening with the residual, so the convergence stays
+#: quadratic while the early steps cost a few CG iterations instead of a solve to ``cg_rtol``;
+#: ``c tol / |g|`` (:data:`NEWTON_OVERSOLVE_SAFEGUARD`) keeps the last step from solving far
+#: below the tolerance. The Dirichlet predictor (a starting guess that Newton corrects) is
+#: solved to ``NEWTON_FORCING_MAX``.
 NEWTON_FORCING_MAX = 1e-2
+#: Kelley's safeguard against oversolving (Kelley 1995, sec. 6.3): the forcing term of a Newton
+#: step is at least this fraction of the Newton tolerance over the current residual,
+#: ``eta >= c tol / |g|``, so the last step is solved to about a tenth of the tolerance instead of
+#: far below it (on the 105,903-unknown punch 5 CG iterations instead of 20; forces within
+#: 2e-11 relative of the nearly exact last step, far inside ``prediction_rtol``). Such a
+#: finishing step may reuse its predecessor's matrix (multigrid; ``_newton``).
+NEWTON_OVERSOLVE_SAFEGUARD = 0.1
 
 
 class StaticSolution(eqx.Module):
@@ -151,23 +157,26 @@ def _assemble_ell(layout, model: ElasticModel, x, material, free_dofs, *, chunk:
     flat = jnp.zeros((n * w, 3, 3), dtype=P.dtype)
     for term, slots in zip(terms, layout.term_slots):
         E, k = term.nodes.shape
-        m = -(-E // chunk)
-        pad = m * chunk - E
+        # A term with fewer elements than a chunk is one chunk of its own size: padding it to
+        # the chunk size computed (and scattered) up to chunk / E times its Hessians.
+        c = min(chunk, E)
+        m = -(-E // c)
+        pad = m * c - E
         # Padding elements repeat element 0 with zero weight. (Only shapes are used here: the
         # node arrays may be traced, e.g. in the reference assembly.)
-        idx = jnp.asarray(np.concatenate([np.arange(E), np.zeros(pad, dtype=np.int64)]).reshape(m, chunk))
-        weight = jnp.asarray((np.arange(m * chunk) < E).reshape(m, chunk), dtype=P.dtype)
+        idx = jnp.asarray(np.concatenate([np.arange(E), np.zeros(pad, dtype=np.int64)]).reshape(m, c))
+        weight = jnp.asarray((np.arange(m * c) < E).reshape(m, c), dtype=P.dtype)
         slot_rows = jnp.asarray(slots).reshape(E, k * k)[idx]
         node_rows = jnp.asarray(term.nodes)[idx]
 
-        def body(i, flat, term=term, node_rows=node_rows, slot_rows=slot_rows, idx=idx, weight=weight, k=k):
+        def body(i, flat, term=term, node_rows=node_rows, slot_rows=slot_rows, idx=idx, weight=weight, k=k, c=c):
             nd = node_rows[i]
             params = [jnp.asarray(p)[idx[i]] for p in term.params]
             hess = _element_hessian(term, x[nd], *params)
-            dofs = (3 * nd[:, :, None] + jnp.arange(3)).reshape(chunk, 3 * k)
+            dofs = (3 * nd[:, :, None] + jnp.arange(3)).reshape(c, 3 * k)
             Pd = P[dofs] * weight[i][:, None]
             masked = hess * Pd[:, :, None] * P[dofs][:, None, :]
-            blocks = masked.reshape(chunk, k, 3, k, 3).transpose(0, 1, 3, 2, 4).reshape(chunk * k * k, 3, 3)
+            blocks = masked.reshape(c, k, 3, k, 3).transpose(0, 1, 3, 2, 4).reshape(c * k * k, 3, 3)
             return flat.at[slot_rows[i].reshape(-1)].add(blocks)
 
         flat = jax.lax.fori_loop(0, m, body, flat)
@@ -249,15 +258,25 @@ def _projected_operator(model, u, material, free, options: _Options, *, tangent:
     struct = jax.ShapeDtypeStruct((3 * model.n_nodes,), u.dtype)
     solver = PreconditionedCG(rtol=options.cg_rtol, max_steps=options.cg_max_steps, failure_rtol=TANGENT_CG_FAILURE if tangent else NEWTON_CG_FAILURE)
     if options.linear_solver == "multigrid":
-        Pf = P.astype(x.dtype)
-        ell = _assemble_ell(options.layout, model, x, material, Pf)
-        op = lx.FunctionLinearOperator(ell.mv, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
-        return op, solver, {"preconditioner": MultigridPreconditioner.build(ell, options.hierarchy, Pf)}
+        ell, pc = _multigrid_matrix(model, u, material, free, options)
+        return _ell_operator(ell, struct), solver, {"preconditioner": pc}
     matvec, diag = element_hessian_operator(model, x, material)
     op = lx.FunctionLinearOperator(lambda v: P * matvec(P * v) + (1.0 - P) * v, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
     d = P * diag + (1.0 - P)
     d = jnp.where(d > 0, d, 1.0)
     return op, solver, {"preconditioner": JacobiPreconditioner(1.0 / d)}
+
+
+def _multigrid_matrix(model, u, material, free, options: _Options):
+    """The block-ELL matrix ``P H P + (I - P)`` at displacement ``u`` and its multigrid V-cycle."""
+    x = jnp.asarray(model.rest_points) + u
+    Pf = free.reshape(-1).astype(x.dtype)
+    ell = _assemble_ell(options.layout, model, x, material, Pf)
+    return ell, MultigridPreconditioner.build(ell, options.hierarchy, Pf)
+
+
+def _ell_operator(ell, struct):
+    return lx.FunctionLinearOperator(ell.mv, struct, (lx.symmetric_tag, lx.positive_semidefinite_tag))
 
 
 def _linear_stats(sol):
@@ -324,7 +343,20 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     naive = fixed_part + Pf * u_init
     g_init, h_jump = jax.jvp(lambda uu: _full_gradient(model, uu, material, force), (u_init,), (jump,))
     rhs = Pf * (g_init + h_jump)
-    op0, solver0, opts0 = _projected_operator(model, u_init, material, free, options)
+    # Multigrid: the Newton matrix (block-ELL + V-cycle) is carried through the loop, so that
+    # a finishing step can reuse its predecessor's (NEWTON_OVERSOLVE_SAFEGUARD, below).
+    multigrid = options.linear_solver == "multigrid"
+    struct = jax.ShapeDtypeStruct((u_init.size,), u_init.dtype)
+    newton_cg = PreconditionedCG(rtol=options.cg_rtol, max_steps=options.cg_max_steps, failure_rtol=NEWTON_CG_FAILURE)
+
+    def linear_system(u, matrix):
+        if matrix is None:
+            return _projected_operator(model, u, material, free, options)
+        ell, pc = matrix
+        return _ell_operator(ell, struct), newton_cg, {"preconditioner": pc}
+
+    matrix0 = _multigrid_matrix(model, u_init, material, free, options) if multigrid else None
+    op0, solver0, opts0 = linear_system(u_init, matrix0)
     if isinstance(solver0, PreconditionedCG):
         # The predictor is a starting guess that Newton corrects: solved to the loosest forcing
         # term, not to cg_rtol (an exact predictor cost as many CG iterations as a tangent).
@@ -350,11 +382,27 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     g_scale = jnp.maximum(g_cold, jnp.finfo(u_init.dtype).tiny)
 
     def body(state):
-        u, g, step, code, _, cg_max, _, e = state
-        op, solver, opts = _projected_operator(model, u, material, free, options)
+        u, g, step, code, _, cg_max, _, e, matrix, g_prev, fresh = state
+        tiny_g = jnp.finfo(u.dtype).tiny
+        gn = jnp.linalg.norm(g)
+        # Inexact Newton: the forcing term (NEWTON_FORCING_MAX), at least the safeguard's
+        # share of the tolerance (a finishing step need not go far below it).
+        eta_ew = gn / g_scale
+        eta_safe = NEWTON_OVERSOLVE_SAFEGUARD * tol / jnp.maximum(gn, tiny_g)
+        eta = jnp.clip(jnp.maximum(eta_ew, eta_safe), options.cg_rtol, max(NEWTON_FORCING_MAX, options.cg_rtol))
+        reused = jnp.asarray(False)
+        if multigrid:
+            # A finishing step (the safeguard sets its forcing term) reuses the matrix of the
+            # step before, when that one was assembled fresh and the residual fell by at least
+            # 2 / eta since: the lagged matrix adds a relative error of about 2 |g| / |g_prev|
+            # to the step (the Hessian's change along the last step, bounded by its quadratic
+            # model error, which is at most |g|), within the forcing term. The residual test
+            # after the step decides convergence as always; a lagged step that falls short is
+            # followed by one with a fresh matrix.
+            reused = fresh & (eta_safe >= eta_ew) & (2.0 * gn <= eta * g_prev)
+            matrix = jax.lax.cond(reused, lambda: matrix, lambda: _multigrid_matrix(model, u, material, free, options))
+        op, solver, opts = linear_system(u, matrix)
         if isinstance(solver, PreconditionedCG):
-            # Inexact Newton: the forcing term (NEWTON_FORCING_MAX).
-            eta = jnp.clip(jnp.linalg.norm(g) / g_scale, options.cg_rtol, max(NEWTON_FORCING_MAX, options.cg_rtol))
             opts = {**opts, "rtol": eta}
         sol = lx.linear_solve(op, -g.reshape(-1), solver, options=opts, throw=False)
         cg_steps, cg_res = _linear_stats(sol)
@@ -401,13 +449,15 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         # iteration count and residual), not taken as a Newton direction.
         code = jnp.where(linear_failed & ~ok, StaticResult.linear_solver_failed, code).astype(jnp.int32)
         done = (code != StaticResult.max_steps_reached) | (step >= options.max_steps)
-        return u_new, g_new, step, code, done, jnp.maximum(cg_max, cg_steps), cg_res, e_new
+        return u_new, g_new, step, code, done, jnp.maximum(cg_max, cg_steps), cg_res, e_new, matrix, gn, ~reused
 
     done0 = jnp.linalg.norm(g0) <= tol
     code0 = jnp.where(done0, StaticResult.successful, StaticResult.max_steps_reached)
     zero = jnp.asarray(0, jnp.int32)
-    state = (u0, g0, zero, code0.astype(jnp.int32), done0 | (options.max_steps <= 0), cg_steps0, cg_res0.astype(u0.dtype), e_u0)
-    u, g, step, code, _, cg_max, cg_res, _ = jax.lax.while_loop(cond, body, state)
+    # The predictor's matrix counts as fresh, its starting residual being that of the jump.
+    state = (u0, g0, zero, code0.astype(jnp.int32), done0 | (options.max_steps <= 0), cg_steps0, cg_res0.astype(u0.dtype), e_u0,
+             matrix0, jnp.linalg.norm(rhs).astype(u0.dtype), jnp.asarray(True))
+    u, g, step, code, _, cg_max, cg_res, _, _, _, _ = jax.lax.while_loop(cond, body, state)
     inverted = model.min_volume_ratio(jnp.asarray(model.rest_points) + u) <= 0
     code = jnp.where((code == StaticResult.successful) & inverted, StaticResult.inverted_elements, code)
     return u, jnp.linalg.norm(g), step, code, cg_max, cg_res
