@@ -414,7 +414,7 @@ def _load_set_calibration(card, args, mesh):
     from .budget import calibrate_for_load_set, read_load_set
     from .errors import ConfigError
     from .export import resolve_effective_modulus
-    from .models import MODELS
+    from .models import LATTICE_VARIANTS, MODELS
     from .solvers.xpbd import XPBDSettings
 
     material = resolve_effective_modulus(card, nu=args.nu, approximate=args.approximate).material()
@@ -426,9 +426,9 @@ def _load_set_calibration(card, args, mesh):
                           f"{hi:.6g} Pa (budget.youngs_moduli, in Pa): the file is written at the card's modulus; include it in "
                           "the set, or pass --extrapolate to write the end factor with a warning")
     reference = spec.reference or card.model
-    if reference not in MODELS:
+    if reference not in MODELS + LATTICE_VARIANTS:
         raise ConfigError(f"{args.load_set}: the card's model {card.model!r} is no mesh model to solve the loads' reference with; "
-                          f"set budget.reference to one of {', '.join(MODELS)}")
+                          f"set budget.reference to one of {', '.join(MODELS + LATTICE_VARIANTS)}")
     settings = XPBDSettings(dt=args.dt, substeps=1 if args.substeps is None else args.substeps, iterations=args.iterations,
                             method="gauss_seidel", damping=float("inf"), warm_start=False)
     print(f"calibrating the XPBD budget over {len(spec.loads)} loads of {args.load_set} (reference {reference}) ...",
@@ -1031,7 +1031,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="for a card holding an effective modulus E* = E/(1-nu^2) (a Hertz/Sneddon fit with nu fixed): the tissue's "
                         "Poisson ratio; exports E = E* (1 - nu^2) and this nu (without it a card fitted at nu = 0 is refused)")
     x.add_argument("--law", choices=("linear", "neo_hookean", "springs"), default=None,
-                   help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
+                   help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/springs_volume_mesh_lattice/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
     x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|FILE|indentation|fitted",
                    help="write a complete specimen model: a compression block (fixed base, prescribed top displacement), "
                         "a tet mesh FILE (VTU, XDMF, Gmsh, Medit, ...; coordinates in --unit, required then) held at its "

@@ -42,7 +42,7 @@ import numpy as np
 from .errors import MaterialError, ModelError
 from .materials import Material, _is_concrete, _require_equibiaxial, biaxial_pre_stress, explicit_pre_stretch_y, material_fields, surface_tension_from_pre_stretch
 from .mesh import block
-from .models import LATTICE_VARIANTS, MODELS, make_model
+from .models import LATTICE_MODELS, LATTICE_VARIANTS, MODELS, make_model
 from .solvers.host import ModelDerivatives
 
 __all__ = [
@@ -645,7 +645,7 @@ def surface_tension_record(kind: str, material: Material, layers, *, fields=(), 
         "standard_error": se,
         "model": kind,
         "pre_stretch": float(material.pre_stretch),
-        "layers": [{"name": n, "thickness": t, "cell_size": None if c is None or kind != "springs_volume" else list(c), "thickness_stretch": z}
+        "layers": [{"name": n, "thickness": t, "cell_size": None if c is None or kind not in LATTICE_MODELS else list(c), "thickness_stretch": z}
                    for (n, t, c), z in zip(layers, lz)],
         "linearised_surface_tension": lin,
         "linearised_over_model": lin / value if value != 0 else None,
@@ -677,7 +677,7 @@ def _biaxial_surface_tension_record(kind, material, layers, *, fields, covarianc
         "model": kind,
         "pre_stretch": float(material.pre_stretch),
         "pre_stretch_y": float(material.pre_stretch_y),
-        "layers": [{"name": n, "thickness": t, "cell_size": None if c is None or kind != "springs_volume" else list(c), "thickness_stretch": z}
+        "layers": [{"name": n, "thickness": t, "cell_size": None if c is None or kind not in LATTICE_MODELS else list(c), "thickness_stretch": z}
                    for (n, t, c), z in zip(layers, lz)],
         "linearised_surface_tension": lin[0],
         "linearised_surface_tension_y": lin[1],

@@ -58,6 +58,7 @@ __all__ = [
     "NODAL_FEM_MODELS",
     "LATTICE_VARIANTS",
     "PRE_STRETCH_LATTICES",
+    "LATTICE_MODELS",
     "ElementTerm",
     "ElasticModel",
     "SpringVolumeModel",
@@ -81,6 +82,10 @@ PRE_STRETCH_LATTICES = ("stress_free", "mesh")
 #: ``springs_volume`` with ``pre_stretch_lattice="mesh"`` (:class:`SpringVolumeModel`), accepted by
 #: :func:`make_model`; its ``kind`` is ``"springs_volume"``.
 LATTICE_VARIANTS = ("springs_volume_mesh_lattice",)
+#: Every model name of :class:`SpringVolumeModel` (the cube lattice): ``"springs_volume"`` and
+#: :data:`LATTICE_VARIANTS`. A check for "a lattice model" (a cube lattice needed, lattice-effective
+#: values, ``nu >= 1/4``) tests a model name against this tuple.
+LATTICE_MODELS = ("springs_volume",) + LATTICE_VARIANTS
 
 
 class ElementTerm(eqx.Module):

@@ -34,6 +34,7 @@ from .export.fitted import fitted_specimen, specimen_file_name, specimen_record,
 from .fit.problem import UNITS, unit_text
 from .fit.result import FitResult, ScenarioFit
 from .incision import Incision
+from .models import LATTICE_MODELS
 from .fit.statistics import (
     AUTOCORRELATION_LIMIT,
     BOUND_FRACTION,
@@ -152,7 +153,9 @@ def derived_quantities(result: FitResult, *, model=None, scenarios: Sequence | N
       fitted material is pre-stretched (:func:`~difftissue.constitutive.surface_tension_record`:
       the model's own tension [N/m] with its standard error, the layer, and the linearised value
       ``E (lambda0 - 1) t / (1 - nu)`` under its own name);
-    - ``continuum_uniaxial_cubic_coefficient``: for ``springs_volume`` fits, what the lattice's
+    - ``continuum_uniaxial_cubic_coefficient``: for fits of a lattice model (``springs_volume``,
+      ``springs_volume_mesh_lattice``, :data:`~difftissue.models.LATTICE_MODELS`, named in its
+      ``model``; both lattices are the same without pre-stretch), what the lattice's
       ``cubic_coefficient`` is as the continuum law ``sigma = E (eps + b_c eps^3)`` over the
       strain range :data:`~difftissue.constitutive.UNIAXIAL_STRAIN_RANGE`
       (:func:`~difftissue.constitutive.cubic_coefficient_record`, cube cells).
@@ -176,9 +179,11 @@ def derived_quantities(result: FitResult, *, model=None, scenarios: Sequence | N
     if tensions:
         out["surface_tension"] = tensions
     names = [m.strip() for m in str(model or "").split(";")] + [getattr(s, "kind", "") for s in scenarios or ()]
-    if "springs_volume" in names:
+    lattice = next((m for m in names if m in LATTICE_MODELS), None)
+    if lattice is not None:  # the variants' uniaxial response (no pre-stretch) is springs_volume's
         try:
-            out["continuum_uniaxial_cubic_coefficient"] = cubic_coefficient_record(mat, strain_range=UNIAXIAL_STRAIN_RANGE, fields=fields, covariance=cov)
+            out["continuum_uniaxial_cubic_coefficient"] = {"model": lattice, **cubic_coefficient_record(
+                mat, strain_range=UNIAXIAL_STRAIN_RANGE, fields=fields, covariance=cov)}
         except (DifftissueError, RuntimeError) as err:
             out["continuum_uniaxial_cubic_coefficient"] = _not_computed(err)
     return out or None
@@ -218,7 +223,7 @@ def _derived_md(derived: Mapping | None) -> list[str]:
         se = f" ± {b['standard_error']:.3g}" if b.get("standard_error") is not None else ""
         others = ", ".join(f"{d}: {v:.4g}" for d, v in b["by_direction"].items() if d != "[100]")
         ends = b["stress_over_E_at_range_ends"]
-        lines += ["", f"**Continuum cubic coefficient**: springs_volume's cubic_coefficient b = {b['lattice_cubic_coefficient']:.6g} is the "
+        lines += ["", f"**Continuum cubic coefficient**: {b.get('model', 'springs_volume')}'s cubic_coefficient b = {b['lattice_cubic_coefficient']:.6g} is the "
                   "lattice's spring coefficient (a = b k / L0^2), not the b of a continuum law. In homogeneous uniaxial stress "
                   f"(nominal stress, engineering strain in [{lo:g}, {hi:g}], lateral faces free) the lattice follows "
                   f"sigma = E (eps + b_c eps^3) best with **b_c = {b['value']:.4g}{se}** along a cell edge of a cube lattice"

@@ -53,7 +53,7 @@ from .errors import BoundaryConditionError, ConfigError, ConvergenceError, DataE
 from .materials import Material
 from .mesh import TetMesh, graded_axis, graded_cells as _graded_cells, structured_grid
 from .interpolation import interpolation_operator
-from .models import ElasticModel, make_model
+from .models import LATTICE_MODELS, ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers import solver_setup
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
@@ -337,7 +337,7 @@ def indentation_specimen_for(indenter: str, *, radius: float | None = None, half
         radius: sphere radius ``R`` [m].
         half_angle: cone half-angle ``theta`` [rad].
         max_depth: largest indentation depth ``d`` [m], > 0.
-        model: elastic model; graded cells are boxes, not cubes, so ``"springs_volume"`` is refused.
+        model: elastic model; graded cells are boxes, not cubes, so the lattice models (``"springs_volume"``, ``"springs_volume_mesh_lattice"``) are refused.
         thickness: specimen thickness [m] (None: a half-space).
         cells_per_contact_radius: ``a / refine`` [-] (default from the convergence study).
         extent: half-width (and thickness, without ``thickness``) in contact radii [-].
@@ -358,8 +358,8 @@ def indentation_specimen_for(indenter: str, *, radius: float | None = None, half
     d = float(max_depth)
     if not (math.isfinite(d) and d > 0):
         raise ConfigError(f"max_depth must be a positive depth [m], got {max_depth!r}")
-    if model == "springs_volume":
-        raise ConfigError("the automatic indentation specimen grades its cells (boxes, not cubes), which springs_volume refuses: "
+    if model in LATTICE_MODELS:
+        raise ConfigError(f"the automatic indentation specimen grades its cells (boxes, not cubes), which {model} refuses: "
                           "use model 'fem_linear', 'fem_neo_hookean' or 'stable_neo_hookean', or give the specimen")
     m = float(cells_per_contact_radius)
     if not (math.isfinite(m) and m >= 1):
@@ -1501,7 +1501,7 @@ class AxisymmetricIndentation(eqx.Module):
         self.x_label, self.y_label = "depth [m]", "force [N]"
         if model not in AXISYMMETRIC_MODELS:
             raise ConfigError(f"the axisymmetric indentation supports the models {AXISYMMETRIC_MODELS}, got {model!r}"
-                              + (": a lattice has no axisymmetric form, use Indentation (3-D)" if model == "springs_volume" else ""))
+                              + (": a lattice has no axisymmetric form, use Indentation (3-D)" if model in LATTICE_MODELS else ""))
         if indenter not in ("sphere", "cone"):
             raise ConfigError(f"the axisymmetric indentation takes indenter 'sphere' or 'cone', got {indenter!r}")
         if specimen is not None:
@@ -1955,7 +1955,7 @@ class FEMField(eqx.Module):
         u_ref = np.asarray(displacement, dtype=float)
         if u_ref.shape != (mesh.n_nodes, 3) or not np.all(np.isfinite(u_ref)):
             raise DataError(f"the reference displacement must be finite with shape ({mesh.n_nodes}, 3), got {u_ref.shape}")
-        if model == "springs_volume" and mesh.lattice is None:
+        if model in LATTICE_MODELS and mesh.lattice is None:
             mesh = recover_lattice(mesh)
         if not prescribed:
             raise ConfigError("fem_field needs 'prescribed': the node sets whose displacement the reference prescribed")
@@ -2115,7 +2115,7 @@ def _interpolated_fem_field(ref, displacement, specimen: TetMesh, prescribed, mo
     u_ref = np.asarray(displacement, dtype=float)
     if u_ref.shape != (n_ref, 3) or not np.all(np.isfinite(u_ref)):
         raise DataError(f"the reference displacement must be finite with shape ({n_ref}, 3), got {u_ref.shape}")
-    if model == "springs_volume" and specimen.lattice is None:
+    if model in LATTICE_MODELS and specimen.lattice is None:
         specimen = recover_lattice(specimen)
     if not prescribed:
         raise ConfigError("fem_field needs 'prescribed': the node sets whose displacement the reference prescribed")

@@ -22,7 +22,7 @@ from ..errors import DifftissueError
 from ..incision import Incision, IncisionOptions
 from ..materials import Material
 from ..mesh import Specimen, block, layered_skin, read_mesh
-from ..models import MODELS, NODAL_FEM_MODELS
+from ..models import LATTICE_MODELS, LATTICE_VARIANTS, MODELS, NODAL_FEM_MODELS
 from ..axisymmetric import AXISYMMETRIC_MODELS
 from ..scenarios import (AXISYMMETRIC_CELLS_PER_CONTACT_RADIUS, MIN_CELLS_PER_CONTACT_RADIUS, AnalyticIndentation, AxisymmetricIndentation, Compression, FEMField, Indentation, SolverOptions,
                          axisymmetric_specimen_for, cylinder, indentation_block, indentation_specimen_for, thin_specimen_warning)
@@ -73,7 +73,11 @@ def _solver_options(e: Mapping, path: str):
 
 
 def _model(e: Mapping, path: str, default: str) -> str:
-    return _choice(e.get("model", default), _join(path, "model"), MODELS + NODAL_FEM_MODELS)
+    """The experiment's ``model``: one of :data:`~difftissue.models.MODELS`,
+    :data:`~difftissue.models.NODAL_FEM_MODELS` or :data:`~difftissue.models.LATTICE_VARIANTS`
+    (``springs_volume_mesh_lattice``: ``springs_volume`` bit for bit without pre-stretch, so it
+    is accepted wherever ``springs_volume`` is)."""
+    return _choice(e.get("model", default), _join(path, "model"), MODELS + NODAL_FEM_MODELS + LATTICE_VARIANTS)
 
 
 def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path, *, material=None, fitted: tuple[str, ...] = ()) -> Experiment:
@@ -218,8 +222,8 @@ def _compression(e, path, name, base_dir) -> Experiment:
             hei = _length(spec["height"], _join(p, "height"), unit) if "height" in spec else h_data
             nr = _integer(spec.get("cells_radial", 4), _join(p, "cells_radial"), minimum=1)
             nh = _integer(spec.get("cells_height", 4), _join(p, "cells_height"), minimum=1)
-            if model == "springs_volume":
-                _fail(_join(path, "model"), "a cylinder mesh has no cube lattice: use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean' (or a block: with frictionless platens any shape gives the same answer)")
+            if model in LATTICE_MODELS:
+                _fail(_join(path, "model"), f"a cylinder mesh has no cube lattice ({model} needs one): use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean' (or a block: with frictionless platens any shape gives the same answer)")
             mesh = cylinder(dia, hei, nr, nh)
             coarse_mesh, skip = _coarse_cylinder(dia, hei, nr, nh)
     try:
@@ -358,8 +362,8 @@ def _indentation(e, path, name, base_dir, *, material=None, fitted=()) -> Experi
         if kw["indenter"] == "flat_punch":
             _fail(p, "missing (required for a flat punch): e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" } "
                   "or { mesh = \"specimen.vtu\", length_unit = \"mm\" } (a block is chosen automatically for a sphere or a cone only)")
-        if model == "springs_volume":
-            _fail(p, "missing (required): with model springs_volume no block is chosen automatically (the automatic specimen grades its cells, which springs_volume refuses); "
+        if model in LATTICE_MODELS:
+            _fail(p, f"missing (required): with model {model} no block is chosen automatically (the automatic specimen grades its cells, which the lattice refuses); "
                   "set model = \"fem_linear\", \"fem_neo_hookean\" or \"stable_neo_hookean\", or give the specimen "
                   "(e.g. { size = [2e-3, 2e-3, 1e-3], cells = [6, 6, 4], symmetry = \"quarter\" })")
         try:
@@ -385,7 +389,7 @@ def _indentation(e, path, name, base_dir, *, material=None, fitted=()) -> Experi
         cells = _counts(spec.get("cells", [6, 6, 4]), _join(p, "cells"))
         symmetry = _choice(spec.get("symmetry", "quarter"), _join(p, "symmetry"), ("quarter", "none"))
         refine = _length(spec["refine"], _join(p, "refine"), sunit) if "refine" in spec else None
-        if refine is not None and model == "springs_volume":
+        if refine is not None and model in LATTICE_MODELS:
             _fail(_join(p, "refine"), "graded cells are not cubes: use model 'fem_linear', 'fem_neo_hookean' or 'stable_neo_hookean' with refine")
         core = _length(spec["core"], _join(p, "core"), sunit) if "core" in spec else None
         if core is not None:
@@ -883,8 +887,8 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     steps = _integer(e.get("scalpel_steps", 4), _join(path, "scalpel_steps"), minimum=1)
     so = _solver_options(e, path)
     options = IncisionOptions(scalpel_steps=steps, rtol=so.rtol, xtol=so.xtol, max_steps=so.max_steps, linear_solver=so.linear_solver, failure=so.failure)
-    if model == "springs_volume" and getattr(cut.mesh, "lattice", None) is None:
-        _fail(_join(path, "model"), "an imported mesh has no cube lattice: use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean'")
+    if model in LATTICE_MODELS and getattr(cut.mesh, "lattice", None) is None:
+        _fail(_join(path, "model"), f"an imported mesh has no cube lattice ({model} needs one): use 'stable_neo_hookean', 'fem_linear' or 'fem_neo_hookean'")
     try:
         sc = Incision(cut, model=model, quantity=quantity, positions=positions, observed=observed, sigma=sigma, fitted_regions=fitted, lateral=lateral, base=base, rollers=rollers, options=options, name=name)
     except DifftissueError as err:

@@ -16,6 +16,7 @@ from .._io import read_toml
 from ..errors import ConfigError
 from ..fit import LOSSES, METHODS
 from ..materials import Identity, Log, Material, MaterialParameterization, ScaledLogit
+from ..models import LATTICE_MODELS
 from .builders import _build_experiment
 from .estimates import _data_start
 from .fitconfig import FitConfig
@@ -94,11 +95,12 @@ def parse_config(raw: Mapping, *, base_dir=".", path=None) -> FitConfig:
 
 
 def _check_model_ranges(experiments, material, param) -> None:
-    """springs_volume represents nu in [0.25, 0.5) only: the fit must stay there."""
-    springs = [i for i, e in enumerate(experiments) if e.model == "springs_volume"]
+    """The springs_volume lattice (and its variants, :data:`~difftissue.models.LATTICE_MODELS`)
+    represents nu in [0.25, 0.5) only: the fit must stay there."""
+    springs = [i for i, e in enumerate(experiments) if e.model in LATTICE_MODELS]
     if not springs:
         return
-    who = f"the springs_volume model (experiment[{springs[0]}])"
+    who = f"the {experiments[springs[0]].model} model (experiment[{springs[0]}])"
     nu = float(material.poisson_ratio)
     if nu < 0.25:
         _fail("material.poisson_ratio", f"{who} needs nu in [0.25, 0.5), got {nu:g}; use stable_neo_hookean or fem_* below 0.25")

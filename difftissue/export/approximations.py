@@ -20,11 +20,11 @@ from ..boundary import BoundaryConditions
 from ..errors import ExportError
 from ..materials import Material
 from ..mesh import block
-from ..models import MODELS, make_model
+from ..models import LATTICE_MODELS, LATTICE_VARIANTS, MODELS, make_model
 from ..solvers.static import solve_static
 from .card import FINITE_STRAIN_MODELS, MaterialCard, model_parts
 
-__all__ = ["LAW_MODELS", "UNIAXIAL_STRAINS", "resolve_law", "model_mismatch", "uniaxial_signed_errors", "approximation_notes"]
+__all__ = ["LAW_MODELS", "UNIAXIAL_STRAINS", "resolve_law", "lattice_model", "model_mismatch", "uniaxial_signed_errors", "approximation_notes"]
 
 
 def resolve_law(card: MaterialCard, law: str | None) -> str:
@@ -43,8 +43,11 @@ def resolve_law(card: MaterialCard, law: str | None) -> str:
 LAW_MODELS = {"linear": "fem_linear", "neo_hookean": "fem_neo_hookean"}
 
 
-#: Card models whose (E, nu) are lattice-effective values, not a continuum's.
-_LATTICE_MODELS = ("springs_volume",)
+def lattice_model(card: MaterialCard) -> str | None:
+    """The card's lattice model (:data:`~difftissue.models.LATTICE_MODELS`: ``springs_volume`` or
+    ``springs_volume_mesh_lattice``, also within a joint fit), whose (E, nu) are lattice-effective
+    values, not a continuum's; None when it has none."""
+    return next((m for m in model_parts(card.model) if m in LATTICE_MODELS), None)
 
 
 #: Nominal strains (compression) at which an --approximate note quotes the signed stress error.
@@ -60,10 +63,10 @@ def model_mismatch(card: MaterialCard, law: str) -> str | None:
     strain; under a punch or bonded platens its cubes change volume far more freely than
     tets do, so the same (E, nu) on a continuum tet mesh is much stiffer (measured: +40 %
     punch force, docs/export.md "Model mismatch")."""
-    lattice = [m for m in model_parts(card.model) if m in _LATTICE_MODELS]
-    if not lattice:
+    lattice = lattice_model(card)
+    if lattice is None:
         return None
-    return (f"model mismatch: the card's E = {card.youngs_modulus:.6g} Pa, nu = {card.poisson_ratio:.6g} are {lattice[0]} "
+    return (f"model mismatch: the card's E = {card.youngs_modulus:.6g} Pa, nu = {card.poisson_ratio:.6g} are {lattice} "
             f"lattice-effective values (cube lattice of springs with a per-cell volume term), the target solves the continuum "
             f"{law} law ({LAW_MODELS[law]}) on tets, which under inhomogeneous strain (a punch, bonded platens) is tens of "
             f"percent stiffer at the same values")
@@ -108,7 +111,7 @@ def uniaxial_signed_errors(card: MaterialCard, law: str, strains: Sequence[float
     ``stable_neo_hookean``, ... solved the same way, :func:`_uniaxial_cube_stress`; a closed-form
     card, e.g. ``hertz``, against its stated law ``E (eps + b eps^3)``). Positive: the export is
     stiffer. Pre-stretch is left out of both (it is noted separately)."""
-    own = next((m for m in model_parts(card.model) if m in MODELS), None)
+    own = next((m for m in model_parts(card.model) if m in MODELS + LATTICE_VARIANTS), None)
     E, nu, b = card.youngs_modulus, card.poisson_ratio, card.cubic_coefficient
     key = (own, E, nu, b, law, tuple(strains))
     if key not in _ERROR_CACHE:
@@ -170,7 +173,12 @@ def approximation_notes(card: MaterialCard, target: str, *, approximate: bool, c
     if card.is_pre_stretched and not pre_stretch_ok:
         what = f"pre_stretch = {lam0:g}" + (f", pre_stretch_y = {card.pre_stretch_y:g}" if "pre_stretch_y" in card.parameters else "")
         msg = f"{what} (pre-tension) is not written for {target}"
+        variant = lattice_model(card) if lattice_model(card) in LATTICE_VARIANTS else None
+        if variant:  # the variant is springs_volume bit for bit without pre-stretch: dropping it drops the variant
+            msg += (f" (the card's model {variant} differs from springs_volume only under pre-stretch, so without it the "
+                    "written material is springs_volume's)")
         if not approximate:
             raise ExportError(msg + "; pass approximate=True (--approximate) to export the material without pre-tension")
-        notes.append(f"APPROXIMATION: {what} dropped; the exported material starts stress-free")
+        notes.append(f"APPROXIMATION: {what} dropped; the exported material starts stress-free"
+                     + (f" ({variant} without pre-stretch is springs_volume)" if variant else ""))
     return notes

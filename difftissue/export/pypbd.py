@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import ExportError, ModelError
-from ..models import SpringVolumeModel
+from ..models import LATTICE_MODELS, SpringVolumeModel
 from ..scenarios import recover_lattice
 from ._common import finite, write_text
 from .approximations import approximation_notes
@@ -135,7 +135,7 @@ def pbd_scene(card, mesh=None, *, constraints: str = "xpbd", dt: float | None = 
                 "use constraints='fem' or another target")
         energy = ("sum_springs k/2 (|xi - xj| - L0)^2 + sum_tets (lambda - mu) (V - V0)^2 / (2 V0) "
                   "(pypbd XPBD distance constraints, stiffness k [N/m]; XPBD volume constraints, stiffness (lambda - mu) / (6 V0))")
-        if card.model.strip() != "springs_volume":
+        if card.model.strip() not in LATTICE_MODELS:  # the variants are springs_volume without pre-stretch (never written here)
             notes.append(f"the card's model is {card.model!r}; the scene uses the spring lattice + volume energy, "
                          "which has the same small-strain response (E, nu) and differs at finite strain")
     else:

@@ -29,11 +29,11 @@ import numpy as np
 from ..boundary import BoundaryConditions
 from ..errors import ExportError
 from ..materials import Material
-from ..models import make_model
+from ..models import LATTICE_MODELS, make_model
 from ..scenarios import Indentation, indentation_block, recover_lattice
 from ..solvers.static import solve_static
-from .approximations import LAW_MODELS, model_mismatch, resolve_law
-from .card import MaterialCard, model_parts
+from .approximations import LAW_MODELS, lattice_model, model_mismatch, resolve_law
+from .card import MaterialCard
 from .fitted import FittedSpecimen
 from .specimens import IndentationSpecimen, indentation_records
 
@@ -51,13 +51,13 @@ def specimen_reactions(card, spec: FittedSpecimen, model: str, fractions=(1.0,))
     """Summed reaction forces [N] over ``spec.reaction`` (one per summed component) of
     difftissue's ``model`` with ``card``'s values on the fitted regions, the prescribed
     displacements scaled by each of ``fractions`` (shape ``(len(fractions), n_components)``).
-    ``springs_volume`` gets the specimen's cube lattice back (``recover_lattice``; a mesh that
+    A lattice model (``springs_volume``, ``springs_volume_mesh_lattice``) gets the specimen's cube lattice back (``recover_lattice``; a mesh that
     is no structured grid is refused there). Solved by difftissue's static solver, ramped in
     increments of at most 5 % nominal strain for a compression."""
     if spec.reaction is None:
         raise ExportError(f"fitted specimen {spec.scenario!r} has no reaction set")
     mesh = spec.mesh()
-    if model == "springs_volume":
+    if model in LATTICE_MODELS:
         mesh = recover_lattice(mesh)
     m = make_model(mesh, model)
     mat = spec.material(card)
@@ -110,7 +110,7 @@ def recalibrated_card(card, spec: FittedSpecimen, law: str, *, approximate: bool
     ``approximate`` (then one modulus, the reason noted); ``b = 0`` keeps the one-modulus card
     with the reason noted."""
     why = model_mismatch(card, law)
-    own = next(m for m in model_parts(card.model) if m in ("springs_volume",))
+    own = lattice_model(card)
     if spec.experiment == "incision" or spec.reaction is None or card.is_pre_stretched or spec.region_materials:
         raise ExportError(f"{why}; the fitted {spec.experiment} specimen {spec.scenario!r} cannot be recalibrated (needs a summed "
                           "reaction, one material and no pre-stretch); pass approximate=True (--approximate) to write the card's values "
@@ -235,9 +235,13 @@ def recalibrated_indentation_card(card, spec: IndentationSpecimen, law: str, *, 
     Returns a new card (model ``fem_linear`` / ``fem_neo_hookean``) whose
     ``provenance["recalibration"]`` holds the factor, both forces and the notes for the file
     headers (:func:`difftissue.export.recalibration.recalibrated_from_reactions`). Refused (one line)
-    when the card holds no matching simulated record."""
+    when the card holds no matching simulated record or is pre-stretched."""
     why = model_mismatch(card, law)
-    own = next(m for m in model_parts(card.model) if m in ("springs_volume",))
+    own = lattice_model(card)
+    if card.is_pre_stretched:
+        raise ExportError(f"{why}; the pre-stretched indentation card cannot be recalibrated (the target's continuum model is solved "
+                          "without pre-stretch, so the factor would absorb the pre-tension); pass approximate=True (--approximate) "
+                          "to write the card's values with the measured error noted")
     rec, reasons = _fit_record(card, spec, own)
     if rec is None:
         raise ExportError(f"{why}; the indentation card cannot be recalibrated: no simulated {own} indentation record matches the "
@@ -281,7 +285,7 @@ def indentation_card(card, spec: IndentationSpecimen, law: str | None, *, approx
     lw = resolve_law(card, law)
     if not model_mismatch(card, lw):
         return card
-    if approximate and _fit_record(card, spec, "springs_volume")[0] is None:
+    if approximate and (card.is_pre_stretched or _fit_record(card, spec, lattice_model(card))[0] is None):
         return card
     return recalibrated_indentation_card(card, spec, lw, approximate=approximate)
 
@@ -450,7 +454,7 @@ def recalibrated_ogden_card(card, spec: FittedSpecimen, *, why: str):
     E and nu the law's small-strain values, and ``provenance["recalibration"]["hyperelastic"]``
     (law, keyword, coefficients [Pa], ``D`` [1/Pa], strain range, stresses, residuals, notes),
     or ``(None, reason)`` when the law is unstable or misses the tolerance."""
-    own = next(m for m in model_parts(card.model) if m in ("springs_volume",))
+    own = lattice_model(card)
     pr = spec.protocol
     area = float(pr["area"])
     fr = recalibration_fractions(spec, OGDEN_STATES)
