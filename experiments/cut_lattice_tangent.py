@@ -15,6 +15,10 @@ match        the class factors (in-plane edges, out-of-plane edges, in-plane fac
              out-of-plane face diagonals[, volume term]) of the mesh lattice that make the cell
              carry the neo-Hookean's (P_xx, A_xxxx, A_xxyy, A_xyxy[, A_xzxz]) at lambda0:
              --classes 4 (fsolve, volume term unchanged) or 5 (least squares, the design option).
+path         the same 5-factor match by Newton continuation in lambda0 from --lams[0] down to
+             --lams[-1] (the cell written with the library's own kernels, jit-compiled once),
+             with the condition number of the match, the factors' linear extrapolation to
+             lambda0 = 1 and that limit lattice's linear moduli against the neo-Hookean's.
 screen       the 5-factor lattice on the 1 mm / 0.5 mm staircase cut (0 deg), FACTORS given on
              the command line: the screen run before the library had the option (a
              SpringVolumeModel subclass patched into Incision); `--factors 1 1 1 1 1` must give
@@ -22,6 +26,7 @@ screen       the 5-factor lattice on the 1 mm / 0.5 mm staircase cut (0 deg), FA
 
 Run:  python experiments/cut_lattice_tangent.py tangent --lams 1.05 1.10 1.15
       python experiments/cut_lattice_tangent.py match --classes 5 --lams 1.15
+      python experiments/cut_lattice_tangent.py path --lams 1.15 1.0025 --step 0.0025
       python experiments/cut_lattice_tangent.py screen --cell 1 --lam 1.15 --factors 0.393 1.6536 0.8749 0.9743 0.4605
 Uses difftissue.constitutive's private one-cell helpers (_unit_cell, _energy_density): the
 model's own energy on one cell, nothing of its formulas repeated.
@@ -206,6 +211,102 @@ def match(lams, n_classes=5, start=None):
     return rows
 
 
+def path(lam_hi, lam_lo, step, start=(0.393, 1.6536, 0.8749, 0.9743, 0.4605, 0.8281), match_thickness=False):
+    """Newton continuation of the 5-factor match (unknowns: the factors and the thickness
+    stretch; equations: P_zz = 0 and the five moduli) from ``lam_hi`` down to ``lam_lo``.
+
+    The cell: the 24 springs of one 1 mm cube (factors ``_cell_spring_factors`` times the class
+    factor, rest lengths of the cube shrunk by 1/lambda0 in x and y, cubic coefficient 0) and its
+    volume term, through the library's kernels (``cubic_spring_energy``, ``_cell_volume_energy``);
+    checked against ``constitutive``'s one-cell model at ``start`` (the page's 1.15 factors).
+
+    ``match_thickness``: the thickness stretch is the neo-Hookean's (not an unknown), so six
+    equations (P_zz = 0 there and the five moduli) on the five factors, solved by Gauss-Newton
+    (least squares, unweighted, each residual / mu)."""
+    jax = _jax()
+    import jax.numpy as jnp
+
+    from difftissue.energies.fem import neo_hookean_energy_density
+    from difftissue.energies.springs import cubic_spring_energy
+    from difftissue.materials import lame_parameters
+    from difftissue.mesh import _CUBE_CORNERS, _CUBE_DIAGONALS, _CUBE_EDGES
+    from difftissue.models import _cell_spring_factors, _cell_volume_energy
+
+    lm, mu = (float(v) for v in lame_parameters(E_DERMIS, NU))
+    X = _CUBE_CORNERS.astype(float)
+    pairs = np.array(list(_CUBE_EDGES) + list(_CUBE_DIAGONALS))
+    g = _cell_spring_factors(np.ones((1, 3)))[0]
+    d = X[pairs[:, 1]] - X[pairs[:, 0]]
+    nz = np.abs(d) > 1e-12
+    edge, inpl = nz.sum(1) == 1, ~nz[:, 2]
+    CL = np.stack([edge & inpl, edge & ~inpl, ~edge & inpl, ~edge & ~inpl], 1).astype(float)
+
+    def psi_lat(c, F, l0):
+        x = jnp.asarray(X) @ F.T
+        L0 = jnp.linalg.norm(jnp.asarray(d) * jnp.stack([1 / l0, 1 / l0, 1.0]), axis=1)
+        k = mu * jnp.asarray(g) * (jnp.asarray(CL) @ c[:4])
+        e = jnp.sum(jax.vmap(cubic_spring_energy)(x[pairs[:, 0]], x[pairs[:, 1]], L0, k, 0.0 * k))
+        return e + _cell_volume_energy(x, 1.0 / l0**2, c[4] * (lm - mu))
+
+    def psi_nh(F, l0):
+        return neo_hookean_energy_density(F @ jnp.diag(jnp.stack([l0, l0, 1.0])), lm, mu) / l0**2
+
+    def moduli(dens, lz):
+        F0 = jnp.diag(jnp.stack([1.0, 1.0, lz]))
+        P, A = jax.grad(dens)(F0), jax.hessian(dens)(F0).reshape(9, 9)
+        ip = jnp.array([0, 1, 3, 4])
+        K = A[jnp.ix_(ip, ip)] - jnp.outer(A[ip, 8], A[8, ip]) / A[8, 8]
+        return P[2, 2], jnp.stack([P[0, 0], K[0, 0], K[0, 3], K[1, 1], A[2, 2]])
+
+    def resid(y, l0, target, zn):
+        pzz, m = moduli(lambda F: psi_lat(y[:5], F, l0), zn if match_thickness else y[5])
+        return jnp.concatenate([jnp.stack([pzz]), m - target]) / mu
+
+    def solve(J, r):
+        return jnp.linalg.lstsq(J, r)[0] if match_thickness else jnp.linalg.solve(J, r)
+
+    @jax.jit
+    def newton(y, l0):
+        fz = lambda z: moduli(lambda F: psi_nh(F, l0), z)[0]  # noqa: E731
+        z = jnp.asarray(1.0)
+        for _ in range(40):
+            z = z - fz(z) / jax.grad(fz)(z)
+        target = moduli(lambda F: psi_nh(F, l0), z)[1]
+        for _ in range(40):  # each change limited to 0.02: stays on the branch of the start
+            y = y - jnp.clip(solve(jax.jacfwd(resid)(y, l0, target, z), resid(y, l0, target, z)), -0.02, 0.02)
+        J = jax.jacfwd(resid)(y, l0, target, z)
+        r = resid(y, l0, target, z)
+        return y, r, z, jnp.linalg.cond(J)
+
+    y = jnp.asarray(start if not match_thickness else start[:5], dtype=float)
+    check = density("springs_volume_mesh_lattice", lam_hi)
+    F = jnp.diag(jnp.array([1.01, 0.99, float(y[5])])) + 0.01 * jnp.eye(3)[::-1]
+    ref = float(check(y[:5], F))
+    assert abs(float(psi_lat(y[:5], F, lam_hi)) - ref) <= 1e-10 * abs(ref), "cell energy differs from the model's"
+    rows = []
+    for i, l0 in enumerate(np.round(np.arange(lam_hi, lam_lo - 1e-9, -step), 6)):
+        for _ in range(4 if i == 0 else 1):  # the first point from a distant start: more limited steps
+            y, r, zn, cond = newton(y, float(l0))
+        lz = float(zn) if match_thickness else float(y[5])
+        rows.append(dict(pre_stretch=float(l0), factors=np.asarray(y[:5]).tolist(), thickness_stretch=lz,
+                         thickness_stretch_nh=float(zn), residual=np.asarray(r).tolist(), condition=float(cond)))
+        print(f"lambda0={l0:.4f}: factors {np.round(np.asarray(y[:5]), 4)} lz={lz:.4f} (NH {float(zn):.4f}) "
+              f"r/mu (P_zz, P_xx, K11, K12, K66, A_xzxz)={np.round(np.asarray(r), 5)} cond={float(cond):.2e}", flush=True)
+    if len(rows) >= 2:
+        (a, b) = rows[-2], rows[-1]
+        lim = np.asarray(b["factors"]) + (np.asarray(b["factors"]) - np.asarray(a["factors"])) * (b["pre_stretch"] - 1.0) / (a["pre_stretch"] - b["pre_stretch"])
+        print(f"linear extrapolation to lambda0 = 1: {np.round(lim, 4)}")
+        An = np.asarray(jax.hessian(lambda F: psi_nh(F, 1.0))(jnp.eye(3))).reshape(9, 9)
+        A = np.asarray(jax.hessian(lambda F: psi_lat(jnp.asarray(lim), F, 1.0))(jnp.eye(3))).reshape(9, 9)
+        names = {"C11": (0, 0), "C33": (8, 8), "C12": (0, 4), "C13": (0, 8), "C66": (1, 1), "C44 (A_xzxz)": (2, 2)}
+        print("its linear moduli [kPa] (neo-Hookean): " + ", ".join(f"{k} {A[i, j]/1e3:.2f} ({An[i, j]/1e3:.2f})" for k, (i, j) in names.items()))
+        ip = [0, 1, 3, 4]
+        cond = lambda M: M[np.ix_(ip, ip)] - np.outer(M[ip, 8], M[8, ip]) / M[8, 8]  # noqa: E731
+        K, Kn = cond(A), cond(An)
+        print(f"plane stress: K11 {K[0, 0]/1e3:.2f} ({Kn[0, 0]/1e3:.2f}), K12 {K[0, 3]/1e3:.2f} ({Kn[0, 3]/1e3:.2f})")
+    return rows
+
+
 def screen(cell, lam, factors, angle=0.0):
     """Max surface width [mm] of the mesh lattice with its dermis classes scaled by ``factors``
     (5: four spring classes and the volume term) on the staircase cut."""
@@ -254,10 +355,13 @@ def screen(cell, lam, factors, angle=0.0):
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("mode", choices=("tangent", "attribution", "match", "screen"))
+    ap.add_argument("mode", choices=("tangent", "attribution", "match", "path", "screen"))
     ap.add_argument("--lams", type=float, nargs="*", default=[1.05, 1.10, 1.15], help="pre-stretches (tangent, match)")
     ap.add_argument("--classes", type=int, choices=(4, 5), default=5, help="match: 4 spring classes, or 4 + the volume term")
     ap.add_argument("--start", type=float, nargs="*", default=None, help="match: starting factors (default ones)")
+    ap.add_argument("--match-thickness", action="store_true", help="path: the neo-Hookean's thickness stretch too "
+                    "(six equations, least squares)")
+    ap.add_argument("--step", type=float, default=0.0025, help="path: continuation step in lambda0")
     ap.add_argument("--cell", type=float, default=1.0, help="screen: cell size [mm] (1, 0.5)")
     ap.add_argument("--lam", type=float, default=1.15, help="screen: pre-stretch")
     ap.add_argument("--angle", type=float, default=0.0, help="screen: cut angle [deg]")
@@ -269,5 +373,7 @@ if __name__ == "__main__":
         attribution()
     elif a.mode == "match":
         match(a.lams, a.classes, a.start)
+    elif a.mode == "path":
+        path(max(a.lams), min(a.lams), a.step, match_thickness=a.match_thickness)
     else:
         screen(a.cell, a.lam, a.factors, a.angle)
