@@ -71,7 +71,7 @@ def classes(model, X):
 def density(kind, lam):
     """``psi(c, F)`` [Pa] of the cell of ``kind`` pre-stretched by ``lam``, with class factors
     ``c`` (4 or 5 entries; ignored for the continuum) on a springs model."""
-    jax = _jax()
+    _jax()
     import equinox as eqx
     import jax.numpy as jnp
 
@@ -94,7 +94,6 @@ def density(kind, lam):
             e = e + (c[4] - 1.0) * 0.5 * (lm - mu) * (jnp.linalg.det(F) - lam**-2) ** 2 * lam**2
         return e
 
-    del jax
     return psi
 
 
