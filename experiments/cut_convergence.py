@@ -227,15 +227,21 @@ class P2Problem:
             its += k
         return u, its
 
+    #: print one line per Newton iteration (``--newton-log``): time, |g|, line-search step, CPU split
+    log_iterations = False
+
     def solve(self, l0, u=None, tol=1e-9, max_iter=60):
         """Newton (sparse Cholesky, backtracking on the energy) to |du|_inf < tol * max(|u|_inf, 1 um).
         Returns the displacement ``(n, 3)`` [mm] and the iteration count."""
         u = np.zeros((self.n, 3)) if u is None else u.copy()
         for it in range(max_iter):
+            c0 = time.process_time()
             g = self.gradient(u, l0)[self.free]
             K = self.hessian(u, l0)
+            c1 = time.process_time()
             d = self._shifted_solve(K, -g)
-            e0, t = self.energy(u, l0), 1.0
+            c2 = time.process_time()
+            e0, t, halvings = self.energy(u, l0), 1.0, 0
             while True:
                 v = u.reshape(-1).copy()
                 v[self.free] += t * d
@@ -243,7 +249,12 @@ class P2Problem:
                 if self.energy(v, l0) <= e0 + 1e-12 * abs(e0) or t < 1e-4:
                     break
                 t *= 0.5
+                halvings += 1
             u = v
+            if self.log_iterations:
+                print(f"[{time.strftime('%H:%M:%S')}] l0={l0:.4f} it={it} |g|inf={np.max(np.abs(g)):.3e} t={t:.4g} "
+                      f"(halvings {halvings}) step={np.max(np.abs(t * d)):.3e} E0={e0:.10e} cpu grad+hess={c1-c0:.1f}s "
+                      f"chol={c2-c1:.1f}s ls={time.process_time()-c2:.1f}s", flush=True)
             if np.max(np.abs(t * d)) < tol * max(np.max(np.abs(u)), 1e-3):
                 return u, it + 1
         raise RuntimeError(f"Newton did not converge at lambda0 = {l0} (last step {np.max(np.abs(t * d)):.3e} mm)")
@@ -607,19 +618,33 @@ def plot(out=HERE.parent / "docs" / "img" / "cut_convergence.png"):
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--springs", type=float, nargs="*", default=[], help="cell sizes [mm]")
-    ap.add_argument("--model", default="springs_volume", help="model of --springs (springs_volume or springs_volume_mesh_lattice)")
+    ap.add_argument("--model", default="springs_volume", help="model of --springs (springs_volume, springs_volume_mesh_lattice, "
+                    "springs_volume_matched_lattice)")
+    ap.add_argument("--lams", type=float, nargs="*", default=None, help="lambda0 values of --springs (default all; the rows "
+                    "are merged into the file's other rows)")
+    ap.add_argument("--angles", type=float, nargs="*", default=None, help="cut angles [deg] of --springs (default 0 25; merged)")
+    ap.add_argument("--newton-log", action="store_true", help="--p2: one line per Newton iteration")
     ap.add_argument("--p2", type=int, nargs="*", default=[], help="quarter-model levels n (e.g. 3 4 6 8)")
     ap.add_argument("--rotation", type=float, nargs="*", default=[], help="cell sizes [mm] of the whole-square P2 (linear limit)")
     ap.add_argument("--rotation-lams", type=float, nargs="*", default=[LINEAR], help="lambda0 values of --rotation")
     ap.add_argument("--table", action="store_true")
     ap.add_argument("--plot", action="store_true", help="docs/img/cut_convergence.png")
     a = ap.parse_args()
+    P2Problem.log_iterations = a.newton_log
     for c in a.springs:
         t0 = time.process_time()
-        res = springs_cell(c * 1e-3, model=a.model)
+        name = f"cut_convergence_{_tag(a.model)}_cell{c:.3g}mm.json"
+        subset = a.lams is not None or a.angles is not None
+        res = springs_cell(c * 1e-3, lams=tuple(a.lams or LAMS), angles=tuple(a.angles or (0.0, 25.0)), model=a.model)
         res["cell"] = c
         res["cpu_seconds_total"] = time.process_time() - t0
-        _write(f"cut_convergence_{_tag(a.model)}_cell{c:.3g}mm.json", res)
+        old = _load(name) if subset else None
+        if old is not None:  # a subset of the cases: merged into the rows already there (a case given again is replaced)
+            new = {(r["angle"], round(r["pre_stretch"], 9)) for r in res["rows"]}
+            res["rows"] = [r for r in old["rows"] if (r["angle"], round(r["pre_stretch"], 9)) not in new] + res["rows"]
+            res["rows"].sort(key=lambda r: (r["angle"], r["pre_stretch"]))
+            res["cpu_seconds_total"] = None  # of several runs
+        _write(name, res)
     if a.p2:  # merged into the levels already measured (a level given again is replaced)
         new = p2_reference(a.p2)
         old = _load("cut_convergence_p2.json")
