@@ -139,9 +139,14 @@ class BlockEllMatrix(eqx.Module):
 
     def diagonal(self):
         """The diagonal ``(3N,)``."""
-        rows = jnp.arange(self.cols.shape[0])[:, None]
-        own = jnp.sum(jnp.where((self.cols == rows)[:, :, None, None], self.blocks(), 0.0), axis=1)
-        return jnp.diagonal(own, axis1=1, axis2=2).reshape(-1)
+        n, w = self.cols.shape
+        # The slots of the row's own node: its diagonal block and the padding (zero blocks).
+        own = self.cols == jnp.arange(n)[:, None]
+        # Entry (a, a) of every block, read in place (forming the blocks first transposed the
+        # whole matrix: 4x slower at 106k unknowns).
+        d = self.data.reshape(n, 3, w, 3)
+        entries = jnp.stack([d[:, a, :, a] for a in range(3)], axis=1)
+        return jnp.sum(jnp.where(own[:, None, :], entries, 0.0), axis=2).reshape(-1)
 
     def to_scipy(self):
         """The matrix as a SciPy BSR matrix (host)."""
