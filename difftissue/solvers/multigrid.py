@@ -14,7 +14,8 @@ number of unknowns:
 - **Applied in JAX** (:class:`PreconditionedCG` with a :class:`MultigridPreconditioner`): the fine matrix is re-assembled from the element
   Hessians at the current state (one scatter into a padded-row ELL layout, per Newton step),
   smoothed by Chebyshev polynomials in the Jacobi-scaled operator (spectral bound by power
-  iteration at the current state); coarse levels are the reference Galerkin operators scaled
+  iteration at the current state, warm started from the reference's or the previous step's
+  dominant eigenvector); coarse levels are the reference Galerkin operators scaled
   by the ratio of the current to the reference diagonal, and the coarsest level is solved by
   a precomputed pseudo-inverse. The V-cycle is symmetric positive definite, so it
   preconditions CG. No host callback in the iteration: the solve jits, ``vmap``s over
