@@ -267,12 +267,13 @@ def _projected_operator(model, u, material, free, options: _Options, *, tangent:
     return op, solver, {"preconditioner": JacobiPreconditioner(1.0 / d)}
 
 
-def _multigrid_matrix(model, u, material, free, options: _Options):
-    """The block-ELL matrix ``P H P + (I - P)`` at displacement ``u`` and its multigrid V-cycle."""
+def _multigrid_matrix(model, u, material, free, options: _Options, power_start=None):
+    """The block-ELL matrix ``P H P + (I - P)`` at displacement ``u`` and its multigrid V-cycle
+    (``power_start``: warm start of its spectral estimate, see ``MultigridPreconditioner.build``)."""
     x = jnp.asarray(model.rest_points) + u
     Pf = free.reshape(-1).astype(x.dtype)
     ell = _assemble_ell(options.layout, model, x, material, Pf)
-    return ell, MultigridPreconditioner.build(ell, options.hierarchy, Pf)
+    return ell, MultigridPreconditioner.build(ell, options.hierarchy, Pf, power_start)
 
 
 def _ell_operator(ell, struct):
@@ -400,7 +401,8 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
             # after the step decides convergence as always; a lagged step that falls short is
             # followed by one with a fresh matrix.
             reused = fresh & (eta_safe >= eta_ew) & (2.0 * gn <= eta * g_prev)
-            matrix = jax.lax.cond(reused, lambda: matrix, lambda: _multigrid_matrix(model, u, material, free, options))
+            # A fresh matrix's spectral estimate starts from the previous one's power iterate.
+            matrix = jax.lax.cond(reused, lambda: matrix, lambda: _multigrid_matrix(model, u, material, free, options, matrix[1].power_vector))
         op, solver, opts = linear_system(u, matrix)
         if isinstance(solver, PreconditionedCG):
             opts = {**opts, "rtol": eta}
