@@ -30,6 +30,7 @@ Units: SI (Pa, N/m, m); strains and stretches dimensionless.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 from typing import NamedTuple
@@ -92,11 +93,9 @@ def _cell_shape(kind: str, cell_size) -> tuple[float, float, float]:
 def _unit_cell(kind: str, shape: tuple[float, float, float]):
     """``(model, rest points (8, 3), cell volume)`` of one cell of ``shape`` (built once, eagerly
     even when first asked for inside ``jit``)."""
-    if isinstance(jnp.zeros(()), jax.core.Tracer):  # asked for inside a trace: evaluated eagerly
-        with jax.ensure_compile_time_eval():
-            mesh = block(shape, 1)
-            model = make_model(mesh, kind)
-    else:  # the mesh set-up's compiled programs, shared with every model (under ensure_compile_time_eval: ~0.25 s CPU)
+    # Inside a trace the cell is evaluated eagerly; outside, the mesh set-up uses its compiled
+    # programs, shared with every model (under ensure_compile_time_eval they ran op by op: ~0.25 s CPU).
+    with contextlib.nullcontext() if _is_concrete(jnp.zeros(())) else jax.ensure_compile_time_eval():
         mesh = block(shape, 1)
         model = make_model(mesh, kind)
     return model, np.asarray(mesh.points, dtype=float), float(np.prod(shape))

@@ -372,7 +372,7 @@ def _indentation(e, path, name, base_dir, *, material=None, fitted=()) -> Experi
                                             **({} if cells_per_a is None else {"cells_per_contact_radius": cells_per_a}))
             mesh = auto.block()
         except DifftissueError as err:
-            _reraise(_join(p, "thickness") if thickness is not None and "thickness" in str(err) else p, err)
+            _reraise(_specimen_error_path(p, thickness, err), err)
         thin = thin_specimen_warning(auto, _join(p, "thickness"), stacklevel=4)
         symmetry = auto.symmetry
         coarse_mesh, skip = _coarse_auto_specimen(auto)
@@ -419,6 +419,14 @@ def _indentation(e, path, name, base_dir, *, material=None, fitted=()) -> Experi
                                  depth, force, sigma, prov, extra_warnings=() if thin is None else (thin,))
 
 
+def _specimen_error_path(p: str, thickness, err: Exception) -> str:
+    """The key an automatic specimen's error belongs to: ``specimen.thickness`` for the
+    thickness checks of :func:`~difftissue.scenarios.axisymmetric_specimen_for` and
+    :func:`~difftissue.scenarios.indentation_specimen_for` (their messages start with
+    "thickness"), else ``specimen``."""
+    return _join(p, "thickness") if thickness is not None and str(err).startswith("thickness") else p
+
+
 def _axisymmetric_indentation(e, path, name, kw, model, base, penalty, options, cells_per_a, thickness, curve, file, notes, depth, force, sigma,
                               prov) -> Experiment:
     """A sphere or cone indentation simulated in the meridian plane of a cylinder
@@ -434,7 +442,7 @@ def _axisymmetric_indentation(e, path, name, kw, model, base, penalty, options, 
         auto = axisymmetric_specimen_for(kw["indenter"], radius=kw.get("radius"), half_angle=kw.get("half_angle"), max_depth=float(depth.max()),
                                          thickness=thickness, **({} if cells_per_a is None else {"cells_per_contact_radius": cells_per_a}))
     except DifftissueError as err:
-        _reraise(_join(p, "thickness") if thickness is not None and "thickness" in str(err) else p, err)
+        _reraise(_specimen_error_path(p, thickness, err), err)
     thin = thin_specimen_warning(auto, _join(p, "thickness"), stacklevel=4)
     notes = (*notes, _axisymmetric_note(auto))
 
