@@ -32,7 +32,7 @@ from .errors import (BudgetExtrapolationWarning, BudgetRangeError, BudgetSaturat
 from .fit.residuals import ResidualProblem, least_squares
 from .materials import MATERIAL_FIELDS, Identity, Material, ScaledLogit
 from .mesh import LENGTH_UNITS, signed_volumes
-from .models import LATTICE_VARIANTS, MODELS, ElasticModel, make_model
+from .models import MESH_MODELS, ElasticModel, make_model
 from .solvers.static import solve_static
 from .solvers.xpbd import XPBDSettings, xpbd_quasi_static
 
@@ -562,8 +562,8 @@ def _reference_model(mesh, model, model_kind: str, reference):
     if reference is None:
         return model, model_kind
     if isinstance(reference, str):
-        if reference not in MODELS + LATTICE_VARIANTS:
-            raise ModelError(f"reference must be one of {MODELS + LATTICE_VARIANTS} or an ElasticModel, got {reference!r}")
+        if reference not in MESH_MODELS:
+            raise ModelError(f"reference must be one of {MESH_MODELS} or an ElasticModel, got {reference!r}")
         return make_model(mesh, reference), reference
     if isinstance(reference, ElasticModel):
         return reference, type(reference).__name__
@@ -1101,8 +1101,8 @@ def parse_load_set(raw, mesh, material: Material, *, where: str = "budget") -> L
         options["max_steps"] = int(m)
     reference = None
     if "reference" in raw:
-        if raw["reference"] not in MODELS + LATTICE_VARIANTS:
-            _ls_fail(f"{where}.reference", f"must be one of {', '.join(MODELS + LATTICE_VARIANTS)}, got {raw['reference']!r}")
+        if raw["reference"] not in MESH_MODELS:
+            _ls_fail(f"{where}.reference", f"must be one of {', '.join(MESH_MODELS)}, got {raw['reference']!r}")
         reference = raw["reference"]
     entries = raw["loads"]
     if not isinstance(entries, list) or not entries:

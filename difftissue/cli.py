@@ -414,7 +414,7 @@ def _load_set_calibration(card, args, mesh):
     from .budget import calibrate_for_load_set, read_load_set
     from .errors import ConfigError
     from .export import resolve_effective_modulus
-    from .models import LATTICE_VARIANTS, MODELS
+    from .models import MESH_MODELS
     from .solvers.xpbd import XPBDSettings
 
     material = resolve_effective_modulus(card, nu=args.nu, approximate=args.approximate).material()
@@ -426,9 +426,9 @@ def _load_set_calibration(card, args, mesh):
                           f"{hi:.6g} Pa (budget.youngs_moduli, in Pa): the file is written at the card's modulus; include it in "
                           "the set, or pass --extrapolate to write the end factor with a warning")
     reference = spec.reference or card.model
-    if reference not in MODELS + LATTICE_VARIANTS:
+    if reference not in MESH_MODELS:
         raise ConfigError(f"{args.load_set}: the card's model {card.model!r} is no mesh model to solve the loads' reference with; "
-                          f"set budget.reference to one of {', '.join(MODELS + LATTICE_VARIANTS)}")
+                          f"set budget.reference to one of {', '.join(MESH_MODELS)}")
     settings = XPBDSettings(dt=args.dt, substeps=1 if args.substeps is None else args.substeps, iterations=args.iterations,
                             method="gauss_seidel", damping=float("inf"), warm_start=False)
     print(f"calibrating the XPBD budget over {len(spec.loads)} loads of {args.load_set} (reference {reference}) ...",

@@ -43,7 +43,7 @@ import numpy as np
 from .errors import MaterialError, ModelError
 from .materials import Material, _is_concrete, _require_equibiaxial, biaxial_pre_stress, explicit_pre_stretch_y, material_fields, surface_tension_from_pre_stretch
 from .mesh import block
-from .models import LATTICE_MODELS, LATTICE_VARIANTS, MODELS, make_model
+from .models import LATTICE_MODELS, MESH_MODELS, make_model
 from .solvers.host import ModelDerivatives
 
 __all__ = [
@@ -78,8 +78,8 @@ _QUADRATURE_POINTS = 16
 def _cell_shape(kind: str, cell_size) -> tuple[float, float, float]:
     """The cell's edge ratios ``(hx, hy, hz) / max`` (a cube for the tet models, whose
     homogeneous response does not depend on it)."""
-    if kind not in MODELS + LATTICE_VARIANTS:
-        raise ModelError(f"unknown model {kind!r}; choose one of {MODELS + LATTICE_VARIANTS}")
+    if kind not in MESH_MODELS:
+        raise ModelError(f"unknown model {kind!r}; choose one of {MESH_MODELS}")
     if cell_size is None or not kind.startswith("springs_volume"):
         return (1.0, 1.0, 1.0)
     h = np.broadcast_to(np.asarray(cell_size, dtype=float), (3,))

@@ -59,6 +59,7 @@ __all__ = [
     "LATTICE_VARIANTS",
     "PRE_STRETCH_LATTICES",
     "LATTICE_MODELS",
+    "MESH_MODELS",
     "ElementTerm",
     "ElasticModel",
     "SpringVolumeModel",
@@ -86,6 +87,9 @@ LATTICE_VARIANTS = ("springs_volume_mesh_lattice",)
 #: :data:`LATTICE_VARIANTS`. A check for "a lattice model" (a cube lattice needed, lattice-effective
 #: values, ``nu >= 1/4``) tests a model name against this tuple.
 LATTICE_MODELS = ("springs_volume",) + LATTICE_VARIANTS
+#: The model names of a tet mesh's elements (:data:`MODELS`) and the lattice variants
+#: (:data:`LATTICE_VARIANTS`): every name :func:`make_model` accepts except the nodal FEM models.
+MESH_MODELS = MODELS + LATTICE_VARIANTS
 
 
 class ElementTerm(eqx.Module):

@@ -20,7 +20,7 @@ from ..boundary import BoundaryConditions
 from ..errors import ExportError
 from ..materials import Material
 from ..mesh import block
-from ..models import LATTICE_MODELS, LATTICE_VARIANTS, MODELS, make_model
+from ..models import LATTICE_MODELS, LATTICE_VARIANTS, MESH_MODELS, make_model
 from ..solvers.static import solve_static
 from .card import FINITE_STRAIN_MODELS, MaterialCard, model_parts
 
@@ -111,7 +111,7 @@ def uniaxial_signed_errors(card: MaterialCard, law: str, strains: Sequence[float
     ``stable_neo_hookean``, ... solved the same way, :func:`_uniaxial_cube_stress`; a closed-form
     card, e.g. ``hertz``, against its stated law ``E (eps + b eps^3)``). Positive: the export is
     stiffer. Pre-stretch is left out of both (it is noted separately)."""
-    own = next((m for m in model_parts(card.model) if m in MODELS + LATTICE_VARIANTS), None)
+    own = next((m for m in model_parts(card.model) if m in MESH_MODELS), None)
     E, nu, b = card.youngs_modulus, card.poisson_ratio, card.cubic_coefficient
     key = (own, E, nu, b, law, tuple(strains))
     if key not in _ERROR_CACHE:

@@ -44,7 +44,7 @@ import numpy as np
 from ..boundary import BoundaryConditions
 from ..errors import ExportError
 from ..materials import lame_parameters
-from ..models import LATTICE_MODELS, LATTICE_VARIANTS, MODELS, make_model
+from ..models import LATTICE_MODELS, MESH_MODELS, make_model
 from ..scenarios import recover_lattice
 from ..solvers.static import solve_static
 from ..solvers.xpbd import StableNeoHookeanConstraints, XPBDSettings, xpbd_quasi_static_constraints
@@ -82,8 +82,8 @@ def _card_solutions(card, mesh, fixed, prescribed, fractions, material, model, f
         mdl = model  # an ElasticModel on ``mesh`` (e.g. pbd_reference_model: the scene's own energy)
     else:
         kind = (card.model if model is None else model).strip()
-        if kind not in MODELS + LATTICE_VARIANTS:
-            raise ExportError(f"the card's model {kind!r} is no difftissue mesh model {list(MODELS + LATTICE_VARIANTS)}: its fitted response "
+        if kind not in MESH_MODELS:
+            raise ExportError(f"the card's model {kind!r} is no difftissue mesh model {list(MESH_MODELS)}: its fitted response "
                               "cannot be solved on the exported specimen, so the budget cannot be recalibrated")
         if kind in LATTICE_MODELS and getattr(mesh, "lattice", None) is None:
             mesh = recover_lattice(mesh)
