@@ -19,15 +19,22 @@ path         the same 5-factor match by Newton continuation in lambda0 from --la
              --lams[-1] (the cell written with the library's own kernels, jit-compiled once),
              with the condition number of the match, the factors' linear extrapolation to
              lambda0 = 1 and that limit lattice's linear moduli against the neo-Hookean's.
+design       the tension-exact match that tends to the default lattice (section 7): four spring-class
+             factors and the lattice's own pre-stretch s (rest state the cube shrunk by 1/s) matching
+             the neo-Hookean's (P_xx, A_xxxx, A_xxyy, A_xyxy, A_xzxz) exactly, by Newton
+             continuation from lambda0 = 1 (where the default lattice solves it); --scan adds the
+             member nearest the default lattice over a volume-term factor.
 screen       the 5-factor lattice on the 1 mm / 0.5 mm staircase cut (0 deg), FACTORS given on
              the command line: the screen run before the library had the option (a
              SpringVolumeModel subclass patched into Incision); `--factors 1 1 1 1 1` must give
-             springs_volume_mesh_lattice's width.
+             springs_volume_mesh_lattice's width; --lattice-stretch s for a design row.
 
 Run:  python experiments/cut_lattice_tangent.py tangent --lams 1.05 1.10 1.15
       python experiments/cut_lattice_tangent.py match --classes 5 --lams 1.15
       python experiments/cut_lattice_tangent.py path --lams 1.15 1.0025 --step 0.0025
       python experiments/cut_lattice_tangent.py screen --cell 1 --lam 1.15 --factors 0.393 1.6536 0.8749 0.9743 0.4605
+      python experiments/cut_lattice_tangent.py design --lams 1.0025 1.005 1.02 1.05 1.10 1.15 --scan
+      python experiments/cut_lattice_tangent.py screen --cell 0.5 --lam 1.15 --factors 0.39958 1.64911 0.91091 1.01403 1 --lattice-stretch 1.133663
 Uses difftissue.constitutive's private one-cell helpers (_unit_cell, _energy_density): the
 model's own energy on one cell, nothing of its formulas repeated.
 """
@@ -73,6 +80,7 @@ def density(kind, lam):
     ``c`` (4 or 5 entries; ignored for the continuum) on a springs model."""
     _jax()
     import equinox as eqx
+    import jax.numpy as jnp
     import jax.numpy as jnp
 
     from difftissue.constitutive import _cell_shape, _checked, _energy_density, _unit_cell
@@ -210,18 +218,14 @@ def match(lams, n_classes=5, start=None):
     return rows
 
 
-def path(lam_hi, lam_lo, step, start=(0.393, 1.6536, 0.8749, 0.9743, 0.4605, 0.8281), match_thickness=False):
-    """Newton continuation of the 5-factor match (unknowns: the factors and the thickness
-    stretch; equations: P_zz = 0 and the five moduli) from ``lam_hi`` down to ``lam_lo``.
-
-    The cell: the 24 springs of one 1 mm cube (factors ``_cell_spring_factors`` times the class
-    factor, rest lengths of the cube shrunk by 1/lambda0 in x and y, cubic coefficient 0) and its
-    volume term, through the library's kernels (``cubic_spring_energy``, ``_cell_volume_energy``);
-    checked against ``constitutive``'s one-cell model at ``start`` (the page's 1.15 factors).
-
-    ``match_thickness``: the thickness stretch is the neo-Hookean's (not an unknown), so six
-    equations (P_zz = 0 there and the five moduli) on the five factors, solved by Gauss-Newton
-    (least squares, unweighted, each residual / mu)."""
+def _cell_kernels():
+    """``(psi_lat, psi_nh, moduli, mu)`` of the one-cube cell (1 mm, the dermis):
+    ``psi_lat(c, F, l0)`` the mesh lattice's energy density [Pa] with class factors ``c`` (four
+    spring classes and the volume term) and its rest state the cube shrunk by ``1/l0`` in x and
+    y; ``psi_nh(F, l0)`` the neo-Hookean's at pre-stretch ``l0``; ``moduli(dens, lz)`` the
+    out-of-plane stress ``P_zz`` and ``(P_xx, K_xxxx, K_xxyy, K_xyxy, A_xzxz)`` [Pa] at
+    ``F = diag(1, 1, lz)`` (K condensed over F_zz). Through the library's kernels
+    (``cubic_spring_energy``, ``_cell_volume_energy``, ``neo_hookean_energy_density``)."""
     jax = _jax()
     import jax.numpy as jnp
 
@@ -256,6 +260,26 @@ def path(lam_hi, lam_lo, step, start=(0.393, 1.6536, 0.8749, 0.9743, 0.4605, 0.8
         ip = jnp.array([0, 1, 3, 4])
         K = A[jnp.ix_(ip, ip)] - jnp.outer(A[ip, 8], A[8, ip]) / A[8, 8]
         return P[2, 2], jnp.stack([P[0, 0], K[0, 0], K[0, 3], K[1, 1], A[2, 2]])
+
+    return psi_lat, psi_nh, moduli, mu
+
+
+def path(lam_hi, lam_lo, step, start=(0.393, 1.6536, 0.8749, 0.9743, 0.4605, 0.8281), match_thickness=False):
+    """Newton continuation of the 5-factor match (unknowns: the factors and the thickness
+    stretch; equations: P_zz = 0 and the five moduli) from ``lam_hi`` down to ``lam_lo``.
+
+    The cell: the 24 springs of one 1 mm cube (factors ``_cell_spring_factors`` times the class
+    factor, rest lengths of the cube shrunk by 1/lambda0 in x and y, cubic coefficient 0) and its
+    volume term, through the library's kernels (``cubic_spring_energy``, ``_cell_volume_energy``);
+    checked against ``constitutive``'s one-cell model at ``start`` (the page's 1.15 factors).
+
+    ``match_thickness``: the thickness stretch is the neo-Hookean's (not an unknown), so six
+    equations (P_zz = 0 there and the five moduli) on the five factors, solved by Gauss-Newton
+    (least squares, unweighted, each residual / mu)."""
+    jax = _jax()
+    import jax.numpy as jnp
+
+    psi_lat, psi_nh, moduli, mu = _cell_kernels()
 
     def resid(y, l0, target, zn):
         pzz, m = moduli(lambda F: psi_lat(y[:5], F, l0), zn if match_thickness else y[5])
@@ -306,11 +330,91 @@ def path(lam_hi, lam_lo, step, start=(0.393, 1.6536, 0.8749, 0.9743, 0.4605, 0.8
     return rows
 
 
-def screen(cell, lam, factors, angle=0.0):
+def design(lams, step=0.005, scan=True):
+    """The tension-exact tangent match with a sixth unknown: the lattice's own pre-stretch ``s``
+    (its rest state the cube shrunk by ``1/s`` in x and y, the neo-Hookean's stays ``1/lambda0``).
+
+    Unknowns ``(c_1..c_4, s, lz)`` (four spring-class factors, ``s``, the thickness stretch) at a
+    given volume-term factor ``v``; equations: ``P_zz = 0`` and the neo-Hookean's ``(P_xx,
+    K_xxxx, K_xxyy, K_xyxy, A_xzxz)`` at ``lambda0``. Square and regular at ``lambda0 = 1``
+    (there ``dP_xx/dc = 0`` and ``dP_xx/ds = K_xxxx + K_xxyy``), so its solution tends to the
+    default lattice, ``(c, s) -> (1, 1)``. Design S: ``v = 1``. Design M (``scan``): the member
+    of the one-parameter family in ``v`` nearest the default lattice, min ``|(c, v) - 1|``
+    (at ``lambda0 = 1`` the family is section 6's: out-of-plane edges against the volume term,
+    whose nearest member is ``c = 1``). Newton continuation from ``lambda0 = 1`` (the default
+    lattice is the exact solution there) up to ``max(lams)`` in steps ``step``; rows at ``lams``."""
+    jax = _jax()
+    import jax.numpy as jnp
+
+    psi_lat, psi_nh, moduli, mu = _cell_kernels()
+
+    def resid(y, l0, target, v):
+        c = jnp.concatenate([y[:4], jnp.stack([v])])
+        pzz, m = moduli(lambda F: psi_lat(c, F, y[4]), y[5])
+        return jnp.concatenate([jnp.stack([pzz]), m - target]) / mu
+
+    @jax.jit
+    def newton(y, l0, v):
+        fz = lambda z: moduli(lambda F: psi_nh(F, l0), z)[0]  # noqa: E731
+        z = jnp.asarray(1.0)
+        for _ in range(40):
+            z = z - fz(z) / jax.grad(fz)(z)
+        target = moduli(lambda F: psi_nh(F, l0), z)[1]
+        for _ in range(30):  # each change limited to 0.02: stays on the branch of the start
+            y = y - jnp.clip(jnp.linalg.solve(jax.jacfwd(resid)(y, l0, target, v), resid(y, l0, target, v)), -0.02, 0.02)
+        J = jax.jacfwd(resid)(y, l0, target, v)
+        return y, resid(y, l0, target, v), z, jnp.linalg.cond(J)
+
+    def row(y, r, z, cond, l0, v, label):
+        c = np.concatenate([np.asarray(y[:4]), [v]])
+        d = dict(design=label, pre_stretch=float(l0), factors=c.tolist(), lattice_stretch=float(y[4]), thickness_stretch=float(y[5]),
+                 thickness_stretch_nh=float(z), residual=np.asarray(r).tolist(), condition=float(cond), distance=float(np.linalg.norm(c - 1)))
+        print(f"{label} lambda0={l0:.4f}: factors {np.round(c, 4)} s={d['lattice_stretch']:.5f} (s/lambda0-1={d['lattice_stretch']/l0-1:+.5f}) "
+              f"lz={d['thickness_stretch']:.4f} (NH {float(z):.4f}) |c-1|={d['distance']:.4f} max|r|/mu={np.abs(np.asarray(r)).max():.1e} "
+              f"cond={float(cond):.1e}", flush=True)
+        return d
+
+    y = jnp.ones(6)
+    rows, top = [], max(lams)
+    marks = {round(float(l), 6) for l in lams}
+    for l0 in np.round(np.arange(1.0, top + 1e-9, step), 6):
+        y, r, z, cond = newton(y, float(l0), 1.0)
+        if round(float(l0), 6) not in marks:
+            continue
+        rows.append(row(y, r, z, cond, l0, 1.0, "S"))
+        if not scan:
+            continue
+        dist = {}
+        for sign in (-1, 1):  # continuation in v from the v = 1 solution
+            yv = y
+            for v in np.round(1.0 + sign * np.arange(0.0, 0.8 + 1e-9, 0.02), 6):
+                if v <= 0.05:
+                    break
+                yv, rv, _, _ = newton(yv, float(l0), float(v))
+                if np.abs(np.asarray(rv)).max() > 1e-9 or np.any(np.asarray(yv[:4]) <= 0):
+                    break
+                dist[float(v)] = (float(np.linalg.norm(np.concatenate([np.asarray(yv[:4]), [v]]) - 1)), yv)
+        vs = np.array(sorted(dist))
+        k = int(np.argmin([dist[v][0] for v in vs]))
+        if 0 < k < len(vs) - 1:  # parabola through the three grid points around the minimum
+            a, b, cc = vs[k - 1:k + 2]
+            fa, fb, fc = (dist[v][0] ** 2 for v in (a, b, cc))
+            vstar = b - 0.5 * ((b - a) ** 2 * (fb - fc) - (b - cc) ** 2 * (fb - fa)) / ((b - a) * (fb - fc) - (b - cc) * (fb - fa))
+        else:
+            vstar = vs[k]
+        ym, rm, zm, cm = newton(dist[vs[k]][1], float(l0), float(vstar))
+        rows.append(row(ym, rm, zm, cm, l0, float(vstar), "M"))
+    return rows
+
+
+def screen(cell, lam, factors, angle=0.0, lattice_stretch=None):
     """Max surface width [mm] of the mesh lattice with its dermis classes scaled by ``factors``
-    (5: four spring classes and the volume term) on the staircase cut."""
+    (5: four spring classes and the volume term) on the staircase cut; ``lattice_stretch``: the
+    dermis lattice's own pre-stretch ``s`` (rest lengths and rest volumes of the cube shrunk by
+    ``1/s`` in x and y; None: ``lambda0``, design ``design``'s sixth unknown)."""
     _jax()
     import equinox as eqx
+    import jax.numpy as jnp
 
     import difftissue.incision as inc_mod
     from difftissue.cutting import cut_specimen
@@ -334,10 +438,27 @@ def screen(cell, lam, factors, angle=0.0):
             self.spring_factors = self.spring_factors * np.where(self.spring_regions == r, C @ np.asarray(c[:4]), 1.0)
             self.cell_bulk_factor = np.where(self.cell_regions == r, c[4], 1.0)
 
+        def spring_parameters(self, material):
+            rest, k, a = super().spring_parameters(material)
+            if lattice_stretch is None:
+                return rest, k, a
+            r = list(self.region_names).index("dermis")  # a = 0 (b = 0, checked below): no rest length in it
+            own = self.rest_lengths * jnp.sqrt(1.0 + self.spring_in_plane * (lattice_stretch**-2 - 1.0))
+            return jnp.where(jnp.asarray(self.spring_regions) == r, own, rest), k, a
+
+        def cell_rest_volumes(self, material):
+            v = super().cell_rest_volumes(material)
+            if lattice_stretch is None:
+                return v
+            on = jnp.asarray(self.cell_regions) == list(self.region_names).index("dermis")
+            return jnp.where(on, jnp.asarray(self.cell_volumes) / lattice_stretch**2, v)
+
         def terms(self, material):
             t = super().terms(material)
             return (t[0], eqx.tree_at(lambda e: e.params[1], t[1], t[1].params[1] * self.cell_bulk_factor))
 
+    if lattice_stretch is not None and _skin().cubic_coefficient != 0.0:
+        raise ValueError("--lattice-stretch: the screen's rest-length override assumes a cubic coefficient of 0")
     spec = specimen(cell * 1e-3)
     cut = cut_specimen(spec, path(angle), method="staircase")
     inc_mod.make_model = lambda mesh, kind: Scaled(mesh, factors)  # the screen's patch (no library option then)
@@ -346,7 +467,7 @@ def screen(cell, lam, factors, angle=0.0):
                    options=IncisionOptions(scalpel_steps=1, linear_solver="sparse"))
     res = inc.solve(_skin().replace(pre_stretch=lam))
     wmax, wmean = surface_measures(cut, res.opening.width)
-    row = dict(cell_mm=cell, angle=angle, pre_stretch=lam, factors=list(factors), max_width_mm=wmax * 1e3,
+    row = dict(cell_mm=cell, angle=angle, pre_stretch=lam, factors=list(factors), lattice_stretch=lattice_stretch, max_width_mm=wmax * 1e3,
                mean_width_mm=wmean * 1e3, cpu_seconds=time.process_time() - t0)
     print(json.dumps(row), flush=True)
     return row
@@ -354,16 +475,20 @@ def screen(cell, lam, factors, angle=0.0):
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("mode", choices=("tangent", "attribution", "match", "path", "screen"))
+    ap.add_argument("mode", choices=("tangent", "attribution", "match", "path", "design", "screen"))
     ap.add_argument("--lams", type=float, nargs="*", default=[1.05, 1.10, 1.15], help="pre-stretches (tangent, match)")
     ap.add_argument("--classes", type=int, choices=(4, 5), default=5, help="match: 4 spring classes, or 4 + the volume term")
     ap.add_argument("--start", type=float, nargs="*", default=None, help="match: starting factors (default ones)")
     ap.add_argument("--match-thickness", action="store_true", help="path: the neo-Hookean's thickness stretch too "
                     "(six equations, least squares)")
+    ap.add_argument("--scan", action="store_true", help="design: also the member nearest the default lattice over the "
+                    "volume-term factor (design M)")
     ap.add_argument("--step", type=float, default=0.0025, help="path: continuation step in lambda0")
     ap.add_argument("--cell", type=float, default=1.0, help="screen: cell size [mm] (1, 0.5)")
     ap.add_argument("--lam", type=float, default=1.15, help="screen: pre-stretch")
     ap.add_argument("--angle", type=float, default=0.0, help="screen: cut angle [deg]")
+    ap.add_argument("--lattice-stretch", type=float, default=None, help="screen: the dermis lattice's own pre-stretch s "
+                    "(default lambda0)")
     ap.add_argument("--factors", type=float, nargs=5, default=[0.393, 1.6536, 0.8749, 0.9743, 0.4605], help="screen: class factors")
     a = ap.parse_args()
     if a.mode == "tangent":
@@ -372,7 +497,9 @@ if __name__ == "__main__":
         attribution()
     elif a.mode == "match":
         match(a.lams, a.classes, a.start)
+    elif a.mode == "design":
+        design(a.lams, a.step, scan=a.scan)
     elif a.mode == "path":
         path(max(a.lams), min(a.lams), a.step, match_thickness=a.match_thickness)
     else:
-        screen(a.cell, a.lam, a.factors, a.angle)
+        screen(a.cell, a.lam, a.factors, a.angle, a.lattice_stretch)
