@@ -197,10 +197,10 @@ class P2Problem:
         return sps.csr_matrix((h, (self._fr, self._fc)), shape=(self._nf, self._nf))
 
     @staticmethod
-    def _shifted_solve(K, b):
+    def _factorise(K):
         """Cholesky of K, or of K + tau diag(K) with the smallest tau in 1e-8 * 10^k that is
         positive definite (a descent direction away from the solution, where the tangent of the
-        cut flaps can be indefinite)."""
+        cut flaps can be indefinite). Returns the solve ``b -> x`` and tau."""
         import cholespy
         import scipy.sparse as sps
 
@@ -215,9 +215,18 @@ class P2Problem:
                 if tau > 1e3:
                     raise RuntimeError("no positive definite shift of the tangent") from None
                 continue
-            x = np.zeros_like(b)
-            fac.solve(np.ascontiguousarray(b), x)
-            return x
+
+            def solve(b, fac=fac):
+                x = np.zeros_like(b)
+                fac.solve(np.ascontiguousarray(b), x)
+                return x
+
+            return solve, tau
+
+    @classmethod
+    def _shifted_solve(cls, K, b):
+        """``K^-1 b`` through `_factorise` (one analysis and factorisation)."""
+        return cls._factorise(K)[0](b)
 
     def continuation(self, start, stop, u=None, step=0.025):
         """Solve at ``stop`` from the solution ``u`` at ``start`` in pre-stretch steps <= ``step``."""
@@ -229,17 +238,35 @@ class P2Problem:
 
     #: print one line per Newton iteration (``--newton-log``): time, |g|, line-search step, CPU split
     log_iterations = False
+    #: frozen-tangent Newton (``--full-newton`` turns it off): the tangent is factorised at the
+    #: first iteration of a solve and kept while |g|_inf falls by at least ``1 / frozen_rate``
+    #: per iteration; a slower fall, or a line search that has to shorten a step taken with a
+    #: kept factor, refactorises at the current iterate. Same stopping rule as full Newton; at
+    #: the stop the error left is about ``frozen_rate / (1 - frozen_rate)`` times the last step.
+    frozen_tangent = True
+    frozen_rate = 0.25
+    #: tangent factorisations so far (all solves of this problem)
+    factorisations = 0
 
-    def solve(self, l0, u=None, tol=1e-9, max_iter=60):
-        """Newton (sparse Cholesky, backtracking on the energy) to |du|_inf < tol * max(|u|_inf, 1 um).
+    def solve(self, l0, u=None, tol=1e-9, max_iter=100):
+        """Newton (sparse Cholesky, backtracking on the energy; frozen tangent while the residual
+        falls fast, see `frozen_tangent`) to |du|_inf < tol * max(|u|_inf, 1 um).
         Returns the displacement ``(n, 3)`` [mm] and the iteration count."""
         u = np.zeros((self.n, 3)) if u is None else u.copy()
+        fac, gprev = None, None
         for it in range(max_iter):
             c0 = time.process_time()
             g = self.gradient(u, l0)[self.free]
-            K = self.hessian(u, l0)
-            c1 = time.process_time()
-            d = self._shifted_solve(K, -g)
+            gn = float(np.max(np.abs(g)))
+            fresh = fac is None or not self.frozen_tangent or gn > self.frozen_rate * gprev
+            if fresh:
+                K = self.hessian(u, l0)
+                c1 = time.process_time()
+                fac, tau = self._factorise(K)
+                self.factorisations += 1
+            else:
+                c1 = time.process_time()
+            d = fac(-g)
             c2 = time.process_time()
             e0, t, halvings = self.energy(u, l0), 1.0, 0
             while True:
@@ -251,10 +278,13 @@ class P2Problem:
                 t *= 0.5
                 halvings += 1
             u = v
+            if halvings and not fresh:
+                fac = None  # a kept factor that needs a shortened step: refactorise
+            gprev = gn
             if self.log_iterations:
-                print(f"[{time.strftime('%H:%M:%S')}] l0={l0:.4f} it={it} |g|inf={np.max(np.abs(g)):.3e} t={t:.4g} "
-                      f"(halvings {halvings}) step={np.max(np.abs(t * d)):.3e} E0={e0:.10e} cpu grad+hess={c1-c0:.1f}s "
-                      f"chol={c2-c1:.1f}s ls={time.process_time()-c2:.1f}s", flush=True)
+                print(f"[{time.strftime('%H:%M:%S')}] l0={l0:.4f} it={it} |g|inf={gn:.3e} t={t:.4g} (halvings {halvings}) "
+                      f"step={np.max(np.abs(t * d)):.3e} E0={e0:.10e} {'factorised' + (f' (shift {tau:g})' if tau else '') if fresh else 'kept factor'} "
+                      f"cpu grad(+hess)={c1-c0:.1f}s chol+solve={c2-c1:.1f}s ls={time.process_time()-c2:.1f}s", flush=True)
             if np.max(np.abs(t * d)) < tol * max(np.max(np.abs(u)), 1e-3):
                 return u, it + 1
         raise RuntimeError(f"Newton did not converge at lambda0 = {l0} (last step {np.max(np.abs(t * d)):.3e} mm)")
@@ -318,23 +348,42 @@ def quarter_widths(prob, u):
     return float(w.max()), float(mean)
 
 
-def p2_reference(levels, lams=LAMS, q=1.5):
+def p2_reference(levels, lams=LAMS, q=1.5, on_row=None):
+    """P2 quarter-model rows (max / mean surface width [mm], Newton iterations, tangent
+    factorisations, CPU seconds) per level n and lambda0 (continuation through ``lams`` in
+    order). ``on_row(out)`` is called after each row (the script writes the JSON there, so that
+    an interrupted level keeps the lambda0 it finished)."""
     out = {"q": q, "rows": []}
     for n in levels:
         t0 = time.process_time()
         prob = quarter_problem(n, q)
         u, prev = None, 1.0
         for lam in lams:
-            t1 = time.process_time()
+            t1, f1 = time.process_time(), prob.factorisations
             u, its = prob.continuation(prev, lam, u)
             prev = lam
             wmax, wmean = quarter_widths(prob, u)
             row = dict(n=n, dofs=3 * int(prob.n), free=int(prob.free.sum()), tets=int(prob.M), pre_stretch=lam, max_width_mm=wmax, mean_width_mm=wmean,
-                       newton=its, cpu_seconds=time.process_time() - t1, rss_mb=rss_mb())
+                       newton=its, factorisations=prob.factorisations - f1, frozen_tangent=bool(prob.frozen_tangent),
+                       cpu_seconds=time.process_time() - t1, rss_mb=rss_mb())
             out["rows"].append(row)
             print(json.dumps(row), flush=True)
+            if on_row is not None:
+                on_row(out)
         print(f"level {n}: {time.process_time() - t0:.1f} s cpu", flush=True)
     return out
+
+
+def _merge_p2(new, name="cut_convergence_p2.json"):
+    """Write ``new``'s rows into the P2 JSON: a (level, lambda0) given again is replaced, the
+    other rows kept."""
+    old = _load(name)
+    rows = list(new["rows"])
+    if old is not None and old.get("q") == new["q"]:
+        keys = {(r["n"], round(r["pre_stretch"], 9)) for r in rows}
+        rows = [r for r in old["rows"] if (r["n"], round(r["pre_stretch"], 9)) not in keys] + rows
+    rows.sort(key=lambda r: (r["n"], r["pre_stretch"]))
+    _write(name, {"q": new["q"], "rows": rows})
 
 
 def _open_edges(cut, X, angle):
@@ -625,6 +674,10 @@ if __name__ == "__main__":
     ap.add_argument("--angles", type=float, nargs="*", default=None, help="cut angles [deg] of --springs (default 0 25; merged)")
     ap.add_argument("--newton-log", action="store_true", help="--p2: one line per Newton iteration")
     ap.add_argument("--p2", type=int, nargs="*", default=[], help="quarter-model levels n (e.g. 3 4 6 8)")
+    ap.add_argument("--p2-lams", type=float, nargs="*", default=None, help="lambda0 values of --p2 (default all; the continuation "
+                    "passes through the ones between)")
+    ap.add_argument("--full-newton", action="store_true", help="--p2: factorise the tangent at every Newton iteration "
+                    "(default: frozen tangent while the residual falls fast)")
     ap.add_argument("--rotation", type=float, nargs="*", default=[], help="cell sizes [mm] of the whole-square P2 (linear limit)")
     ap.add_argument("--rotation-lams", type=float, nargs="*", default=[LINEAR], help="lambda0 values of --rotation")
     ap.add_argument("--table", action="store_true")
@@ -645,13 +698,9 @@ if __name__ == "__main__":
             res["rows"].sort(key=lambda r: (r["angle"], r["pre_stretch"]))
             res["cpu_seconds_total"] = None  # of several runs
         _write(name, res)
-    if a.p2:  # merged into the levels already measured (a level given again is replaced)
-        new = p2_reference(a.p2)
-        old = _load("cut_convergence_p2.json")
-        if old is not None and old.get("q") == new["q"]:
-            new["rows"] = [r for r in old["rows"] if r["n"] not in a.p2] + new["rows"]
-        new["rows"].sort(key=lambda r: (r["n"], r["pre_stretch"]))
-        _write("cut_convergence_p2.json", new)
+    if a.p2:  # merged into the rows already there, after each lambda0 (a level and lambda0 given again is replaced)
+        P2Problem.frozen_tangent = not a.full_newton
+        p2_reference(a.p2, lams=tuple(a.p2_lams or LAMS), on_row=_merge_p2)
     if a.rotation:
         old = _load("cut_convergence_rotation.json") or []
         for c in a.rotation:

@@ -105,3 +105,24 @@ def test_no_order_reason_agrees_with_the_observed_order():
     assert np.isfinite(cc.order3(ordered, h)[0])
     with pytest.raises(ValueError, match="give an observed order"):
         cc.no_order_reason(ordered, h)
+
+
+def test_frozen_tangent_newton_reaches_the_full_newton_answer():
+    """The frozen-tangent Newton (the default) converges to full Newton's solution, to the
+    1e-9 step tolerance, with fewer tangent factorisations; full Newton factorises at every
+    iteration."""
+    rows = {}
+    for frozen in (False, True):
+        prob = cc.quarter_problem(2)
+        prob.frozen_tangent = frozen
+        u, widths, its = None, [], 0
+        for start, stop in ((1.0, cc.LINEAR), (cc.LINEAR, 1.05)):
+            u, k = prob.continuation(start, stop, u)
+            its += k
+            widths.append(cc.quarter_widths(prob, u))
+        rows[frozen] = (np.array(widths), its, prob.factorisations)
+    (w_full, its_full, fac_full), (w_frozen, _, fac_frozen) = rows[False], rows[True]
+    assert w_full[1, 0] > 0.5  # mm: the cut opens at 1.05
+    np.testing.assert_allclose(w_frozen, w_full, rtol=1e-8, atol=0)
+    assert fac_full == its_full
+    assert fac_frozen < 0.7 * fac_full
