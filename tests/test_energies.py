@@ -145,9 +145,10 @@ GRAD_CASES = {
 @pytest.mark.parametrize("name", sorted(GRAD_CASES))
 def test_check_grads_order2(batch, name):
     f, args = GRAD_CASES[name](batch)
-    # jitted: check_grads then compiles each derivative program once instead of dispatching
-    # every primitive of the kernel op by op (the same derivatives, the same tolerances)
-    check_grads(jax.jit(f), args, order=2, modes=("fwd", "rev"), eps=1e-5)
+    # not jitted on purpose: op by op, the primitives' small programs are shared by all the
+    # cases; jitted, each case compiled ~13 derivative programs of its own (measured: 25 s ->
+    # 89 s CPU for these tests, docs/dev/test-suite.md)
+    check_grads(f, args, order=2, modes=("fwd", "rev"), eps=1e-5)
 
 
 def test_check_grads_mesh_level():
@@ -164,7 +165,7 @@ def test_check_grads_mesh_level():
             **{kind: fem_energy(x, tets, Dm_inv, V0, la, m, kind=kind) for kind in ENERGY_DENSITIES},
         }
 
-    check_grads(jax.jit(mesh_kernels), (pts, x, lam, mu), order=2, modes=("fwd", "rev"))
+    check_grads(mesh_kernels, (pts, x, lam, mu), order=2, modes=("fwd", "rev"))
 
 
 # ------------------------------------------------------------------------------ batching
