@@ -145,6 +145,9 @@ GRAD_CASES = {
 @pytest.mark.parametrize("name", sorted(GRAD_CASES))
 def test_check_grads_order2(batch, name):
     f, args = GRAD_CASES[name](batch)
+    # not jitted on purpose: op by op, the primitives' small programs are shared by all the
+    # cases; jitted, each case compiled ~13 derivative programs of its own (measured: 25 s ->
+    # 89 s CPU for these tests, docs/dev/test-suite.md)
     check_grads(f, args, order=2, modes=("fwd", "rev"), eps=1e-5)
 
 
@@ -583,13 +586,15 @@ def test_cell_volume_hessian_is_the_exact_hessian_of_its_energy():
 
     corners = np.array([[i & 1, (i >> 1) & 1, (i >> 2) & 1] for i in range(8)], dtype=float) * [1e-3, 1.2e-3, 0.9e-3]
     rng = np.random.default_rng(3)
+    # both Hessians jitted (one program each, shared by the three cells) instead of op by op
+    closed, hessian = jax.jit(_cell_volume_hessian), jax.jit(jax.hessian(_cell_volume_energy))
     for scale in (0.0, 1e-5, 2e-4):
         x = jnp.asarray(corners + scale * rng.standard_normal((8, 3)))
         xf = x.reshape(-1)
         np.testing.assert_allclose(float(np.einsum("abc,a,b,c->", _HEX_VOLUME_T, xf, xf, xf) / 6.0), float(hexahedron_volume(x)), rtol=1e-12)
         params = (jnp.asarray(0.8e-9), jnp.asarray(3.0e4))
-        H = _cell_volume_hessian(x, *params)
-        ref = jax.hessian(_cell_volume_energy)(x, *params).reshape(24, 24)
+        H = closed(x, *params)
+        ref = hessian(x, *params).reshape(24, 24)
         np.testing.assert_allclose(H, ref, rtol=1e-10, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
 
 
@@ -604,19 +609,22 @@ def test_cubic_spring_hessian_is_the_exact_hessian_of_its_energy():
 
     rng = np.random.default_rng(7)
     L0, k = 1.3e-3, 4.0
+    # both Hessians jitted (L0, k, a are arguments: one program each for the nine springs, one
+    # more for the batch) instead of op by op
+    closed, hessian = jax.jit(cubic_spring_hessian), jax.jit(jax.hessian(energy))
     for stretch in (0.7, 1.0, 1.25):
         for a in (0.0, 3.0e6, -1.5e6):
             d = rng.standard_normal(3)
             d *= stretch * L0 / np.linalg.norm(d)
             x0 = rng.standard_normal(3) * 1e-3
             x = jnp.asarray(np.stack([x0, x0 + d]))
-            H = cubic_spring_hessian(x[0], x[1], L0, k, a)
-            ref = jax.hessian(energy)(x, L0, k, a).reshape(6, 6)
+            H = closed(x[0], x[1], L0, k, a)
+            ref = hessian(x, L0, k, a).reshape(6, 6)
             np.testing.assert_allclose(H, ref, rtol=1e-12, atol=1e-12 * float(jnp.max(jnp.abs(ref))))
     # batched (leading dimensions) and the zero-length spring
     xs = jnp.asarray(rng.standard_normal((5, 2, 3)) * 1e-3)
-    Hb = cubic_spring_hessian(xs[:, 0], xs[:, 1], L0, k, 2.0e6)
+    Hb = closed(xs[:, 0], xs[:, 1], L0, k, 2.0e6)
     for i in range(5):
-        np.testing.assert_allclose(Hb[i], jax.hessian(energy)(xs[i], L0, k, 2.0e6).reshape(6, 6), rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(Hb[i], hessian(xs[i], L0, k, 2.0e6).reshape(6, 6), rtol=1e-12, atol=1e-9)
     same = jnp.zeros((2, 3))
-    np.testing.assert_array_equal(cubic_spring_hessian(same[0], same[1], L0, k, 2.0e6), jax.hessian(energy)(same, L0, k, 2.0e6).reshape(6, 6))
+    np.testing.assert_array_equal(closed(same[0], same[1], L0, k, 2.0e6), hessian(same, L0, k, 2.0e6).reshape(6, 6))
