@@ -126,6 +126,7 @@ def _child(args):
         F = float(F)
         out["cold_wall"], out["cold_cpu"] = since(t)
         out["newton_steps"], out["cg_iterations"] = int(steps), int(cg)
+        print("COLD " + json.dumps(out), file=sys.stderr, flush=True)  # progress: what a long run has measured so far
         t = clock()
         F2 = float(f(2e4, 0.45)[0])
         out["warm_wall"], out["warm_cpu"] = since(t)
@@ -203,13 +204,23 @@ def _run(size, model, solver, gradient, timeout):
     t = time.perf_counter()
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
-    except subprocess.TimeoutExpired:
-        return {"size": size, "model": model, "solver": solver, "error": f"timeout after {timeout} s"}
+    except subprocess.TimeoutExpired as e:
+        return {"size": size, "model": model, "solver": solver, "error": f"timeout after {timeout} s", **_partial(e.stderr)}
     for line in p.stdout.splitlines():
         if line.startswith("RESULT "):
             return json.loads(line[7:])
     tail = (p.stderr or p.stdout).strip().splitlines()[-3:]
-    return {"size": size, "model": model, "solver": solver, "error": " | ".join(tail)[-300:], "wall": time.perf_counter() - t}
+    return {"size": size, "model": model, "solver": solver, "error": " | ".join(tail)[-300:], "wall": time.perf_counter() - t, **_partial(p.stderr)}
+
+
+def _partial(stderr):
+    """The cold-solve figures a child printed before it failed or timed out (``{"partial": ...}``)."""
+    if isinstance(stderr, bytes):
+        stderr = stderr.decode(errors="replace")
+    for line in (stderr or "").splitlines():
+        if line.startswith("COLD "):
+            return {"partial": json.loads(line[5:])}
+    return {}
 
 
 def _table(rows):
@@ -291,6 +302,7 @@ def main():
     ap.add_argument("--models", default="fem_linear,springs_volume")
     ap.add_argument("--solvers", default="multigrid,pyamg,skfem,sparse,superlu")
     ap.add_argument("--direct-max", type=int, default=120_000, help="skip direct solvers above this many unknowns")
+    ap.add_argument("--gradient-max", type=int, default=500_000, help="skip the multigrid gradient above this many unknowns")
     ap.add_argument("--timeout", type=int, default=1800)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--out", default=os.path.join(HERE, "results", "static"))
@@ -310,7 +322,8 @@ def main():
                 unknowns = 3 * (2 * n + 1) ** 2 * (n + 1)
                 if solver in ("sparse", "superlu", "dense") and unknowns > args.direct_max:
                     continue
-                r = _run(n, model, solver, solver in ("multigrid", "multigrid-direct"), args.timeout)
+                gradient = solver in ("multigrid", "multigrid-direct") and unknowns <= args.gradient_max
+                r = _run(n, model, solver, gradient, args.timeout)
                 r["load"] = os.getloadavg()[0]
                 print(json.dumps(r), flush=True)
                 rows = [q for q in rows if (q["size"], q["model"], q["solver"]) != (n, model, solver)] + [r]
