@@ -7,7 +7,8 @@ number of unknowns:
 
 - **Set up once per mesh, on the host** (:func:`multigrid_setup`): the CSR pattern of the
   Hessian from the element connectivity, the Hessian at rest for a reference material, and a
-  smoothed-aggregation hierarchy built by PyAMG from it, with the six rigid-body modes of the
+  smoothed-aggregation hierarchy built from it with PyAMG's building blocks (one spectral
+  estimate per level, shared with the smoother), with the six rigid-body modes of the
   nodes as the near-null space (3x3 nodal blocks). Everything is cached by content (mesh,
   fixed DOFs, reference material), so Newton steps, load steps, fit steps, implicit adjoints
   and Jacobian tangents all reuse one hierarchy.
