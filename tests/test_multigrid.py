@@ -358,3 +358,44 @@ def test_warm_started_spectral_estimate_of_a_v_cycle_setup_is_accurate(springs, 
         assert 0.97 * true <= float(estimate) <= true * (1 + 1e-12), (amplitude, float(estimate), true)
         assert float(generic) < 0.9 * true  # the warm start is what makes 4 iterations enough
         previous = pc.power_vector
+
+
+def test_smoothed_aggregation_is_pyamgs_with_one_spectral_estimate_per_level(springs):
+    """The hierarchy is PyAMG's smoothed aggregation (same options, from its public building
+    blocks) with the prolongation smoother's ``rho(D^-1 A)`` estimated once per level (and
+    shared with the Chebyshev smoother): same aggregates and tentative prolongators,
+    ``T - P`` proportional to PyAMG's with the factor ``rho_PyAMG / rho``, ``rho`` within 1 %
+    of the dense largest eigenvalue, Galerkin coarse operators."""
+    import pyamg
+
+    from difftissue.solvers.multigrid import PROLONGATION_OMEGA, _smoothed_aggregation
+    from difftissue.solvers.static import _reference_material, solver_setup
+
+    model, bc, _ = springs
+    material = Material(1e4, 0.45, 1.0)
+    setup = solver_setup(model, material, bc, linear_solver="multigrid")
+    P_free = 1.0 - np.asarray(bc.fixed, float).reshape(-1)
+    ref = _reference_material(material, None)
+    ell = _assemble_ell(setup.layout, model, jnp.asarray(model.rest_points), ref, jnp.asarray(P_free))
+    A = sps.bsr_matrix(ell.to_scipy(), blocksize=(3, 3))
+    B = rigid_body_modes(model.rest_points) * P_free[:, None]
+    ours, coarse = _smoothed_aggregation(A, B, 60)
+    ml = pyamg.smoothed_aggregation_solver(A, B=B, symmetry="hermitian", strength="symmetric", max_coarse=60, keep=True)
+    assert len(ours) == len(ml.levels) - 1 >= 1
+    for (Al, P, R, rho, dinv, _), lvl in zip(ours, ml.levels):
+        Ad = Al.toarray()
+        s = np.sqrt(dinv)
+        true = float(np.linalg.eigvalsh(s[:, None] * Ad * s[None, :]).max())
+        assert abs(rho - true) <= 0.01 * true, (rho, true)
+        T = lvl.T.toarray()
+        ours_update, pyamg_update = T - P.toarray(), T - lvl.P.toarray()
+        # both are (omega / rho) D^-1 A T: equal up to the ratio of the two estimates
+        factor = np.linalg.norm(pyamg_update) / np.linalg.norm(ours_update)
+        assert 0.97 < factor < 1.03, factor
+        np.testing.assert_allclose(factor * ours_update, pyamg_update, atol=1e-9 * np.abs(pyamg_update).max())
+        np.testing.assert_allclose(ours_update, (PROLONGATION_OMEGA / rho) * (dinv[:, None] * Ad) @ T, atol=1e-12 * np.abs(T).max())
+        np.testing.assert_allclose(R.toarray(), P.toarray().T)
+    for k in range(len(ours)):
+        Al, P, R = ours[k][:3]
+        nxt = ours[k + 1][0] if k + 1 < len(ours) else coarse
+        np.testing.assert_allclose(nxt.toarray(), (R @ Al @ P).toarray(), rtol=0, atol=1e-12 * abs(Al).max())
