@@ -184,3 +184,20 @@ def test_thickness_makes_a_layer_that_follows_the_exact_layer_solution():
         AxisymmetricIndentation([D], indenter="sphere", radius=R, thickness=20 * a, cells_per_contact_radius=2)
     with pytest.raises(ConfigError, match="leaves no room below the contact core"):
         AxisymmetricIndentation([D], indenter="sphere", radius=R, thickness=1.2 * a)
+
+
+def test_shallow_sharp_cone_converges_at_the_first_depth():
+    """The 80 deg cone at 11.3 cells per contact radius, first depth of its convergence study
+    (d / 10, about one cell in contact). With the mesh's top at z = height (200 contact radii)
+    the strains under the indenter carried round-off of eps x height / cell and the residual
+    stalled at 2.7e-10 N above the tolerance 1e-12 N: the line search refused the round-off
+    correction (ConvergenceError). The scenario solves the mesh with its top at z = 0."""
+    th = np.radians(80.0)
+    spec = axisymmetric_specimen_for("cone", half_angle=th, max_depth=1e-4).refined(2**0.5)
+    sc = AxisymmetricIndentation([1e-4], indenter="cone", half_angle=th, specimen=spec)
+    m = sc.model.with_depth(1e-5)
+    sol = solve_static(m, Material(E, NU), sc.bc, linear_solver="sparse", rtol=1e-9)
+    F = float(m.reaction_force(jnp.asarray(m.rest_points) + sol.displacement, Material(E, NU)))
+    # about one cell of contact: within 15 % of Sneddon (the converged levels are within 1 %)
+    assert F == pytest.approx(float(analytic.cone_force(1e-5, E, NU, th)), rel=0.15)
+    assert float(np.max(np.asarray(sc.model.rest_points)[:, 2])) == 0.0

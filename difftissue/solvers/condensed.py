@@ -239,7 +239,9 @@ def _condensed_newton(stiffness, kappa, depth, u_init, free, *, rest, indenter, 
         u_new = jnp.where(accepted, u + alpha * d, u)
         g_new = residual(u_new)
         rn = jnp.linalg.norm(g_new)
-        small_step = accepted & ~bad & (jnp.linalg.norm(d) <= xtol * jnp.linalg.norm(u_new)) & (rn <= stall_tol)
+        # (accepted or not: a round-off-sized correction's decrease is below the energy's
+        # round-off, solve_static's rule)
+        small_step = ~bad & (jnp.linalg.norm(d) <= xtol * jnp.linalg.norm(u_new)) & (rn <= stall_tol)
         ok = jnp.isfinite(rn) & ((rn <= tol) | small_step)
         step = step + 1
         done = ok | ~accepted | ~jnp.isfinite(rn) | (step >= max_steps)

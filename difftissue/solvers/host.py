@@ -316,14 +316,18 @@ class HostStaticSolver:
             rn = np.linalg.norm(g_new)
             step += 1
             finite = bool(np.all(np.isfinite(u_new)) and np.isfinite(rn))
-            small_step = accepted and not bad and np.linalg.norm(d) <= xtol * np.linalg.norm(u_new)
+            # A round-off-sized Newton correction (Cholesky: a positive definite matrix) is
+            # convergence also when the line search refused it (solve_static's rule).
+            small_step = not bad and np.linalg.norm(d) <= xtol * np.linalg.norm(u_new)
             ok = rn <= tol or small_step
             if not finite:
                 code = StaticResult.nonfinite
+            elif ok:
+                code = StaticResult.successful
             elif not accepted:
                 code = StaticResult.line_search_failed
             else:
-                code = StaticResult.successful if ok else StaticResult.max_steps_reached
+                code = StaticResult.max_steps_reached
             done = code != StaticResult.max_steps_reached or step >= max_steps
             u, g = u_new, g_new
         if dgdm is None:  # the naive start accepted as the solution at once: its derivatives
