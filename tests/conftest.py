@@ -3,13 +3,20 @@ persistent compilation cache, so that a second run of the suite (or a test file 
 subprocesses compile the same programs) loads compiled programs instead of compiling again.
 
 The cache lives in ``$DIFFTISSUE_TEST_JAX_CACHE`` or ``~/.cache/difftissue-tests/jax``
-(``$XDG_CACHE_HOME`` respected); ``DIFFTISSUE_TEST_JAX_CACHE=off`` disables it."""
+(``$XDG_CACHE_HOME`` respected); ``DIFFTISSUE_TEST_JAX_CACHE=off`` disables it.
+
+One OpenBLAS thread (``OPENBLAS_NUM_THREADS=1`` unless set): jaxlib's CPU LAPACK kernels (the
+dense Cholesky of every small static solve) run in SciPy's OpenBLAS, whose worker threads
+busy-wait; on the suite's shared cores one evaluation of a 125-node indentation protocol
+cost 0.3-10 s CPU with them and 0.064 s without (docs/dev/performance-history.md, 2026-12-05).
+It must be set before NumPy / SciPy load OpenBLAS, i.e. before ``import jax``."""
 
 import faulthandler
 import os
 from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
