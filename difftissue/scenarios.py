@@ -1450,7 +1450,8 @@ class AxisymmetricIndentation(eqx.Module):
     The specimen is a cylinder with its base ``"bonded"`` or ``"sliding"``; its outer radius
     is free. It is solved translated so that its top surface lies at ``z = 0`` (``model``'s
     rest points; displacements and forces do not depend on it): the round-off of the small
-    elements' strains under the indenter is then that of their own size. By default it is the half-space-like cylinder of
+    elements' strains under the indenter is then that of their own size. By default it is
+    the half-space-like cylinder of
     :func:`axisymmetric_specimen_for` (``thickness`` makes it a layer), or give ``mesh`` (an
     :class:`~difftissue.axisymmetric.AxisymmetricMesh`). Frictionless penalty contact as in
     :class:`Indentation` (:class:`~difftissue.axisymmetric.AxisymmetricContactModel`); the
