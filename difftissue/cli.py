@@ -1031,7 +1031,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="for a card holding an effective modulus E* = E/(1-nu^2) (a Hertz/Sneddon fit with nu fixed): the tissue's "
                         "Poisson ratio; exports E = E* (1 - nu^2) and this nu (without it a card fitted at nu = 0 is refused)")
     x.add_argument("--law", choices=("linear", "neo_hookean", "springs"), default=None,
-                   help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume/springs_volume_mesh_lattice/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
+                   help="constitutive law for febio/sofa/abaqus (default: neo_hookean for springs_volume and its lattice variants/fem_neo_hookean/stable_neo_hookean cards, linear otherwise); springs: SOFA only, PolynomialSpringsForceField + corotational FEM (needs --specimen)")
     x.add_argument("--specimen", default=None, metavar="block:LX,LY,LZ:NX,NY,NZ|FILE|indentation|fitted",
                    help="write a complete specimen model: a compression block (fixed base, prescribed top displacement), "
                         "a tet mesh FILE (VTU, XDMF, Gmsh, Medit, ...; coordinates in --unit, required then) held at its "

@@ -38,6 +38,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optimistix as optx
 
 from .energies.fem import (
     linear_elastic_energy_density,
@@ -66,6 +67,8 @@ __all__ = [
     "StableNeoHookeanModel",
     "FEMModel",
     "make_model",
+    "matched_lattice_design",
+    "MATCHED_PRE_STRETCH_RANGE",
     "stack_materials",
     "hexahedron_volume",
     "hexahedron_jacobians",
@@ -77,12 +80,15 @@ MODELS = ("springs_volume", "stable_neo_hookean", "fem_linear", "fem_neo_hookean
 #: ``volumetric="nodal"``), also accepted by :func:`make_model`.
 NODAL_FEM_MODELS = ("fem_linear_nodal", "fem_neo_hookean_nodal")
 #: How :class:`SpringVolumeModel` builds the lattice of a pre-stretched region: ``"stress_free"``
-#: (the default: spring factors of the cell shrunk by ``1/lambda0``) or ``"mesh"`` (the mesh
-#: cell's factors, only rest lengths and rest volumes shrunk).
-PRE_STRETCH_LATTICES = ("stress_free", "mesh")
-#: ``springs_volume`` with ``pre_stretch_lattice="mesh"`` (:class:`SpringVolumeModel`), accepted by
-#: :func:`make_model`; its ``kind`` is ``"springs_volume"``.
-LATTICE_VARIANTS = ("springs_volume_mesh_lattice",)
+#: (the default: spring factors of the cell shrunk by ``1/lambda0``), ``"mesh"`` (the mesh
+#: cell's factors, only rest lengths and rest volumes shrunk) or ``"matched"`` (the mesh cell's
+#: factors scaled per spring class and a lattice pre-stretch of its own, matched to the
+#: neo-Hookean's tension and incremental moduli: :func:`matched_lattice_design`).
+PRE_STRETCH_LATTICES = ("stress_free", "mesh", "matched")
+#: The model names of ``springs_volume`` with ``pre_stretch_lattice="mesh"`` and ``"matched"``
+#: (:class:`SpringVolumeModel`), accepted by :func:`make_model`; their ``kind`` is ``"springs_volume"``.
+LATTICE_VARIANTS = ("springs_volume_mesh_lattice", "springs_volume_matched_lattice")
+_VARIANT_OF_LATTICE = {"mesh": "springs_volume_mesh_lattice", "matched": "springs_volume_matched_lattice"}
 #: Every model name of :class:`SpringVolumeModel` (the cube lattice): ``"springs_volume"`` and
 #: :data:`LATTICE_VARIANTS`. A check for "a lattice model" (a cube lattice needed, lattice-effective
 #: values, ``nu >= 1/4``) tests a model name against this tuple.
@@ -606,6 +612,161 @@ def _admissible_pre_stretch(g: np.ndarray, slope: np.ndarray) -> tuple[float, fl
     return lo, hi
 
 
+# --------------------------------------------------------------- the matched lattice's design
+#: Pre-stretch range [-] of :func:`matched_lattice_design` (and of the ``"matched"`` lattice):
+#: the continuation from ``lambda0 = 1`` converges there with positive factors for
+#: ``1/4 <= nu <= 0.499`` and cube cells (tests/test_matched_lattice.py; at ``lambda0 = 0.9``,
+#: ``nu = 0.49`` an out-of-plane edge factor turns negative).
+MATCHED_PRE_STRETCH_RANGE = (0.95, 1.2)
+_MATCH_CONTINUATION_STEPS = 16  # steps of the continuation in lambda0 from 1
+_MATCH_NEWTON_STEPS = 4  # Newton steps per continuation step
+_MATCH_TOLERANCE = 1e-10  # largest residual / mu accepted
+_CELL_PAIRS = np.array(list(_CUBE_EDGES) + list(_CUBE_DIAGONALS))
+
+
+def _spring_classes(d: np.ndarray) -> np.ndarray:
+    """Class ``(S,)`` of springs with directions ``d`` ``(S, 3)``: 0 in-plane edge (x or y), 1
+    out-of-plane edge (z), 2 in-plane face diagonal (x-y face), 3 out-of-plane face diagonal."""
+    nz = np.abs(d) > 1e-9 * np.abs(d).max(axis=1, keepdims=True)
+    edge, in_plane = nz.sum(axis=1) == 1, ~nz[:, 2]
+    return np.where(edge, np.where(in_plane, 0, 1), np.where(in_plane, 2, 3)).astype(np.int32)
+
+
+_CELL_CLASSES = _spring_classes((_CUBE_CORNERS[_CELL_PAIRS[:, 1]] - _CUBE_CORNERS[_CELL_PAIRS[:, 0]]).astype(float))
+
+
+def _matched_cell_density(c, s, F, shape, lam, mu):
+    """Energy per unit mesh volume [Pa] of one cell of edges ``shape`` ``(3,)`` (``hx = hy``)
+    of the ``springs_volume`` lattice deformed affinely by ``F`` from the mesh, its spring
+    classes scaled by ``c`` ``(4,)`` (:func:`_spring_classes`), its rest state the cell shrunk
+    by ``1/s`` in x and y (rest lengths and rest volume), cubic coefficient 0: the model's own
+    cell (:func:`_spring_energy`, :func:`_cell_volume_energy`, :func:`_cell_spring_factors`)."""
+    X = jnp.asarray(_CUBE_CORNERS, dtype=float) * shape
+    x = X @ F.T
+    d0 = X[_CELL_PAIRS[:, 1]] - X[_CELL_PAIRS[:, 0]]
+    rest = jnp.linalg.norm(d0 * jnp.stack([1.0 / s, 1.0 / s, jnp.ones_like(s)]), axis=1)
+    hx, hz = shape[0], shape[2]
+    V = shape[0] * shape[1] * shape[2]
+    u = V / (4.0 * hx * hx)  # _cell_spring_factors of a box with hx = hy (the x-y diagonal 2 u, x-z u + V/(4 hz^2))
+    w = V / (4.0 * hz * hz)
+    g = jnp.stack([3.0 * u - u - w, 3.0 * w - 2.0 * u, 2.0 * u, u + w])[_CELL_CLASSES]
+    k = mu * g * c[_CELL_CLASSES]
+    e = jnp.sum(jax.vmap(_spring_energy)(jnp.stack([x[_CELL_PAIRS[:, 0]], x[_CELL_PAIRS[:, 1]]], axis=1), rest, k, jnp.zeros_like(k)))
+    return (e + _cell_volume_energy(x, V / (s * s), lam - mu)) / V
+
+
+def _plane_stress_moduli(density, lz):
+    """``(P_zz, (P_xx, K_xxxx, K_xxyy, K_xyxy, A_xzxz))`` [Pa] of ``density(F)`` at
+    ``F = diag(1, 1, lz)``: first Piola stress and tangent ``A = d2 psi / dF2``, the in-plane
+    moduli ``K`` condensed over ``F_zz`` (plane stress)."""
+    F0 = jnp.diag(jnp.stack([jnp.ones_like(lz), jnp.ones_like(lz), lz]))
+    P, A = jax.grad(density)(F0), jax.hessian(density)(F0).reshape(9, 9)
+    ip = jnp.array([0, 1, 3, 4])
+    K = A[jnp.ix_(ip, ip)] - jnp.outer(A[ip, 8], A[8, ip]) / A[8, 8]
+    return P[2, 2], jnp.stack([P[0, 0], K[0, 0], K[0, 3], K[1, 1], A[2, 2]])
+
+
+def _match_residual(y, args):
+    """Residual / mu of the match (unknowns ``y = (c_1..c_4, s, lz, lz_nh)``)."""
+    lam0, lam, mu, shape = args
+    nh = lambda F: neo_hookean_energy_density(F @ jnp.diag(jnp.stack([lam0, lam0, jnp.ones_like(lam0)])), lam, mu) / (lam0 * lam0)  # noqa: E731
+    pzz_nh, target = _plane_stress_moduli(nh, y[6])
+    pzz, m = _plane_stress_moduli(lambda F: _matched_cell_density(y[:4], y[4], F, shape, lam, mu), y[5])
+    return jnp.concatenate([jnp.stack([pzz, pzz_nh]), m - target]) / mu
+
+
+def _matched_design(lam0, nu, shape):
+    lam0, nu = jnp.asarray(lam0, dtype=float), jnp.asarray(nu, dtype=float)
+    lam, mu = 2.0 * nu / (1.0 - 2.0 * nu), jnp.ones_like(nu)  # the match depends on lambda / mu only
+
+    def newton(y, l0):
+        args = (l0, lam, mu, shape)
+        return y - jnp.linalg.solve(jax.jacfwd(_match_residual)(y, args), _match_residual(y, args))
+
+    def step(y, t):
+        l0 = 1.0 + t * (lam0 - 1.0)
+        return jax.lax.fori_loop(0, _MATCH_NEWTON_STEPS, lambda i, y: newton(y, l0), y), None
+
+    ts = jnp.arange(1, _MATCH_CONTINUATION_STEPS + 1) / _MATCH_CONTINUATION_STEPS
+    y0, _ = jax.lax.scan(step, jnp.ones(7), ts)
+    y0 = jax.lax.stop_gradient(y0)
+    args = (lam0, lam, mu, shape)
+    # polished and differentiated by the implicit function theorem (the adjoint's linear solve)
+    sol = optx.root_find(_match_residual, optx.Newton(rtol=1e-13, atol=1e-13), y0, args, max_steps=8,
+                         adjoint=optx.ImplicitAdjoint(), throw=False)
+    y = sol.value
+    res = jnp.max(jnp.abs(jax.lax.stop_gradient(_match_residual(y, args))))
+    ok = (res <= _MATCH_TOLERANCE) & jnp.all(jax.lax.stop_gradient(y[:5]) > 0)
+    exact = jax.lax.stop_gradient(jnp.where(lam0 == 1.0, 1.0 - y, 0.0))  # the default lattice bit for bit at lambda0 = 1
+    return y + exact, ok
+
+
+_matched_designs = jax.jit(jax.vmap(_matched_design, in_axes=(0, 0, None)))  # compiled once per number of values
+_matched_designs_by_region = jax.jit(jax.vmap(_matched_design))
+
+
+def matched_lattice_design(pre_stretch, poisson_ratio, cell_shape=(1.0, 1.0, 1.0)):
+    """Spring-class factors and lattice pre-stretch of the matched lattice
+    (``springs_volume_matched_lattice``) at an equibiaxial pre-stretch.
+
+    The lattice's cells keep the mesh cell's spring constants times a factor per spring class,
+    ``c = (in-plane edges, out-of-plane edges, in-plane face diagonals, out-of-plane face
+    diagonals)``, and their rest state is the cell shrunk by ``1/s`` in x and y (rest lengths and
+    rest volume), ``s`` the lattice's own pre-stretch; the volume term is unchanged. ``(c, s)``
+    and the thickness stretch solve, at the mesh state (x and y held, z free), exactly:
+    ``P_zz = 0`` and the neo-Hookean's (``fem_neo_hookean``, pre-stretched by ``lambda0``)
+    tension ``P_xx`` and incremental moduli ``A_xxxx``, ``A_xxyy``, ``A_xyxy`` (in plane, condensed
+    over ``F_zz``) and ``A_xzxz`` (transverse shear). At ``lambda0 = 1`` the default lattice
+    (``c = 1``, ``s = 1``) is the solution and the system is regular, so ``(c, s)`` leaves it
+    smoothly (``c - 1 = O(lambda0 - 1)``, ``s - lambda0 = O((lambda0 - 1)^2)``); ``lambda0 = 1``
+    gives ``c = 1``, ``s = 1`` exactly. Newton continuation from ``lambda0 = 1``, then an
+    ``optimistix`` root find whose implicit adjoint makes the result differentiable (forward and
+    reverse) in ``pre_stretch`` and ``poisson_ratio``. The match does not depend on Young's
+    modulus (both energies are proportional to it).
+
+    Scope (anything else raises, or inside ``jit`` fails with ``equinox.error_if``): cubic
+    coefficient 0 (the neo-Hookean target has no cubic term; checked by the model), equibiaxial
+    pre-stretch (with ``lambda_x != lambda_y`` the in-plane moduli are no longer x-y symmetric
+    and outnumber the factors; checked by the model), ``pre_stretch`` in
+    :data:`MATCHED_PRE_STRETCH_RANGE`, ``1/4 <= nu <= 0.499`` (checked; nearer 1/2 the solve may fail
+    with an error), cells with ``hx = hy``.
+
+    Args:
+        pre_stretch: ``lambda0`` [-], scalar or ``(n,)``.
+        poisson_ratio: ``nu`` [-], broadcast with ``pre_stretch``.
+        cell_shape: the mesh cell's edges ``(hx, hy, hz)`` (only ratios matter; ``hx = hy``).
+
+    Returns:
+        ``(c, s)``: class factors [-] of shape ``(..., 4)`` and ``s`` [-] of the shape of
+        ``pre_stretch``.
+    """
+    shape = np.asarray(cell_shape, dtype=float)
+    if shape.shape != (3,) or not np.all(np.isfinite(shape) & (shape > 0)) or not abs(shape[0] - shape[1]) <= 1e-9 * shape[0]:
+        raise ModelError(f"matched lattice: the cell must have hx = hy (positive edges), got {cell_shape!r}")
+    lam0, nu = jnp.broadcast_arrays(jnp.asarray(pre_stretch, dtype=float), jnp.asarray(poisson_ratio, dtype=float))
+    lam0 = _check_matched_range(lam0, nu)
+    y, ok = _matched_designs(lam0.reshape(-1), nu.reshape(-1), jnp.asarray(shape / shape.max()))
+    msg = "matched lattice: the match of the neo-Hookean's tension and moduli did not converge (or a factor turned non-positive)"
+    if _is_concrete(ok):
+        if not bool(np.all(np.asarray(ok))):
+            raise ModelRangeError(f"{msg} at pre_stretch {np.asarray(lam0).reshape(-1)[~np.asarray(ok)]}")
+    else:
+        y = eqx.error_if(y, ~jnp.all(ok), msg)
+    return y[:, :4].reshape(lam0.shape + (4,)), y[:, 4].reshape(lam0.shape)
+
+
+def _check_matched_range(lam0, nu):
+    lo, hi = MATCHED_PRE_STRETCH_RANGE
+    msg = (f"pre_stretch outside [{lo:g}, {hi:g}] or poisson_ratio outside [0.25, 0.5), the range of the matched lattice "
+           "(springs_volume_matched_lattice); use springs_volume_mesh_lattice, springs_volume or the fem models")
+    bad = lambda l, n: (l < lo) | (l > hi) | (n < 0.25) | (n >= 0.5)  # noqa: E731
+    if _is_concrete((lam0, nu)):
+        if np.any(bad(np.asarray(lam0), np.asarray(nu))):
+            raise ModelRangeError(f"{msg}: pre_stretch {np.asarray(lam0)}, poisson_ratio {np.asarray(nu)}")
+        return lam0
+    return eqx.error_if(lam0, jnp.any(bad(lam0, nu)), msg)
+
+
 class SpringVolumeModel(ElasticModel):
     """Cubic springs on the cube lattice plus a per-cell volume term (our real-time model).
 
@@ -638,6 +799,16 @@ class SpringVolumeModel(ElasticModel):
     carries 3 / 6 / 9 % more tension and opens it 5 / 10 / 14 % wider (docs/experiments.md, "Cut
     openings at resolution"). Equal to the default at ``lambda0 = 1`` bit for bit; no
     pre-stretch range limit.
+
+    ``pre_stretch_lattice="matched"`` (model name ``"springs_volume_matched_lattice"``) scales the
+    mesh cell's spring constants of a pre-stretched region per spring class (in-plane edges,
+    out-of-plane edges, in-plane and out-of-plane face diagonals) and shrinks its rest lengths
+    and rest volumes by a lattice pre-stretch ``s`` of its own instead of ``lambda0``, with
+    ``(c, s)`` from :func:`matched_lattice_design`: the cell then carries the neo-Hookean's
+    tension and incremental in-plane and transverse-shear moduli at ``lambda0`` exactly. Equal to
+    the default at ``lambda0 = 1`` bit for bit; scope: :data:`MATCHED_PRE_STRETCH_RANGE`,
+    equibiaxial pre-stretch, cubic coefficient 0 in pre-stretched regions, cells with ``hx = hy``
+    and one shape per pre-stretched region (anything else raises :class:`ModelRangeError`).
     A spring shared by cells of different regions is one element per region (their rest
     lengths differ when the regions' pre-stretches do).
 
@@ -658,6 +829,10 @@ class SpringVolumeModel(ElasticModel):
         pre_stretch_range: ``(n_regions, 2)`` range of ``lambda0`` per region for which no
             spring factor of its cells turns negative.
         pre_stretch_lattice: one of :data:`PRE_STRETCH_LATTICES` (see above).
+        spring_classes: ``(S,)`` class of each spring (:func:`_spring_classes`: 0 in-plane edge,
+            1 out-of-plane edge, 2 in-plane face diagonal, 3 out-of-plane face diagonal).
+        region_cell_shapes: ``(n_regions, 3)`` the cell edges of each region over their largest
+            (NaN where a region's cells differ in shape or have ``hx != hy``; the matched lattice).
     """
 
     springs: np.ndarray
@@ -675,13 +850,15 @@ class SpringVolumeModel(ElasticModel):
     cell_volumes: np.ndarray
     cell_jacobians: np.ndarray
     pre_stretch_range: np.ndarray
+    spring_classes: np.ndarray
+    region_cell_shapes: np.ndarray
     pre_stretch_lattice: str = eqx.field(static=True)
 
     @property
     def model_name(self) -> str:
-        """``"springs_volume"``, or ``"springs_volume_mesh_lattice"`` for the mesh lattice
-        (:data:`LATTICE_VARIANTS`): a fit's record names the variant it ran."""
-        return "springs_volume_mesh_lattice" if self.pre_stretch_lattice == "mesh" else self.kind
+        """``"springs_volume"``, or the variant's name (:data:`LATTICE_VARIANTS`): a fit's record
+        names the variant it ran."""
+        return _VARIANT_OF_LATTICE.get(self.pre_stretch_lattice, self.kind)
 
     def __init__(self, mesh: TetMesh, *, pre_stretch_lattice: str = "stress_free"):
         if pre_stretch_lattice not in PRE_STRETCH_LATTICES:
@@ -706,7 +883,7 @@ class SpringVolumeModel(ElasticModel):
             )
         slope = _cell_spring_factor_slopes(lat.cell_size)
         ratio = _cell_spring_factor_ratio_slopes(lat.cell_size)
-        if pre_stretch_lattice == "mesh":  # the mesh cell's factors at every pre-stretch
+        if pre_stretch_lattice in ("mesh", "matched"):  # the mesh cell's factors at every pre-stretch
             slope, ratio = np.zeros_like(slope), np.zeros_like(ratio)
         R = len(mesh.region_names)
         rows = (lat.cube_springs.reshape(-1), np.repeat(lat.cube_region_ids, 24))
@@ -723,6 +900,13 @@ class SpringVolumeModel(ElasticModel):
         for r in range(R):
             in_r = lat.cube_region_ids == r
             ranges[r] = _admissible_pre_stretch(g[in_r].reshape(-1), slope[in_r].reshape(-1)) if np.any(in_r) else (0.0, math.inf)
+        if pre_stretch_lattice == "matched":
+            ranges[:] = MATCHED_PRE_STRETCH_RANGE
+        shapes = np.full((R, 3), np.nan)
+        for r in range(R):
+            h = lat.cell_size[lat.cube_region_ids == r]
+            if len(h) and np.all(np.abs(h - h[0]) <= 1e-9 * h[0].max()) and abs(h[0, 0] - h[0, 1]) <= 1e-9 * h[0, 0]:
+                shapes[r] = h[0] / h[0].max()
         p = np.asarray(mesh.points)
         self.springs = lat.springs[spring_ids]
         d = p[self.springs[:, 1]] - p[self.springs[:, 0]]
@@ -732,6 +916,8 @@ class SpringVolumeModel(ElasticModel):
         self.spring_factor_slopes = slopes[spring_ids, regions]
         self.spring_in_plane = (d[:, 0] ** 2 + d[:, 1] ** 2) / self.rest_lengths**2
         self.spring_in_plane_y = d[:, 1] ** 2 / self.rest_lengths**2
+        self.spring_classes = _spring_classes(d)
+        self.region_cell_shapes = shapes
         self.spring_factor_ratio_slopes = ratio_slopes[spring_ids, regions]
         self.cell_factor_terms = np.concatenate([g[..., None], slope[..., None], ratio], axis=-1)
         self.cells = lat.cubes
@@ -745,7 +931,9 @@ class SpringVolumeModel(ElasticModel):
         if isinstance(material, CheckedMaterial):
             return material
         p = self.region_values(material)
-        if "pre_stretch_y" in p:
+        if self.pre_stretch_lattice == "matched":
+            p["pre_stretch"] = self._check_matched(p)
+        elif "pre_stretch_y" in p:
             p["pre_stretch"], p["pre_stretch_y"] = self._check_pre_stretch_xy(p["pre_stretch"], p["pre_stretch_y"])
         else:
             p["pre_stretch"] = self._check_pre_stretch(p["pre_stretch"])
@@ -790,12 +978,56 @@ class SpringVolumeModel(ElasticModel):
             return lam0
         return eqx.error_if(lam0, jnp.any((lam0 < lo) | (lam0 > hi)), msg)
 
-    def spring_parameters(self, material: Material):
+    def _check_matched(self, p):
+        """The matched lattice's scope (see the class docstring) on region values ``p``; returns
+        ``pre_stretch`` (with an ``equinox.error_if`` attached when traced)."""
+        lx = p["pre_stretch"]
+        ly = p.get("pre_stretch_y", lx)
+        b, nu = p["cubic_coefficient"], p["poisson_ratio"]
+        shaped = np.all(np.isfinite(self.region_cell_shapes), axis=1)
+        what = "the matched lattice (springs_volume_matched_lattice) is defined for "
+        msgs = (what + "an equibiaxial pre-stretch only (pre_stretch_y = pre_stretch); use springs_volume_mesh_lattice or springs_volume",
+                what + "cubic_coefficient 0 only in pre-stretched regions (its match is to the neo-Hookean); use springs_volume_mesh_lattice",
+                what + "regions whose cells have one shape with hx = hy only, where pre-stretched")
+        if _is_concrete((lx, ly, b)):
+            lxn, lyn, bn = (np.asarray(v) for v in (lx, ly, b))
+            stretched = (lxn != 1.0) | (lyn != 1.0)
+            for bad, m in zip((lxn != lyn, stretched & (bn != 0.0), stretched & ~shaped), msgs):
+                if np.any(bad):
+                    r = int(np.argmax(bad))
+                    raise ModelRangeError(f"{m}: region {self.region_names[r]!r} has pre_stretch {lxn[r]:g}, "
+                                          f"pre_stretch_y {lyn[r]:g}, cubic_coefficient {bn[r]:g}")
+        else:
+            stretched = (lx != 1.0) | (ly != 1.0)
+            for bad, m in zip((lx != ly, stretched & (b != 0.0), stretched & ~jnp.asarray(shaped)), msgs):
+                lx = eqx.error_if(lx, jnp.any(bad), m)
+        return _check_matched_range(lx, nu)
+
+    def _matched(self, material: Material):
+        """``(c (n_regions, 4), s (n_regions,))`` of the matched lattice per region
+        (:func:`matched_lattice_design`)."""
+        p = self.region_values(material)
+        lam0 = p["pre_stretch"] if isinstance(material, CheckedMaterial) else self._check_matched(p)
+        shapes = jnp.asarray(np.where(np.isfinite(self.region_cell_shapes), self.region_cell_shapes, 1.0))
+        y, ok = _matched_designs_by_region(lam0, p["poisson_ratio"], shapes)
+        msg = "matched lattice: the match of the neo-Hookean's tension and moduli did not converge (or a factor turned non-positive)"
+        if _is_concrete(ok):
+            if not bool(np.all(np.asarray(ok))):
+                raise ModelRangeError(f"{msg} at pre_stretch {np.asarray(lam0)}")
+        else:
+            y = eqx.error_if(y, ~jnp.all(ok), msg)
+        return y[:, :4], y[:, 4]
+
+    def spring_parameters(self, material: Material, _matched=None):
         """Per spring element ``(L0 [m], k [N/m], a [N/m^3])`` of the stress-free state."""
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = self.spring_regions
-        if "pre_stretch_y" in p:
+        if self.pre_stretch_lattice == "matched":
+            c, s = self._matched(material) if _matched is None else _matched
+            g = self.spring_factors * c[r, self.spring_classes]
+            rest = self.rest_lengths * jnp.sqrt(1.0 + self.spring_in_plane * (1.0 / (s * s) - 1.0)[r])
+        elif "pre_stretch_y" in p:
             lx, ly = (p["pre_stretch"], p["pre_stretch_y"]) if isinstance(material, CheckedMaterial) else self._check_pre_stretch_xy(p["pre_stretch"], p["pre_stretch_y"])
             dsx = 1.0 / (lx * lx) - 1.0
             dsy = 1.0 / (ly * ly) - 1.0
@@ -817,8 +1049,12 @@ class SpringVolumeModel(ElasticModel):
         _, k, a = self.spring_parameters(material)
         return k, a
 
-    def cell_rest_volumes(self, material: Material):
-        """Stress-free cell volumes ``V / (lambda_x lambda_y)`` [m^3], shape ``(C,)``."""
+    def cell_rest_volumes(self, material: Material, _matched=None):
+        """Stress-free cell volumes ``V / (lambda_x lambda_y)`` [m^3], shape ``(C,)`` (the matched
+        lattice: ``V / s^2``, ``s`` its lattice pre-stretch)."""
+        if self.pre_stretch_lattice == "matched":
+            s = (self._matched(material) if _matched is None else _matched)[1][self.cell_regions]
+            return jnp.asarray(self.cell_volumes) / (s * s)
         p = self.region_values(material)
         lx = p["pre_stretch"][self.cell_regions]
         ly = p["pre_stretch_y"][self.cell_regions] if "pre_stretch_y" in p else lx
@@ -827,11 +1063,13 @@ class SpringVolumeModel(ElasticModel):
     def terms(self, material):
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
-        rest, k, a = self.spring_parameters(material)
+        matched = self._matched(material) if self.pre_stretch_lattice == "matched" else None
+        rest, k, a = self.spring_parameters(material, matched)
         bulk = (lam - mu)[self.cell_regions]
         return (
             ElementTerm("springs", self.springs, _spring_energy, (rest, k, a), hessian=_spring_hessian),
-            ElementTerm("cell_volume", self.cells, _cell_volume_energy, (self.cell_rest_volumes(material), bulk), hessian=_cell_volume_hessian),
+            ElementTerm("cell_volume", self.cells, _cell_volume_energy, (self.cell_rest_volumes(material, matched), bulk),
+                        hessian=_cell_volume_hessian),
         )
 
     def min_volume_ratio(self, x):
@@ -843,9 +1081,11 @@ def make_model(mesh: TetMesh, kind: str = "springs_volume") -> ElasticModel:
     """Build a model of ``mesh``: one of :data:`MODELS`, :data:`NODAL_FEM_MODELS` or
     :data:`LATTICE_VARIANTS` (``"fem_linear_nodal"`` is ``FEMModel(mesh, "fem_linear",
     volumetric="nodal")``, its ``kind`` is ``"fem_linear"``: the same continuum law;
-    ``"springs_volume_mesh_lattice"`` is ``SpringVolumeModel(mesh, pre_stretch_lattice="mesh")``)."""
-    if kind == "springs_volume_mesh_lattice":
-        return SpringVolumeModel(mesh, pre_stretch_lattice="mesh")
+    ``"springs_volume_mesh_lattice"`` is ``SpringVolumeModel(mesh, pre_stretch_lattice="mesh")``,
+    ``"springs_volume_matched_lattice"`` ``SpringVolumeModel(mesh, pre_stretch_lattice="matched")``)."""
+    for lattice, name in _VARIANT_OF_LATTICE.items():
+        if kind == name:
+            return SpringVolumeModel(mesh, pre_stretch_lattice=lattice)
     if kind in NODAL_FEM_MODELS:
         return FEMModel(mesh, kind.removesuffix("_nodal"), volumetric="nodal")
     if kind == "springs_volume":

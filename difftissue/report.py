@@ -154,8 +154,9 @@ def derived_quantities(result: FitResult, *, model=None, scenarios: Sequence | N
       the model's own tension [N/m] with its standard error, the layer, and the linearised value
       ``E (lambda0 - 1) t / (1 - nu)`` under its own name);
     - ``continuum_uniaxial_cubic_coefficient``: for fits of a lattice model (``springs_volume``,
-      ``springs_volume_mesh_lattice``, :data:`~difftissue.models.LATTICE_MODELS`, named in its
-      ``model``; both lattices are the same without pre-stretch), what the lattice's
+      ``springs_volume_mesh_lattice``, ``springs_volume_matched_lattice``,
+      :data:`~difftissue.models.LATTICE_MODELS`, named in its ``model``; the lattices are the same
+      without pre-stretch), what the lattice's
       ``cubic_coefficient`` is as the continuum law ``sigma = E (eps + b_c eps^3)`` over the
       strain range :data:`~difftissue.constitutive.UNIAXIAL_STRAIN_RANGE`
       (:func:`~difftissue.constitutive.cubic_coefficient_record`, cube cells).

@@ -337,7 +337,7 @@ def indentation_specimen_for(indenter: str, *, radius: float | None = None, half
         radius: sphere radius ``R`` [m].
         half_angle: cone half-angle ``theta`` [rad].
         max_depth: largest indentation depth ``d`` [m], > 0.
-        model: elastic model; graded cells are boxes, not cubes, so the lattice models (``"springs_volume"``, ``"springs_volume_mesh_lattice"``) are refused.
+        model: elastic model; graded cells are boxes, not cubes, so the lattice models (:data:`~difftissue.models.LATTICE_MODELS`) are refused.
         thickness: specimen thickness [m] (None: a half-space).
         cells_per_contact_radius: ``a / refine`` [-] (default from the convergence study).
         extent: half-width (and thickness, without ``thickness``) in contact radii [-].

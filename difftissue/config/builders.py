@@ -75,8 +75,8 @@ def _solver_options(e: Mapping, path: str):
 def _model(e: Mapping, path: str, default: str) -> str:
     """The experiment's ``model``: one of :data:`~difftissue.models.MODELS`,
     :data:`~difftissue.models.NODAL_FEM_MODELS` or :data:`~difftissue.models.LATTICE_VARIANTS`
-    (``springs_volume_mesh_lattice``: ``springs_volume`` bit for bit without pre-stretch, so it
-    is accepted wherever ``springs_volume`` is)."""
+    (``springs_volume_mesh_lattice``, ``springs_volume_matched_lattice``: ``springs_volume`` bit
+    for bit without pre-stretch, so they are accepted wherever ``springs_volume`` is)."""
     return _choice(e.get("model", default), _join(path, "model"), MODELS + NODAL_FEM_MODELS + LATTICE_VARIANTS)
 
 

@@ -72,6 +72,13 @@ MODEL_ENERGIES: dict[str, str] = {
         "lengths and rest volumes by the pre-stretch (springs_volume builds them on the stress-free cell); equal to "
         "springs_volume without pre-stretch; E and nu are lattice-effective values"
     ),
+    "springs_volume_matched_lattice": (
+        "springs_volume (cube lattice of central springs, force k x + a x^3 with a = b k / L0^2, plus a per-cell volume term "
+        "K (V - V0)^2 / (2 V0)) whose pre-stretched regions scale the mesh cell's spring constants per spring class and "
+        "shrink the rest lengths and rest volumes by a lattice pre-stretch of their own, chosen so that the cell carries the "
+        "neo-Hookean's tension and incremental moduli at the pre-stretch; equal to springs_volume without pre-stretch; "
+        "E and nu are lattice-effective values"
+    ),
     "fem_linear": "linear isotropic elasticity, W = lambda/2 tr(eps)^2 + mu eps:eps (small strain)",
     "fem_neo_hookean": "compressible neo-Hookean, W = mu/2 (I1 - 3) - mu ln J + lambda/2 (ln J)^2",
     "stable_neo_hookean": (
@@ -102,7 +109,8 @@ _RULES = {
 
 
 #: Models whose energy is geometrically nonlinear: their cards export to neo-Hookean by default.
-FINITE_STRAIN_MODELS = ("springs_volume", "springs_volume_mesh_lattice", "fem_neo_hookean", "stable_neo_hookean")
+FINITE_STRAIN_MODELS = ("springs_volume", "springs_volume_mesh_lattice", "springs_volume_matched_lattice", "fem_neo_hookean",
+                        "stable_neo_hookean")
 
 
 def model_parts(model: str) -> list[str]:

@@ -51,7 +51,7 @@ def specimen_reactions(card, spec: FittedSpecimen, model: str, fractions=(1.0,))
     """Summed reaction forces [N] over ``spec.reaction`` (one per summed component) of
     difftissue's ``model`` with ``card``'s values on the fitted regions, the prescribed
     displacements scaled by each of ``fractions`` (shape ``(len(fractions), n_components)``).
-    A lattice model (``springs_volume``, ``springs_volume_mesh_lattice``) gets the specimen's cube lattice back (``recover_lattice``; a mesh that
+    A lattice model (:data:`~difftissue.models.LATTICE_MODELS`) gets the specimen's cube lattice back (``recover_lattice``; a mesh that
     is no structured grid is refused there). Solved by difftissue's static solver, ramped in
     increments of at most 5 % nominal strain for a compression."""
     if spec.reaction is None:
