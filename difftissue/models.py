@@ -831,8 +831,9 @@ class SpringVolumeModel(ElasticModel):
         pre_stretch_lattice: one of :data:`PRE_STRETCH_LATTICES` (see above).
         spring_classes: ``(S,)`` class of each spring (:func:`_spring_classes`: 0 in-plane edge,
             1 out-of-plane edge, 2 in-plane face diagonal, 3 out-of-plane face diagonal).
-        region_cell_shapes: ``(n_regions, 3)`` the cell edges of each region over their largest
-            (NaN where a region's cells differ in shape or have ``hx != hy``; the matched lattice).
+        region_cell_shapes: per region the cell edges over their largest, a tuple of three
+            floats (None where a region's cells differ in shape or have ``hx != hy``; the matched
+            lattice).
     """
 
     springs: np.ndarray
@@ -851,7 +852,7 @@ class SpringVolumeModel(ElasticModel):
     cell_jacobians: np.ndarray
     pre_stretch_range: np.ndarray
     spring_classes: np.ndarray
-    region_cell_shapes: np.ndarray
+    region_cell_shapes: tuple = eqx.field(static=True)
     pre_stretch_lattice: str = eqx.field(static=True)
 
     @property
@@ -902,11 +903,11 @@ class SpringVolumeModel(ElasticModel):
             ranges[r] = _admissible_pre_stretch(g[in_r].reshape(-1), slope[in_r].reshape(-1)) if np.any(in_r) else (0.0, math.inf)
         if pre_stretch_lattice == "matched":
             ranges[:] = MATCHED_PRE_STRETCH_RANGE
-        shapes = np.full((R, 3), np.nan)
+        shapes = [None] * R
         for r in range(R):
             h = lat.cell_size[lat.cube_region_ids == r]
             if len(h) and np.all(np.abs(h - h[0]) <= 1e-9 * h[0].max()) and abs(h[0, 0] - h[0, 1]) <= 1e-9 * h[0, 0]:
-                shapes[r] = h[0] / h[0].max()
+                shapes[r] = tuple(float(v) for v in h[0] / h[0].max())
         p = np.asarray(mesh.points)
         self.springs = lat.springs[spring_ids]
         d = p[self.springs[:, 1]] - p[self.springs[:, 0]]
@@ -917,7 +918,7 @@ class SpringVolumeModel(ElasticModel):
         self.spring_in_plane = (d[:, 0] ** 2 + d[:, 1] ** 2) / self.rest_lengths**2
         self.spring_in_plane_y = d[:, 1] ** 2 / self.rest_lengths**2
         self.spring_classes = _spring_classes(d)
-        self.region_cell_shapes = shapes
+        self.region_cell_shapes = tuple(shapes)
         self.spring_factor_ratio_slopes = ratio_slopes[spring_ids, regions]
         self.cell_factor_terms = np.concatenate([g[..., None], slope[..., None], ratio], axis=-1)
         self.cells = lat.cubes
@@ -984,7 +985,7 @@ class SpringVolumeModel(ElasticModel):
         lx = p["pre_stretch"]
         ly = p.get("pre_stretch_y", lx)
         b, nu = p["cubic_coefficient"], p["poisson_ratio"]
-        shaped = np.all(np.isfinite(self.region_cell_shapes), axis=1)
+        shaped = np.array([sh is not None for sh in self.region_cell_shapes])
         what = "the matched lattice (springs_volume_matched_lattice) is defined for "
         msgs = (what + "an equibiaxial pre-stretch only (pre_stretch_y = pre_stretch); use springs_volume_mesh_lattice or springs_volume",
                 what + "cubic_coefficient 0 only in pre-stretched regions (its match is to the neo-Hookean); use springs_volume_mesh_lattice",
@@ -1008,7 +1009,7 @@ class SpringVolumeModel(ElasticModel):
         (:func:`matched_lattice_design`)."""
         p = self.region_values(material)
         lam0 = p["pre_stretch"] if isinstance(material, CheckedMaterial) else self._check_matched(p)
-        shapes = jnp.asarray(np.where(np.isfinite(self.region_cell_shapes), self.region_cell_shapes, 1.0))
+        shapes = jnp.asarray([(1.0, 1.0, 1.0) if sh is None else sh for sh in self.region_cell_shapes])
         y, ok = _matched_designs_by_region(lam0, p["poisson_ratio"], shapes)
         msg = "matched lattice: the match of the neo-Hookean's tension and moduli did not converge (or a factor turned non-positive)"
         if _is_concrete(ok):
