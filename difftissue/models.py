@@ -635,21 +635,18 @@ def _spring_classes(d: np.ndarray) -> np.ndarray:
 _CELL_CLASSES = _spring_classes((_CUBE_CORNERS[_CELL_PAIRS[:, 1]] - _CUBE_CORNERS[_CELL_PAIRS[:, 0]]).astype(float))
 
 
-def _matched_cell_density(c, s, F, shape, lam, mu):
+def _matched_cell_density(c, s, F, shape, g, lam, mu):
     """Energy per unit mesh volume [Pa] of one cell of edges ``shape`` ``(3,)`` (``hx = hy``)
     of the ``springs_volume`` lattice deformed affinely by ``F`` from the mesh, its spring
     classes scaled by ``c`` ``(4,)`` (:func:`_spring_classes`), its rest state the cell shrunk
     by ``1/s`` in x and y (rest lengths and rest volume), cubic coefficient 0: the model's own
-    cell (:func:`_spring_energy`, :func:`_cell_volume_energy`, :func:`_cell_spring_factors`)."""
+    cell (:func:`_spring_energy`, :func:`_cell_volume_energy`, the factors ``g`` ``(24,)`` [m]
+    of :func:`_cell_spring_factors`)."""
     X = jnp.asarray(_CUBE_CORNERS, dtype=float) * shape
     x = X @ F.T
     d0 = X[_CELL_PAIRS[:, 1]] - X[_CELL_PAIRS[:, 0]]
     rest = jnp.linalg.norm(d0 * jnp.stack([1.0 / s, 1.0 / s, jnp.ones_like(s)]), axis=1)
-    hx, hz = shape[0], shape[2]
     V = shape[0] * shape[1] * shape[2]
-    u = V / (4.0 * hx * hx)  # _cell_spring_factors of a box with hx = hy (the x-y diagonal 2 u, x-z u + V/(4 hz^2))
-    w = V / (4.0 * hz * hz)
-    g = jnp.stack([3.0 * u - u - w, 3.0 * w - 2.0 * u, 2.0 * u, u + w])[_CELL_CLASSES]
     k = mu * g * c[_CELL_CLASSES]
     e = jnp.sum(jax.vmap(_spring_energy)(jnp.stack([x[_CELL_PAIRS[:, 0]], x[_CELL_PAIRS[:, 1]]], axis=1), rest, k, jnp.zeros_like(k)))
     return (e + _cell_volume_energy(x, V / (s * s), lam - mu)) / V
@@ -668,19 +665,19 @@ def _plane_stress_moduli(density, lz):
 
 def _match_residual(y, args):
     """Residual / mu of the match (unknowns ``y = (c_1..c_4, s, lz, lz_nh)``)."""
-    lam0, lam, mu, shape = args
+    lam0, lam, mu, shape, g = args
     nh = lambda F: neo_hookean_energy_density(F @ jnp.diag(jnp.stack([lam0, lam0, jnp.ones_like(lam0)])), lam, mu) / (lam0 * lam0)  # noqa: E731
     pzz_nh, target = _plane_stress_moduli(nh, y[6])
-    pzz, m = _plane_stress_moduli(lambda F: _matched_cell_density(y[:4], y[4], F, shape, lam, mu), y[5])
+    pzz, m = _plane_stress_moduli(lambda F: _matched_cell_density(y[:4], y[4], F, shape, g, lam, mu), y[5])
     return jnp.concatenate([jnp.stack([pzz, pzz_nh]), m - target]) / mu
 
 
-def _matched_design(lam0, nu, shape):
+def _matched_design(lam0, nu, shape, g):
     lam0, nu = jnp.asarray(lam0, dtype=float), jnp.asarray(nu, dtype=float)
     lam, mu = 2.0 * nu / (1.0 - 2.0 * nu), jnp.ones_like(nu)  # the match depends on lambda / mu only
 
     def newton(y, l0):
-        args = (l0, lam, mu, shape)
+        args = (l0, lam, mu, shape, g)
         return y - jnp.linalg.solve(jax.jacfwd(_match_residual)(y, args), _match_residual(y, args))
 
     def step(y, t):
@@ -690,7 +687,7 @@ def _matched_design(lam0, nu, shape):
     ts = jnp.arange(1, _MATCH_CONTINUATION_STEPS + 1) / _MATCH_CONTINUATION_STEPS
     y0, _ = jax.lax.scan(step, jnp.ones(7), ts)
     y0 = jax.lax.stop_gradient(y0)
-    args = (lam0, lam, mu, shape)
+    args = (lam0, lam, mu, shape, g)
     # polished and differentiated by the implicit function theorem (the adjoint's linear solve)
     sol = optx.root_find(_match_residual, optx.Newton(rtol=1e-13, atol=1e-13), y0, args, max_steps=8,
                          adjoint=optx.ImplicitAdjoint(), throw=False)
@@ -701,11 +698,11 @@ def _matched_design(lam0, nu, shape):
     return y + exact, ok
 
 
-_matched_designs = jax.jit(jax.vmap(_matched_design, in_axes=(0, 0, None)))  # compiled once per number of values
+_matched_designs = jax.jit(jax.vmap(_matched_design, in_axes=(0, 0, None, None)))  # compiled once per number of values
 _matched_designs_by_region = jax.jit(jax.vmap(_matched_design))
 
 
-def matched_lattice_design(pre_stretch, poisson_ratio, cell_shape=(1.0, 1.0, 1.0)):
+def matched_lattice_design(pre_stretch, poisson_ratio):
     """Spring-class factors and lattice pre-stretch of the matched lattice
     (``springs_volume_matched_lattice``) at an equibiaxial pre-stretch.
 
@@ -728,24 +725,22 @@ def matched_lattice_design(pre_stretch, poisson_ratio, cell_shape=(1.0, 1.0, 1.0
     coefficient 0 (the neo-Hookean target has no cubic term; checked by the model), equibiaxial
     pre-stretch (with ``lambda_x != lambda_y`` the in-plane moduli are no longer x-y symmetric
     and outnumber the factors; checked by the model), ``pre_stretch`` in
-    :data:`MATCHED_PRE_STRETCH_RANGE`, ``1/4 <= nu <= 0.499`` (checked; nearer 1/2 the solve may fail
-    with an error), cells with ``hx = hy``.
+    :data:`MATCHED_PRE_STRETCH_RANGE`, ``1/4 <= nu < 1/2`` (converged with positive factors up to
+    ``nu = 0.499``; a failed solve raises), cube cells (the match is defined for any ``hx = hy``
+    cell, but with ``hz`` 10-20 % off ``hx`` an edge factor turns negative by ``lambda0 = 1.05``-``1.10``).
 
     Args:
         pre_stretch: ``lambda0`` [-], scalar or ``(n,)``.
         poisson_ratio: ``nu`` [-], broadcast with ``pre_stretch``.
-        cell_shape: the mesh cell's edges ``(hx, hy, hz)`` (only ratios matter; ``hx = hy``).
 
     Returns:
         ``(c, s)``: class factors [-] of shape ``(..., 4)`` and ``s`` [-] of the shape of
         ``pre_stretch``.
     """
-    shape = np.asarray(cell_shape, dtype=float)
-    if shape.shape != (3,) or not np.all(np.isfinite(shape) & (shape > 0)) or not abs(shape[0] - shape[1]) <= 1e-9 * shape[0]:
-        raise ModelError(f"matched lattice: the cell must have hx = hy (positive edges), got {cell_shape!r}")
+    shape = np.ones(3)  # a cube
     lam0, nu = jnp.broadcast_arrays(jnp.asarray(pre_stretch, dtype=float), jnp.asarray(poisson_ratio, dtype=float))
     lam0 = _check_matched_range(lam0, nu)
-    y, ok = _matched_designs(lam0.reshape(-1), nu.reshape(-1), jnp.asarray(shape / shape.max()))
+    y, ok = _matched_designs(lam0.reshape(-1), nu.reshape(-1), jnp.asarray(shape), jnp.asarray(_cell_spring_factors(shape[None])[0]))
     msg = "matched lattice: the match of the neo-Hookean's tension and moduli did not converge (or a factor turned non-positive)"
     if _is_concrete(ok):
         if not bool(np.all(np.asarray(ok))):
@@ -807,8 +802,8 @@ class SpringVolumeModel(ElasticModel):
     ``(c, s)`` from :func:`matched_lattice_design`: the cell then carries the neo-Hookean's
     tension and incremental in-plane and transverse-shear moduli at ``lambda0`` exactly. Equal to
     the default at ``lambda0 = 1`` bit for bit; scope: :data:`MATCHED_PRE_STRETCH_RANGE`,
-    equibiaxial pre-stretch, cubic coefficient 0 in pre-stretched regions, cells with ``hx = hy``
-    and one shape per pre-stretched region (anything else raises :class:`ModelRangeError`).
+    equibiaxial pre-stretch, cubic coefficient 0 and cube cells in pre-stretched regions
+    (anything else raises :class:`ModelRangeError`).
     A spring shared by cells of different regions is one element per region (their rest
     lengths differ when the regions' pre-stretches do).
 
@@ -832,8 +827,8 @@ class SpringVolumeModel(ElasticModel):
         spring_classes: ``(S,)`` class of each spring (:func:`_spring_classes`: 0 in-plane edge,
             1 out-of-plane edge, 2 in-plane face diagonal, 3 out-of-plane face diagonal).
         region_cell_shapes: per region the cell edges over their largest, a tuple of three
-            floats (None where a region's cells differ in shape or have ``hx != hy``; the matched
-            lattice).
+            floats where the region's cells are cubes of one size, else None (the matched
+            lattice needs cubes).
     """
 
     springs: np.ndarray
@@ -906,7 +901,7 @@ class SpringVolumeModel(ElasticModel):
         shapes = [None] * R
         for r in range(R):
             h = lat.cell_size[lat.cube_region_ids == r]
-            if len(h) and np.all(np.abs(h - h[0]) <= 1e-9 * h[0].max()) and abs(h[0, 0] - h[0, 1]) <= 1e-9 * h[0, 0]:
+            if len(h) and np.all(np.abs(h - h[0, 0]) <= 1e-9 * h[0, 0]):  # cubes of one size
                 shapes[r] = tuple(float(v) for v in h[0] / h[0].max())
         p = np.asarray(mesh.points)
         self.springs = lat.springs[spring_ids]
@@ -989,7 +984,7 @@ class SpringVolumeModel(ElasticModel):
         what = "the matched lattice (springs_volume_matched_lattice) is defined for "
         msgs = (what + "an equibiaxial pre-stretch only (pre_stretch_y = pre_stretch); use springs_volume_mesh_lattice or springs_volume",
                 what + "cubic_coefficient 0 only in pre-stretched regions (its match is to the neo-Hookean); use springs_volume_mesh_lattice",
-                what + "regions whose cells have one shape with hx = hy only, where pre-stretched")
+                what + "cube cells only, where pre-stretched (with hz off hx an edge factor soon turns negative)")
         if _is_concrete((lx, ly, b)):
             lxn, lyn, bn = (np.asarray(v) for v in (lx, ly, b))
             stretched = (lxn != 1.0) | (lyn != 1.0)
@@ -1009,8 +1004,8 @@ class SpringVolumeModel(ElasticModel):
         (:func:`matched_lattice_design`)."""
         p = self.region_values(material)
         lam0 = p["pre_stretch"] if isinstance(material, CheckedMaterial) else self._check_matched(p)
-        shapes = jnp.asarray([(1.0, 1.0, 1.0) if sh is None else sh for sh in self.region_cell_shapes])
-        y, ok = _matched_designs_by_region(lam0, p["poisson_ratio"], shapes)
+        shapes = np.array([(1.0, 1.0, 1.0) if sh is None else sh for sh in self.region_cell_shapes])
+        y, ok = _matched_designs_by_region(lam0, p["poisson_ratio"], jnp.asarray(shapes), jnp.asarray(_cell_spring_factors(shapes)))
         msg = "matched lattice: the match of the neo-Hookean's tension and moduli did not converge (or a factor turned non-positive)"
         if _is_concrete(ok):
             if not bool(np.all(np.asarray(ok))):
