@@ -24,6 +24,7 @@ from difftissue.export.pypbd import pbd_scene
 from difftissue.materials import Material
 from difftissue.mesh import block
 from difftissue.models import LATTICE_MODELS, LATTICE_VARIANTS, MATCHED_PRE_STRETCH_RANGE, SpringVolumeModel, make_model, matched_lattice_design
+from lattice_incision_config import incision_config
 
 E, NU = 2e5, 0.45
 VARIANT = "springs_volume_matched_lattice"
@@ -117,21 +118,10 @@ def test_range_ends_converge_across_nu():
 
 
 # ------------------------------------------------------------------------ configuration and exports
-def _incision(model, lam0=1.08):
-    e = {"name": "wound", "scenario": "incision", "model": model, "length_unit": "mm",
-         "data": {"quantity": "max_width", "value": 0.3},
-         "specimen": {"size": [6, 4], "cells": [6, 4], "layers": [
-             {"name": "dermis", "thickness": 1, "cells": 1, "fitted": True},
-             {"name": "fat", "thickness": 1, "cells": 1, "youngs_modulus": 5e3, "poisson_ratio": 0.45}]},
-         "cut": {"path": [[2, 2], [4, 2]], "depth": 1}, "scalpel_steps": 2}
-    return {"material": {"youngs_modulus": 2e5, "poisson_ratio": 0.45, "pre_stretch": lam0},
-            "fit": {"parameters": ["pre_stretch"]}, "experiment": [e]}
-
-
 def test_config_accepts_the_model_and_keeps_it_on_a_lattice():
-    cfg = parse_config(_incision(VARIANT))
+    cfg = parse_config(incision_config(VARIANT))
     assert cfg.experiments[0].model == VARIANT and cfg.experiments[0].scenario.record()["model"] == VARIANT
-    c = _incision(VARIANT)
+    c = incision_config(VARIANT)
     c["material"]["poisson_ratio"] = 0.2
     with pytest.raises(ConfigError, match=rf"the {VARIANT} model \(experiment\[0\]\) needs nu in \[0\.25, 0\.5\)"):
         parse_config(c)

@@ -31,6 +31,7 @@ from difftissue.materials import Material
 from difftissue.mesh import block
 from difftissue.models import LATTICE_MODELS, LATTICE_VARIANTS
 from difftissue.scenarios import Indentation, indentation_block
+from lattice_incision_config import incision_config
 
 VARIANT = "springs_volume_mesh_lattice"
 ROOT = Path(__file__).resolve().parents[1]
@@ -41,18 +42,6 @@ def _compression(model, **extra):
     e = {"name": "ecoflex", "scenario": "compression", "model": model, "max_strain": 0.1,
          "data": {"format": "instron", "path": str(ROOT / "data/compression/EF10_50T_A1.csv")}, **extra}
     return {"material": {"youngs_modulus": 3e4, "poisson_ratio": 0.45}, "fit": {"parameters": ["youngs_modulus"]}, "experiment": [e]}
-
-
-def _incision(model, lam0=1.08, value=0.3):
-    """A 2 mm cut through a 1 mm dermis (fitted) on 1 mm of fat, 6 x 4 mm, 1 mm cubes."""
-    e = {"name": "wound", "scenario": "incision", "model": model, "length_unit": "mm",
-         "data": {"quantity": "max_width", "value": value},
-         "specimen": {"size": [6, 4], "cells": [6, 4], "layers": [
-             {"name": "dermis", "thickness": 1, "cells": 1, "fitted": True},
-             {"name": "fat", "thickness": 1, "cells": 1, "youngs_modulus": 5e3, "poisson_ratio": 0.45}]},
-         "cut": {"path": [[2, 2], [4, 2]], "depth": 1}, "scalpel_steps": 2}
-    return {"material": {"youngs_modulus": 2e5, "poisson_ratio": 0.45, "pre_stretch": lam0},
-            "fit": {"parameters": ["pre_stretch"]}, "experiment": [e]}
 
 
 def _card(model=VARIANT, **params):
@@ -77,7 +66,7 @@ def test_config_accepts_the_variant_where_springs_volume_is_and_it_equals_it_wit
     a, b = np.asarray(out[VARIANT][0].predict(m)), np.asarray(out["springs_volume"][0].predict(m))
     assert np.max(np.abs(a - b)) > 1e-3 * np.max(np.abs(b))
     # an indentation on a given block and an incision take it too
-    cfg = parse_config(_incision(VARIANT))
+    cfg = parse_config(incision_config(VARIANT))
     assert cfg.experiments[0].model == VARIANT and cfg.experiments[0].scenario.record()["model"] == VARIANT
 
 
@@ -123,11 +112,11 @@ def test_cli_fit_of_an_incision_with_the_variant_recovers_its_pre_stretch_and_na
     1e-5 shows that the variant ran."""
     lam0 = 1.08
     mat = Material(2e5, 0.45, pre_stretch=lam0)
-    w = float(parse_config(_incision(VARIANT)).experiments[0].scenario.predict(mat)[0])
-    w_default = float(parse_config(_incision("springs_volume")).experiments[0].scenario.predict(mat)[0])
+    w = float(parse_config(incision_config(VARIANT)).experiments[0].scenario.predict(mat)[0])
+    w_default = float(parse_config(incision_config("springs_volume")).experiments[0].scenario.predict(mat)[0])
     assert 0.03 < w / w_default - 1 < 0.2  # measured +13 % on this 1 mm mesh
     layers = ", ".join("{ " + ", ".join(f"{k} = {json.dumps(v)}" for k, v in lay.items()) + " }"
-                       for lay in _incision(VARIANT)["experiment"][0]["specimen"]["layers"])
+                       for lay in incision_config(VARIANT)["experiment"][0]["specimen"]["layers"])
     toml = tmp_path / "fit.toml"
     toml.write_text(
         "[material]\nyoungs_modulus = 2e5\npoisson_ratio = 0.45\npre_stretch = 1.04\n\n[fit]\nparameters = [\"pre_stretch\"]\n\n"
