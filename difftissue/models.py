@@ -699,7 +699,20 @@ def _matched_design(lam0, nu, shape, g):
 
 
 _matched_designs = jax.jit(jax.vmap(_matched_design, in_axes=(0, 0, None, None)))  # compiled once per number of values
-_matched_designs_by_region = jax.jit(jax.vmap(_matched_design))
+
+
+def _matched_cube_designs(lam0, nu):
+    """``y (n, 7)`` of :func:`_matched_design` for a cube cell at ``lam0``, ``nu`` (both
+    ``(n,)``), with the convergence check: :class:`ModelRangeError` when concrete, an
+    ``equinox.error_if`` when traced."""
+    shape = np.ones(3)
+    y, ok = _matched_designs(lam0, nu, jnp.asarray(shape), jnp.asarray(_cell_spring_factors(shape[None])[0]))
+    msg = "matched lattice: the match of the neo-Hookean's tension and moduli did not converge (or a factor turned non-positive)"
+    if _is_concrete(ok):
+        if not bool(np.all(np.asarray(ok))):
+            raise ModelRangeError(f"{msg} at pre_stretch {np.asarray(lam0)[~np.asarray(ok)]}")
+        return y
+    return eqx.error_if(y, ~jnp.all(ok), msg)
 
 
 def matched_lattice_design(pre_stretch, poisson_ratio):
@@ -737,16 +750,9 @@ def matched_lattice_design(pre_stretch, poisson_ratio):
         ``(c, s)``: class factors [-] of shape ``(..., 4)`` and ``s`` [-] of the shape of
         ``pre_stretch``.
     """
-    shape = np.ones(3)  # a cube
     lam0, nu = jnp.broadcast_arrays(jnp.asarray(pre_stretch, dtype=float), jnp.asarray(poisson_ratio, dtype=float))
     lam0 = _check_matched_range(lam0, nu)
-    y, ok = _matched_designs(lam0.reshape(-1), nu.reshape(-1), jnp.asarray(shape), jnp.asarray(_cell_spring_factors(shape[None])[0]))
-    msg = "matched lattice: the match of the neo-Hookean's tension and moduli did not converge (or a factor turned non-positive)"
-    if _is_concrete(ok):
-        if not bool(np.all(np.asarray(ok))):
-            raise ModelRangeError(f"{msg} at pre_stretch {np.asarray(lam0).reshape(-1)[~np.asarray(ok)]}")
-    else:
-        y = eqx.error_if(y, ~jnp.all(ok), msg)
+    y = _matched_cube_designs(lam0.reshape(-1), nu.reshape(-1))
     return y[:, :4].reshape(lam0.shape + (4,)), y[:, 4].reshape(lam0.shape)
 
 
@@ -826,9 +832,8 @@ class SpringVolumeModel(ElasticModel):
         pre_stretch_lattice: one of :data:`PRE_STRETCH_LATTICES` (see above).
         spring_classes: ``(S,)`` class of each spring (:func:`_spring_classes`: 0 in-plane edge,
             1 out-of-plane edge, 2 in-plane face diagonal, 3 out-of-plane face diagonal).
-        region_cell_shapes: per region the cell edges over their largest, a tuple of three
-            floats where the region's cells are cubes of one size, else None (the matched
-            lattice needs cubes).
+        region_cubes: per region, whether its cells are cubes of one size (the matched
+            lattice needs cubes where it is pre-stretched).
     """
 
     springs: np.ndarray
@@ -847,7 +852,7 @@ class SpringVolumeModel(ElasticModel):
     cell_jacobians: np.ndarray
     pre_stretch_range: np.ndarray
     spring_classes: np.ndarray
-    region_cell_shapes: tuple = eqx.field(static=True)
+    region_cubes: tuple = eqx.field(static=True)
     pre_stretch_lattice: str = eqx.field(static=True)
 
     @property
@@ -898,11 +903,10 @@ class SpringVolumeModel(ElasticModel):
             ranges[r] = _admissible_pre_stretch(g[in_r].reshape(-1), slope[in_r].reshape(-1)) if np.any(in_r) else (0.0, math.inf)
         if pre_stretch_lattice == "matched":
             ranges[:] = MATCHED_PRE_STRETCH_RANGE
-        shapes = [None] * R
+        cubes = []
         for r in range(R):
             h = lat.cell_size[lat.cube_region_ids == r]
-            if len(h) and np.all(np.abs(h - h[0, 0]) <= 1e-9 * h[0, 0]):  # cubes of one size
-                shapes[r] = tuple(float(v) for v in h[0] / h[0].max())
+            cubes.append(bool(len(h) and np.all(np.abs(h - h[0, 0]) <= 1e-9 * h[0, 0])))  # cubes of one size
         p = np.asarray(mesh.points)
         self.springs = lat.springs[spring_ids]
         d = p[self.springs[:, 1]] - p[self.springs[:, 0]]
@@ -913,7 +917,7 @@ class SpringVolumeModel(ElasticModel):
         self.spring_in_plane = (d[:, 0] ** 2 + d[:, 1] ** 2) / self.rest_lengths**2
         self.spring_in_plane_y = d[:, 1] ** 2 / self.rest_lengths**2
         self.spring_classes = _spring_classes(d)
-        self.region_cell_shapes = tuple(shapes)
+        self.region_cubes = tuple(cubes)
         self.spring_factor_ratio_slopes = ratio_slopes[spring_ids, regions]
         self.cell_factor_terms = np.concatenate([g[..., None], slope[..., None], ratio], axis=-1)
         self.cells = lat.cubes
@@ -980,7 +984,7 @@ class SpringVolumeModel(ElasticModel):
         lx = p["pre_stretch"]
         ly = p.get("pre_stretch_y", lx)
         b, nu = p["cubic_coefficient"], p["poisson_ratio"]
-        shaped = np.array([sh is not None for sh in self.region_cell_shapes])
+        shaped = np.array(self.region_cubes)
         what = "the matched lattice (springs_volume_matched_lattice) is defined for "
         msgs = (what + "an equibiaxial pre-stretch only (pre_stretch_y = pre_stretch); use springs_volume_mesh_lattice or springs_volume",
                 what + "cubic_coefficient 0 only in pre-stretched regions (its match is to the neo-Hookean); use springs_volume_mesh_lattice",
@@ -1004,14 +1008,9 @@ class SpringVolumeModel(ElasticModel):
         (:func:`matched_lattice_design`)."""
         p = self.region_values(material)
         lam0 = p["pre_stretch"] if isinstance(material, CheckedMaterial) else self._check_matched(p)
-        shapes = np.array([(1.0, 1.0, 1.0) if sh is None else sh for sh in self.region_cell_shapes])
-        y, ok = _matched_designs_by_region(lam0, p["poisson_ratio"], jnp.asarray(shapes), jnp.asarray(_cell_spring_factors(shapes)))
-        msg = "matched lattice: the match of the neo-Hookean's tension and moduli did not converge (or a factor turned non-positive)"
-        if _is_concrete(ok):
-            if not bool(np.all(np.asarray(ok))):
-                raise ModelRangeError(f"{msg} at pre_stretch {np.asarray(lam0)}")
-        else:
-            y = eqx.error_if(y, ~jnp.all(ok), msg)
+        # A pre-stretched region has cube cells (_check_matched); an unstretched one gets
+        # c = 1, s = 1 exactly whatever its cells: the cube's design serves every region.
+        y = _matched_cube_designs(lam0, p["poisson_ratio"])
         return y[:, :4], y[:, 4]
 
     def spring_parameters(self, material: Material, _matched=None):
