@@ -264,6 +264,19 @@ def _cell_kernels():
     return psi_lat, psi_nh, moduli, mu
 
 
+def _nh_target(psi_nh, moduli, l0):
+    """The neo-Hookean's thickness stretch at ``P_zz = 0`` (40 Newton steps from 1) and its
+    tension and moduli there (``_cell_kernels``' ``moduli``) at pre-stretch ``l0``."""
+    import jax
+    import jax.numpy as jnp
+
+    fz = lambda z: moduli(lambda F: psi_nh(F, l0), z)[0]  # noqa: E731
+    z = jnp.asarray(1.0)
+    for _ in range(40):
+        z = z - fz(z) / jax.grad(fz)(z)
+    return z, moduli(lambda F: psi_nh(F, l0), z)[1]
+
+
 def path(lam_hi, lam_lo, step, start=(0.393, 1.6536, 0.8749, 0.9743, 0.4605, 0.8281), match_thickness=False):
     """Newton continuation of the 5-factor match (unknowns: the factors and the thickness
     stretch; equations: P_zz = 0 and the five moduli) from ``lam_hi`` down to ``lam_lo``.
@@ -290,11 +303,7 @@ def path(lam_hi, lam_lo, step, start=(0.393, 1.6536, 0.8749, 0.9743, 0.4605, 0.8
 
     @jax.jit
     def newton(y, l0):
-        fz = lambda z: moduli(lambda F: psi_nh(F, l0), z)[0]  # noqa: E731
-        z = jnp.asarray(1.0)
-        for _ in range(40):
-            z = z - fz(z) / jax.grad(fz)(z)
-        target = moduli(lambda F: psi_nh(F, l0), z)[1]
+        z, target = _nh_target(psi_nh, moduli, l0)
         for _ in range(40):  # each change limited to 0.02: stays on the branch of the start
             y = y - jnp.clip(solve(jax.jacfwd(resid)(y, l0, target, z), resid(y, l0, target, z)), -0.02, 0.02)
         J = jax.jacfwd(resid)(y, l0, target, z)
@@ -355,11 +364,7 @@ def design(lams, step=0.005, scan=True):
 
     @jax.jit
     def newton(y, l0, v):
-        fz = lambda z: moduli(lambda F: psi_nh(F, l0), z)[0]  # noqa: E731
-        z = jnp.asarray(1.0)
-        for _ in range(40):
-            z = z - fz(z) / jax.grad(fz)(z)
-        target = moduli(lambda F: psi_nh(F, l0), z)[1]
+        z, target = _nh_target(psi_nh, moduli, l0)
         for _ in range(30):  # each change limited to 0.02: stays on the branch of the start
             y = y - jnp.clip(jnp.linalg.solve(jax.jacfwd(resid)(y, l0, target, v), resid(y, l0, target, v)), -0.02, 0.02)
         J = jax.jacfwd(resid)(y, l0, target, v)
