@@ -852,7 +852,7 @@ class SpringVolumeModel(ElasticModel):
     cell_jacobians: np.ndarray
     pre_stretch_range: np.ndarray
     spring_classes: np.ndarray
-    region_cubes: tuple = eqx.field(static=True)
+    region_cubes: np.ndarray
     pre_stretch_lattice: str = eqx.field(static=True)
 
     @property
@@ -917,7 +917,7 @@ class SpringVolumeModel(ElasticModel):
         self.spring_in_plane = (d[:, 0] ** 2 + d[:, 1] ** 2) / self.rest_lengths**2
         self.spring_in_plane_y = d[:, 1] ** 2 / self.rest_lengths**2
         self.spring_classes = _spring_classes(d)
-        self.region_cubes = tuple(cubes)
+        self.region_cubes = np.array(cubes, dtype=bool)  # an array, not a static field: meshes of one structure share programs
         self.spring_factor_ratio_slopes = ratio_slopes[spring_ids, regions]
         self.cell_factor_terms = np.concatenate([g[..., None], slope[..., None], ratio], axis=-1)
         self.cells = lat.cubes
@@ -984,13 +984,13 @@ class SpringVolumeModel(ElasticModel):
         lx = p["pre_stretch"]
         ly = p.get("pre_stretch_y", lx)
         b, nu = p["cubic_coefficient"], p["poisson_ratio"]
-        shaped = np.array(self.region_cubes)
+        shaped = self.region_cubes
         what = "the matched lattice (springs_volume_matched_lattice) is defined for "
         msgs = (what + "an equibiaxial pre-stretch only (pre_stretch_y = pre_stretch); use springs_volume_mesh_lattice or springs_volume",
                 what + "cubic_coefficient 0 only in pre-stretched regions (its match is to the neo-Hookean); use springs_volume_mesh_lattice",
                 what + "cube cells only, where pre-stretched (with hz off hx an edge factor soon turns negative)")
-        if _is_concrete((lx, ly, b)):
-            lxn, lyn, bn = (np.asarray(v) for v in (lx, ly, b))
+        if _is_concrete((lx, ly, b, shaped)):
+            lxn, lyn, bn, shaped = (np.asarray(v) for v in (lx, ly, b, shaped))
             stretched = (lxn != 1.0) | (lyn != 1.0)
             for bad, m in zip((lxn != lyn, stretched & (bn != 0.0), stretched & ~shaped), msgs):
                 if np.any(bad):
@@ -999,7 +999,7 @@ class SpringVolumeModel(ElasticModel):
                                           f"pre_stretch_y {lyn[r]:g}, cubic_coefficient {bn[r]:g}")
         else:
             stretched = (lx != 1.0) | (ly != 1.0)
-            for bad, m in zip((lx != ly, stretched & (b != 0.0), stretched & ~jnp.asarray(shaped)), msgs):
+            for bad, m in zip((lx != ly, stretched & (b != 0.0), stretched & ~jnp.asarray(shaped, dtype=bool)), msgs):
                 lx = eqx.error_if(lx, jnp.any(bad), m)
         return _check_matched_range(lx, nu)
 
