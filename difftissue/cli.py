@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import re
 import sys
 import time
@@ -1081,7 +1082,18 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+#: OpenBLAS threads of a command-line run unless ``OPENBLAS_NUM_THREADS`` is set: the dense
+#: Cholesky of small static solves runs in SciPy's OpenBLAS (jaxlib calls its LAPACK), whose
+#: busy-waiting worker threads cost 2-100x the CPU of one thread on matrices up to 3,000 rows
+#: when the cores are busy (docs/performance.md, "Small models on a CPU"). Larger systems use
+#: the multigrid solver in XLA, which does not use OpenBLAS.
+OPENBLAS_THREADS = "1"
+
+
 def main(argv: list[str] | None = None) -> int:
+    # Before anything loads NumPy: OpenBLAS reads it once, when it is loaded. The command line
+    # is the one place that sets it (the library does not touch the environment).
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", OPENBLAS_THREADS)
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

@@ -1,6 +1,7 @@
 """The command line: help, version, mesh generation, info, demo, one-line errors."""
 
 import json
+import os
 from pathlib import Path
 import subprocess
 import sys
@@ -150,6 +151,21 @@ def test_help_and_version_do_not_import_jax():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "HEAVY=\n" in r.stdout, r.stdout[-500:]
+
+
+@pytest.mark.parametrize("given", [None, "3"])
+def test_the_command_line_runs_one_openblas_thread_unless_told(given):
+    """`main` sets ``OPENBLAS_NUM_THREADS=1`` before NumPy (and with it OpenBLAS, which reads
+    it once) is loaded, and keeps a value the user set."""
+    code = ("import os, sys\nfrom difftissue.cli import main\n"
+            "try:\n    main(['--version'])\nexcept SystemExit:\n    pass\n"
+            "print('THREADS=' + os.environ.get('OPENBLAS_NUM_THREADS', 'unset'), 'numpy' in sys.modules)")
+    env = {k: v for k, v in os.environ.items() if k != "OPENBLAS_NUM_THREADS"}
+    if given is not None:
+        env["OPENBLAS_NUM_THREADS"] = given
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 0, r.stderr
+    assert f"THREADS={given or '1'} False" in r.stdout, r.stdout[-500:]
 
 
 _AFM = Path(__file__).resolve().parents[1] / "difftissue" / "configs" / "afm_hertz.toml"
