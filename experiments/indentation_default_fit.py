@@ -8,7 +8,7 @@ E_fit / E = sum(F_data g) / sum(g^2), g = F_model(E) / E. The mesh-corrected E i
 discretisation check's (first-order Richardson with the check's coarser specimen, linearised
 through the fit's Jacobian: exact here).
 
-    PYTHONPATH=. python experiments/indentation_default_fit.py {sphere,cone} [MODEL] [--out DIR]
+    PYTHONPATH=. python experiments/indentation_default_fit.py {sphere,cone} [MODEL] [--m CELLS_PER_A] [--points N] [--out DIR]
 """
 import sys, math, time, json, pathlib
 import jax; jax.config.update("jax_enable_x64", True)
@@ -21,6 +21,8 @@ _ap = argparse.ArgumentParser()
 _ap.add_argument("indenter", choices=["sphere", "cone"])
 _ap.add_argument("model", nargs="?", default="fem_linear")
 _ap.add_argument("--out", default="experiments/results")
+_ap.add_argument("--points", type=int, default=None, help="data points fitted (default: the config's, 20)")
+_ap.add_argument("--m", type=float, default=None, help="cells per contact radius (default: the rule's)")
 _args = _ap.parse_args()
 ind, model = _args.indenter, _args.model
 E, NU = 1.0e4, 0.45
@@ -42,9 +44,10 @@ parameters = ["youngs_modulus"]
 name = "ind"
 scenario = "indentation"
 model = "{model}"
+{'' if _args.points is None else f'points = {_args.points}'}
 data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
 indenter = {ind_t}
-specimen = {{ geometry = "3d" }}  # the automatic 3-D block (the config default is axisymmetric for fem sphere/cone)
+specimen = {{ geometry = "3d"{'' if _args.m is None else f', cells_per_contact_radius = {_args.m}'} }}  # the automatic 3-D block (the config default is axisymmetric for fem sphere/cone)
 ''')
 cfg = load_config(tmp / "fit.toml")
 ex = cfg.experiments[0]
@@ -61,10 +64,11 @@ Efit = float(obs @ g / (g @ g))
 r = info["refinement_ratio"]
 e_rel = float(g @ ((gc - g) / (r - 1.0)) / (g @ g))  # E_fit - E_conv = -E_fit*... ; corrected = E_fit (1 + e_rel)
 Ecorr = Efit * (1 + e_rel)
-out = {"indenter": ind, "model": model, "nodes": int(sc.mesh.points.shape[0]) if hasattr(sc, "mesh") else None, "specimen": info.get("specimen"),
+out = {"indenter": ind, "model": model, "cells_per_contact_radius": (info.get("specimen") or {}).get("cells_per_contact_radius"),
+       "points": len(pf), "coarse_nodes": int(np.prod(np.asarray(info["coarse_cells"]) + 1)) if isinstance(info["coarse_cells"], list) else None, "nodes": int(np.prod(np.asarray(info["fine_cells"]) + 1)) if isinstance(info.get("fine_cells"), list) else None, "specimen": info.get("specimen"),
        "coarse_cells": info["coarse_cells"], "ratio": r, "force_err_maxdepth": float(pf[-1] / obs[-1] - 1), "coarse_force_err_maxdepth": float(pc[-1] / obs[-1] - 1),
        "E_fit_err": Efit / E - 1, "E_corrected_err": Ecorr / E - 1, "cpu_fine_s": tf, "cpu_coarse_s": tc,
        "force_err_per_depth": list(pf / obs - 1), "coarse_err_per_depth": list(pc / obs - 1)}
 print(json.dumps(out))
 out_dir.mkdir(parents=True, exist_ok=True)
-(out_dir / f"indentation_default_fit_{ind}_{model}.json").write_text(json.dumps(out, indent=1))
+(out_dir / f"indentation_default_fit_{ind}_{model}{'' if _args.m is None else f'_m{_args.m:g}'}{'' if _args.points is None else f'_p{_args.points}'}.json").write_text(json.dumps(out, indent=1))
