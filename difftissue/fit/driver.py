@@ -240,7 +240,8 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
             why = [f"{getattr(sc, 'name', '?')}: {sc.failures[-1]}" for sc in problem.scenarios if getattr(sc, "failures", None)]
             raise FitError(f"{warning_prefix}every start is infeasible: the loss at the starting point is not finite (at {shown}), so the fit "
                            "could take no step. A scenario's prediction failed there (a static solve that did not converge gives NaN "
-                           "with SolverOptions(failure='nan')); try another initial material or check the scenarios' predictions"
+                           "with SolverOptions(failure='nan'); a value far outside the tissue range, e.g. youngs_modulus = 1e308, gives "
+                           "non-finite predictions): start from another material, or check the transforms and the scenarios' predictions"
                            + (f". Last failure: {why[0]}" if why else ""))
         raise FitError(f"{warning_prefix}every start ended with a non-finite loss (at {shown}); check the initial material "
                        "(a value far outside the tissue range, e.g. youngs_modulus = 1e308, gives non-finite predictions), the transforms and the scenarios' predictions")
