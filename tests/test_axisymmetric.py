@@ -201,3 +201,32 @@ def test_shallow_sharp_cone_converges_at_the_first_depth():
     # about one cell of contact: within 15 % of Sneddon (the converged levels are within 1 %)
     assert F == pytest.approx(float(analytic.cone_force(1e-5, E, NU, th)), rel=0.15)
     assert float(np.max(np.asarray(sc.model.rest_points)[:, 2])) == 0.0
+
+
+def test_newton_step_below_the_energys_round_off_is_taken_by_its_residual():
+    """Sphere R = 1 mm on the default specimen for 20 um (8 cells per contact radius, 2 809
+    nodes), E = 8 kPa, nu = 0.45 - 1.7e-16 (the start of a free-nu config fit, through its
+    logit transform), depths 1, 2, 3 um each from the previous equilibrium, compiled. At 3 um
+    the Newton correction (1.5e-8 |u|) lowers the energy by 1.2e-25 J on 2.7e-12 J: below the
+    energy's round-off, so the Armijo test refused the full step and accepted steps of
+    alpha = 7e-9 on noise until max_steps (residual 1.2e-11 N, tolerance 6.8e-13 N), and the
+    fit ended non-finite at its start. The full step is now taken where it lowers the
+    residual norm: converged in 3 Newton steps."""
+    depths = np.array([1e-6, 2e-6, 3e-6])
+    sc = AxisymmetricIndentation([D], indenter="sphere", radius=R)
+    material = Material(8e3, 0.44999999999999984)
+
+    @jax.jit
+    def solve(depth, u):
+        return solve_static(sc.model.with_depth(depth), material, sc.bc, rtol=1e-9, xtol=1e-8, max_steps=50, linear_solver="sparse",
+                            initial_displacement=u, throw=False)
+
+    u = jnp.zeros(sc.bc.displacement.shape)
+    for d in depths:
+        sol = solve(d, u)
+        assert int(sol.result) == 0 and int(sol.steps) <= 5, (d, int(sol.result), int(sol.steps), float(sol.residual_norm))
+        u = sol.displacement
+    m = sc.model.with_depth(depths[-1])
+    F = float(m.reaction_force(jnp.asarray(m.rest_points) + u, material))
+    # about 3 cells of contact at 3 um: within 10 % of Hertz
+    assert F == pytest.approx(0.8 * float(_hertz(depths[-1])), rel=0.1)

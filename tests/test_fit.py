@@ -710,3 +710,14 @@ def test_reverse_mode_fit_rejects_a_failed_trial_point(method, separate, pull):
         assert failed and min(failed) == pytest.approx(200.0 * np.exp(-1.5), rel=1e-6), seen[:5]
     assert res.values["youngs_modulus"] == pytest.approx(150.0, rel=1e-5)
     assert np.isfinite(res.loss)
+
+
+@pytest.mark.parametrize("jac", ["fwd", "bwd"])
+def test_a_start_whose_solve_fails_is_reported_as_infeasible(jac, pull):
+    """A start in the failing region (E = 40 Pa: the static solve fails, NaN with
+    failure="nan") cannot be stepped from -- the optimiser accepts its start, there is no
+    accepted point to fall back to -- so the fit says the start is infeasible (not "ended
+    with a non-finite loss", which read like a failure on the way)."""
+    sc, seen, _, _ = pull
+    with pytest.raises(FitError, match=r"every start is infeasible: the loss at the starting point is not finite \(at youngs_modulus = 40\)"):
+        fit(sc, MaterialParameterization(("youngs_modulus",)), Material(40.0, 0.3), jac=jac, max_steps=20)

@@ -264,7 +264,11 @@ class SeparatelyCompiled:
             try:
                 return fn(asarray(v, dtype=np.float64), *(asarray(a, dtype=np.float64) for a in args))
             except Exception as e:  # a static solve that failed to converge, an inverted element, ...
-                self.failures.append(" ".join(str(e).split())[-300:])
+                # an equinox runtime error ends with a paragraph on filter_jit after a dashed
+                # line: keep the message before it
+                text = str(e)
+                cut = text.find("\n--------------------")
+                self.failures.append(" ".join((text[:cut] if cut > 0 else text).split())[-300:])
                 return None if shape is None else np.full(shape, np.nan)
 
         if mode == "forward":

@@ -231,6 +231,18 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
     if not np.isfinite(finite[best]):
         vals = np.asarray(all_values)
         shown = "; ".join(", ".join(f"{f} = {v:.6g}" for f, v in zip(fields, row)) for row in vals.reshape(len(vals), -1)[:4])
+        initial = np.asarray(history[0], dtype=float) if len(history) > 1 else final
+        if not np.any(np.isfinite(initial)):
+            # Infeasible starts: the optimiser accepts its start unconditionally (there is no
+            # accepted point to fall back to), so no step can be taken from a start whose
+            # predictions are not finite. Say so, with the scenarios' own failure messages
+            # (e.g. a static solve that did not converge there, SolverOptions(failure="nan")).
+            why = [f"{getattr(sc, 'name', '?')}: {sc.failures[-1]}" for sc in problem.scenarios if getattr(sc, "failures", None)]
+            raise FitError(f"{warning_prefix}every start is infeasible: the loss at the starting point is not finite (at {shown}), so the fit "
+                           "could take no step. A scenario's prediction failed there (a static solve that did not converge gives NaN "
+                           "with SolverOptions(failure='nan'); a value far outside the tissue range, e.g. youngs_modulus = 1e308, gives "
+                           "non-finite predictions): start from another material, or check the transforms and the scenarios' predictions"
+                           + (f". Last failure: {why[0]}" if why else ""))
         raise FitError(f"{warning_prefix}every start ended with a non-finite loss (at {shown}); check the initial material "
                        "(a value far outside the tissue range, e.g. youngs_modulus = 1e308, gives non-finite predictions), the transforms and the scenarios' predictions")
     done_np = np.asarray(done)

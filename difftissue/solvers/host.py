@@ -33,7 +33,7 @@ import numpy as np
 from ..errors import ModelError
 from ..materials import Material
 from ..models import CheckedMaterial, ElasticModel
-from .static import _MESSAGES, StaticResult, _dense_hessian
+from .static import _MESSAGES, ENERGY_ROUNDOFF, StaticResult, _dense_hessian
 
 __all__ = ["HOST_MAX_NODES", "HOST_BATCH", "HOST_COMPILER_OPTIONS", "HostStaticSolver", "HostSolution", "ModelDerivatives", "model_derivatives"]
 
@@ -298,10 +298,13 @@ class HostStaticSolver:
             # Armijo backtracking (armijo_backtracking): alpha = 1, 1/2, 1/4, ... up to max_tries,
             # the trial steps evaluated HOST_BATCH at a time; the first acceptable one is taken.
             accepted = False
+            e_before, alpha, full = e, 0.0, None
             for start in range(0, max_tries, HOST_BATCH):
                 alphas = 0.5 ** np.arange(start, min(start + HOST_BATCH, max_tries))
                 trial = u[None] + alphas[:, None] * d[None]
                 et, gt, Ht, dt = ev(trial)
+                if start == 0:  # the full step (alpha = 1), for the round-off rule below
+                    full = (trial[0], et[0], gt[0], Ht[0], jax.tree_util.tree_map(lambda a: a[0], dt))
                 slack = 64 * eps * (abs(e) + np.abs(et))
                 ok = np.isfinite(et) & (et <= e + c * alphas * gd + slack)
                 if np.any(ok):
@@ -310,6 +313,12 @@ class HostStaticSolver:
                     alpha, u_new, e, grad, H = alphas[j], trial[j], et[j], gt[j], Ht[j]
                     dgdm = jax.tree_util.tree_map(lambda a: a[j], dt)
                     break
+            # A Newton step below the energy's round-off (solve_static's rule, ENERGY_ROUNDOFF):
+            # where the Armijo test refused the full step, it is taken if it lowers |g|.
+            if (not bad and alpha < 1.0 and full is not None and 0.5 * abs(gd) <= ENERGY_ROUNDOFF * eps * abs(e_before)
+                    and np.isfinite(full[1]) and np.linalg.norm(P * full[2]) < (1.0 - 1e-4) * np.linalg.norm(g)):
+                accepted, alpha = True, 1.0
+                u_new, e, grad, H, dgdm = full
             if not accepted:
                 u_new = u
             g_new = P * grad
