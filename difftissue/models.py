@@ -38,7 +38,6 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optimistix as optx
 
 from .energies.fem import (
     linear_elastic_energy_density,
@@ -620,6 +619,7 @@ def _admissible_pre_stretch(g: np.ndarray, slope: np.ndarray) -> tuple[float, fl
 MATCHED_PRE_STRETCH_RANGE = (0.95, 1.2)
 _MATCH_CONTINUATION_STEPS = 16  # steps of the continuation in lambda0 from 1
 _MATCH_NEWTON_STEPS = 4  # Newton steps per continuation step
+_MATCH_POLISH_STEPS = 3  # Newton steps at lambda0 after the continuation
 _MATCH_TOLERANCE = 1e-10  # largest residual / mu accepted
 _CELL_PAIRS = np.array(list(_CUBE_EDGES) + list(_CUBE_DIAGONALS))
 
@@ -635,29 +635,74 @@ def _spring_classes(d: np.ndarray) -> np.ndarray:
 _CELL_CLASSES = _spring_classes((_CUBE_CORNERS[_CELL_PAIRS[:, 1]] - _CUBE_CORNERS[_CELL_PAIRS[:, 0]]).astype(float))
 
 
-def _matched_cell_density(c, s, F, shape, g, lam, mu):
-    """Energy per unit mesh volume [Pa] of one cell of edges ``shape`` ``(3,)`` (``hx = hy``)
-    of the ``springs_volume`` lattice deformed affinely by ``F`` from the mesh, its spring
-    classes scaled by ``c`` ``(4,)`` (:func:`_spring_classes`), its rest state the cell shrunk
-    by ``1/s`` in x and y (rest lengths and rest volume), cubic coefficient 0: the model's own
-    cell (:func:`_spring_energy`, :func:`_cell_volume_energy`, the factors ``g`` ``(24,)`` [m]
-    of :func:`_cell_spring_factors`)."""
+def _inverse_products(f):
+    """``(F^-1_Ji F^-1_Lk, F^-1_Jk F^-1_Li)`` indexed ``[i, J, k, L]`` for ``F = diag(f)``."""
+    Fi = jnp.diag(1.0 / f)
+    return jnp.einsum("ji,lk->ijkl", Fi, Fi), jnp.einsum("jk,li->ijkl", Fi, Fi)
+
+
+def _matched_cell_tangent(c, s, lz, shape, g, lam, mu):
+    """First Piola stress ``P (3, 3)`` and tangent ``A = d2 psi / dF2 (3, 3, 3, 3)`` [Pa], in
+    closed form, of the energy per unit mesh volume of one cell of edges ``shape`` ``(3,)``
+    (``hx = hy``) of the ``springs_volume`` lattice at ``F = diag(1, 1, lz)``: its spring classes
+    scaled by ``c`` ``(4,)`` (:func:`_spring_classes`), its rest state the cell shrunk by ``1/s``
+    in x and y (rest lengths and rest volume ``V / s^2``), cubic coefficient 0; the model's own
+    cell (:func:`_spring_energy`, :func:`_cell_volume_energy`, the factors ``g`` ``(24,)`` [m] of
+    :func:`_cell_spring_factors`).
+
+    A spring of mesh vector ``d``, ``x = F d``, ``l = |x|``, ``n = x / l``, rest length ``L``
+    and ``k = mu g c`` gives ``P = t x d^T / V`` and ``A_iJkL = (k n_i n_k + t (delta_ik -
+    n_i n_k)) d_J d_L / V`` with ``t = k (l - L) / l``; the volume term (the trilinear volume
+    of the affinely deformed box is ``J V``, ``J = det F``), ``psi = (lambda - mu) (J V -
+    V_r)^2 / (2 V_r V)``, gives ``P = p J F^-T`` with ``p = (lambda - mu) (J s^2 - 1)`` and
+    ``A_iJkL = (lambda - mu) s^2 J^2 F^-1_Ji F^-1_Lk + p J (F^-1_Ji F^-1_Lk - F^-1_Jk F^-1_Li)``
+    (tests/test_matched_lattice.py compares both with ``jax.hessian`` of the cell's energy)."""
+    one = jnp.ones_like(lz)
+    f = jnp.stack([one, one, lz])
     X = jnp.asarray(_CUBE_CORNERS, dtype=float) * shape
-    x = X @ F.T
     d0 = X[_CELL_PAIRS[:, 1]] - X[_CELL_PAIRS[:, 0]]
     rest = jnp.linalg.norm(d0 * jnp.stack([1.0 / s, 1.0 / s, jnp.ones_like(s)]), axis=1)
     V = shape[0] * shape[1] * shape[2]
     k = mu * g * c[_CELL_CLASSES]
-    e = jnp.sum(jax.vmap(_spring_energy)(jnp.stack([x[_CELL_PAIRS[:, 0]], x[_CELL_PAIRS[:, 1]]], axis=1), rest, k, jnp.zeros_like(k)))
-    return (e + _cell_volume_energy(x, V / (s * s), lam - mu)) / V
+    x = d0 * f
+    l = jnp.linalg.norm(x, axis=1)
+    n = x / l[:, None]
+    t = k * (l - rest) / l
+    nn = n[:, :, None] * n[:, None, :]
+    ks = k[:, None, None] * nn + t[:, None, None] * (jnp.eye(3) - nn)
+    p = (lam - mu) * (lz * s * s - 1.0)
+    ji_lk, jk_li = _inverse_products(f)
+    P = jnp.einsum("s,si,sj->ij", t, x, d0) / V + p * lz * jnp.diag(1.0 / f)
+    A = (jnp.einsum("sik,sj,sl->ijkl", ks, d0, d0) / V + (lam - mu) * (s * s * lz * lz) * ji_lk
+         + p * lz * (ji_lk - jk_li))
+    return P, A
 
 
-def _plane_stress_moduli(density, lz):
-    """``(P_zz, (P_xx, K_xxxx, K_xxyy, K_xyxy, A_xzxz))`` [Pa] of ``density(F)`` at
-    ``F = diag(1, 1, lz)``: first Piola stress and tangent ``A = d2 psi / dF2``, the in-plane
-    moduli ``K`` condensed over ``F_zz`` (plane stress)."""
-    F0 = jnp.diag(jnp.stack([jnp.ones_like(lz), jnp.ones_like(lz), lz]))
-    P, A = jax.grad(density)(F0), jax.hessian(density)(F0).reshape(9, 9)
+def _pre_stretched_neo_hookean_tangent(lam0, lz, lam, mu):
+    """``P (3, 3)`` and ``A (3, 3, 3, 3)`` [Pa], in closed form, of
+    ``neo_hookean_energy_density(F G) / lambda0^2``, ``G = diag(lambda0, lambda0, 1)`` (the
+    neo-Hookean pre-stretched by ``lambda0``, per unit volume of the mesh), at ``F =
+    diag(1, 1, lz)``: with ``F_e = F G``, ``J = det F_e``, ``P_e = mu F_e + (lambda ln J - mu)
+    F_e^-T`` and ``A_e,iJkL = mu delta_ik delta_JL + lambda F_e^-1_Ji F_e^-1_Lk - (lambda ln J -
+    mu) F_e^-1_Jk F_e^-1_Li``, ``P_iJ = P_e,iJ G_J / lambda0^2`` and ``A_iJkL = A_e,iJkL G_J G_L
+    / lambda0^2`` (``ln J = log1p(J - 1)`` with ``J - 1`` formed without cancellation)."""
+    one = jnp.ones_like(lam0)
+    fe, G = jnp.stack([lam0, lam0, lz]), jnp.stack([lam0, lam0, one])
+    log_j = jnp.log1p((lam0 - 1.0) * (lam0 + 1.0) * lz + (lz - 1.0))
+    q = lam * log_j - mu
+    ji_lk, jk_li = _inverse_products(fe)
+    eye = jnp.eye(3)
+    Pe = mu * jnp.diag(fe) + q * jnp.diag(1.0 / fe)
+    Ae = mu * jnp.einsum("ik,jl->ijkl", eye, eye) + lam * ji_lk - q * jk_li
+    w = 1.0 / (lam0 * lam0)
+    return Pe * G[None, :] * w, Ae * (G[None, :, None, None] * G[None, None, None, :]) * w
+
+
+def _plane_stress_moduli(P, A):
+    """``(P_zz, (P_xx, K_xxxx, K_xxyy, K_xyxy, A_xzxz))`` [Pa] from a stress ``P (3, 3)`` and
+    tangent ``A (3, 3, 3, 3)`` at ``F = diag(1, 1, lz)``: the in-plane moduli ``K`` condensed over
+    ``F_zz`` (plane stress)."""
+    A = A.reshape(9, 9)
     ip = jnp.array([0, 1, 3, 4])
     K = A[jnp.ix_(ip, ip)] - jnp.outer(A[ip, 8], A[8, ip]) / A[8, 8]
     return P[2, 2], jnp.stack([P[0, 0], K[0, 0], K[0, 3], K[1, 1], A[2, 2]])
@@ -666,32 +711,41 @@ def _plane_stress_moduli(density, lz):
 def _match_residual(y, args):
     """Residual / mu of the match (unknowns ``y = (c_1..c_4, s, lz, lz_nh)``)."""
     lam0, lam, mu, shape, g = args
-    nh = lambda F: neo_hookean_energy_density(F @ jnp.diag(jnp.stack([lam0, lam0, jnp.ones_like(lam0)])), lam, mu) / (lam0 * lam0)  # noqa: E731
-    pzz_nh, target = _plane_stress_moduli(nh, y[6])
-    pzz, m = _plane_stress_moduli(lambda F: _matched_cell_density(y[:4], y[4], F, shape, g, lam, mu), y[5])
+    pzz_nh, target = _plane_stress_moduli(*_pre_stretched_neo_hookean_tangent(lam0, y[6], lam, mu))
+    pzz, m = _plane_stress_moduli(*_matched_cell_tangent(y[:4], y[4], y[5], shape, g, lam, mu))
     return jnp.concatenate([jnp.stack([pzz, pzz_nh]), m - target]) / mu
+
+
+def _match_newton(y, args):
+    return y - jnp.linalg.solve(jax.jacfwd(_match_residual)(y, args), _match_residual(y, args))
+
+
+@jax.custom_jvp
+def _match_solution(lam0, lam, mu, shape, g):
+    """The root ``y (7,)`` of :func:`_match_residual`: Newton continuation in ``lambda0`` from the
+    default lattice at 1, then Newton steps at ``lambda0``; its derivative is the implicit
+    function theorem's (``dy = -(dR/dy)^-1 dR``, the JVP rule below, transposed for reverse
+    mode), not a derivative through the iterations."""
+    def newton(i, y):  # continuation step i // _MATCH_NEWTON_STEPS + 1, then the polish at lambda0 (t = 1)
+        t = jnp.minimum(i // _MATCH_NEWTON_STEPS + 1, _MATCH_CONTINUATION_STEPS) / _MATCH_CONTINUATION_STEPS
+        return _match_newton(y, (1.0 + t * (lam0 - 1.0), lam, mu, shape, g))
+
+    n = _MATCH_CONTINUATION_STEPS * _MATCH_NEWTON_STEPS + _MATCH_POLISH_STEPS
+    return jax.lax.fori_loop(0, n, newton, jnp.ones(7, dtype=jnp.result_type(lam0, float)))  # one traced Newton step
+
+
+@_match_solution.defjvp
+def _match_solution_jvp(primals, tangents):
+    y = _match_solution(*primals)
+    _, dr = jax.jvp(lambda *a: _match_residual(y, a), primals, tangents)
+    return y, -jnp.linalg.solve(jax.jacfwd(_match_residual)(y, primals), dr)
 
 
 def _matched_design(lam0, nu, shape, g):
     lam0, nu = jnp.asarray(lam0, dtype=float), jnp.asarray(nu, dtype=float)
     lam, mu = 2.0 * nu / (1.0 - 2.0 * nu), jnp.ones_like(nu)  # the match depends on lambda / mu only
-
-    def newton(y, l0):
-        args = (l0, lam, mu, shape, g)
-        return y - jnp.linalg.solve(jax.jacfwd(_match_residual)(y, args), _match_residual(y, args))
-
-    def step(y, t):
-        l0 = 1.0 + t * (lam0 - 1.0)
-        return jax.lax.fori_loop(0, _MATCH_NEWTON_STEPS, lambda i, y: newton(y, l0), y), None
-
-    ts = jnp.arange(1, _MATCH_CONTINUATION_STEPS + 1) / _MATCH_CONTINUATION_STEPS
-    y0, _ = jax.lax.scan(step, jnp.ones(7), ts)
-    y0 = jax.lax.stop_gradient(y0)
     args = (lam0, lam, mu, shape, g)
-    # polished and differentiated by the implicit function theorem (the adjoint's linear solve)
-    sol = optx.root_find(_match_residual, optx.Newton(rtol=1e-13, atol=1e-13), y0, args, max_steps=8,
-                         adjoint=optx.ImplicitAdjoint(), throw=False)
-    y = sol.value
+    y = _match_solution(*args)
     res = jnp.max(jnp.abs(jax.lax.stop_gradient(_match_residual(y, args))))
     ok = (res <= _MATCH_TOLERANCE) & jnp.all(jax.lax.stop_gradient(y[:5]) > 0)
     exact = jax.lax.stop_gradient(jnp.where(lam0 == 1.0, 1.0 - y, 0.0))  # the default lattice bit for bit at lambda0 = 1
@@ -729,10 +783,11 @@ def matched_lattice_design(pre_stretch, poisson_ratio):
     over ``F_zz``) and ``A_xzxz`` (transverse shear). At ``lambda0 = 1`` the default lattice
     (``c = 1``, ``s = 1``) is the solution and the system is regular, so ``(c, s)`` leaves it
     smoothly (``c - 1 = O(lambda0 - 1)``, ``s - lambda0 = O((lambda0 - 1)^2)``); ``lambda0 = 1``
-    gives ``c = 1``, ``s = 1`` exactly. Newton continuation from ``lambda0 = 1``, then an
-    ``optimistix`` root find whose implicit adjoint makes the result differentiable (forward and
-    reverse) in ``pre_stretch`` and ``poisson_ratio``. The match does not depend on Young's
-    modulus (both energies are proportional to it).
+    gives ``c = 1``, ``s = 1`` exactly. The cell's and the neo-Hookean's stress and tangent are
+    in closed form; Newton continuation from ``lambda0 = 1`` (one ``fori_loop``), then Newton
+    steps at ``lambda0``; the derivative is the implicit function theorem's (a ``custom_jvp``,
+    forward and reverse) in ``pre_stretch`` and ``poisson_ratio``. The match does not depend on
+    Young's modulus (both energies are proportional to it).
 
     Scope (anything else raises, or inside ``jit`` fails with ``equinox.error_if``): cubic
     coefficient 0 (the neo-Hookean target has no cubic term; checked by the model), equibiaxial

@@ -23,6 +23,9 @@ from difftissue.export.card import FINITE_STRAIN_MODELS, MODEL_ENERGIES
 from difftissue.export.pypbd import pbd_scene
 from difftissue.materials import Material
 from difftissue.mesh import block
+from difftissue.energies.fem import neo_hookean_energy_density
+from difftissue.mesh import _CUBE_CORNERS
+from difftissue import models as M
 from difftissue.models import LATTICE_MODELS, LATTICE_VARIANTS, MATCHED_PRE_STRETCH_RANGE, SpringVolumeModel, make_model, matched_lattice_design
 from lattice_incision_config import incision_config
 
@@ -38,6 +41,39 @@ def _moduli(kind, m, lz):
     ip = [0, 1, 3, 4]
     K = A[np.ix_(ip, ip)] - np.outer(A[ip, 8], A[8, ip]) / A[8, 8]
     return np.array([K[0, 0], K[0, 3], K[1, 1], A[2, 2]])
+
+
+def _cell_density(c, s, F, shape, lam, mu):
+    """Energy per unit mesh volume [Pa] of one cell of edges ``shape`` of the matched lattice
+    deformed affinely by ``F``, built from the model's own kernels (springs with factors
+    ``mu g c[class]``, rest state shrunk by ``1/s`` in x and y, cell volume term)."""
+    g = jnp.asarray(M._cell_spring_factors(np.asarray(shape)[None])[0])
+    X = jnp.asarray(_CUBE_CORNERS, dtype=float) * jnp.asarray(shape)
+    x, pairs = X @ F.T, M._CELL_PAIRS
+    d0 = X[pairs[:, 1]] - X[pairs[:, 0]]
+    rest = jnp.linalg.norm(d0 * jnp.array([1.0 / s, 1.0 / s, 1.0]), axis=1)
+    V = float(np.prod(shape))
+    k = mu * g * c[M._CELL_CLASSES]
+    e = jnp.sum(jax.vmap(M._spring_energy)(jnp.stack([x[pairs[:, 0]], x[pairs[:, 1]]], axis=1), rest, k, jnp.zeros_like(k)))
+    return (e + M._cell_volume_energy(x, V / (s * s), lam - mu)) / V
+
+
+@pytest.mark.parametrize("shape", [(1.0, 1.0, 1.0), (1.0, 1.0, 0.8)])
+def test_closed_form_cell_tangents_are_the_energies_derivatives(shape):
+    """The design's closed-form stress and tangent (of the lattice cell and of the pre-stretched
+    neo-Hookean) against jax.grad / jax.hessian of the energies."""
+    c, s, lz, lam, mu = jnp.array([0.4, 1.6, 0.9, 1.01]), 1.13, 0.82, 9.0, 1.3
+    F = jnp.diag(jnp.array([1.0, 1.0, lz]))
+    g = jnp.asarray(M._cell_spring_factors(np.asarray(shape)[None])[0])
+    P, A = M._matched_cell_tangent(c, s, lz, jnp.asarray(shape), g, lam, mu)
+    dens = lambda F: _cell_density(c, s, F, shape, lam, mu)  # noqa: E731
+    np.testing.assert_allclose(P, jax.grad(dens)(F), rtol=0, atol=1e-12 * np.max(np.abs(P)))
+    np.testing.assert_allclose(A, jax.hessian(dens)(F), rtol=0, atol=1e-12 * np.max(np.abs(A)))
+    lam0 = 1.15
+    nh = lambda F: neo_hookean_energy_density(F @ jnp.diag(jnp.array([lam0, lam0, 1.0])), lam, mu) / lam0**2  # noqa: E731
+    P, A = M._pre_stretched_neo_hookean_tangent(lam0, lz, lam, mu)
+    np.testing.assert_allclose(P, jax.grad(nh)(F), rtol=0, atol=1e-12 * np.max(np.abs(P)))
+    np.testing.assert_allclose(A, jax.hessian(nh)(F), rtol=0, atol=1e-12 * np.max(np.abs(A)))
 
 
 def test_the_cell_carries_the_neo_hookean_tension_and_moduli():
