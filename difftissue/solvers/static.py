@@ -477,9 +477,13 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         # The predictor's V-cycle set-up starts its power iteration from the hierarchy's
         # start vector (a zero start is the generic vector alone, as without one).
         power_start = jnp.zeros(u_init.size, u_init.dtype) if hierarchy.power_start is None else jnp.asarray(hierarchy.power_start, u_init.dtype)
-        # Placeholder matrix of the right structure for the predictor pass (always rebuilt there).
+        # Placeholder matrix of the right structure for the predictor pass (always rebuilt
+        # there): zeros for what depends on the state; the block columns and the hierarchy are
+        # the setup's own arrays (zero copies of them cost ~0.2 GB of peak memory at 106k).
         shapes = jax.eval_shape(lambda: _multigrid_matrix(model, u_init, material, free, options, power_start))
-        matrix0 = jax.tree_util.tree_map(lambda sd: jnp.zeros(sd.shape, sd.dtype), shapes)
+        ell0, pc0 = jax.tree_util.tree_map(lambda sd: jnp.zeros(sd.shape, sd.dtype), shapes)
+        ell0 = eqx.tree_at(lambda m: m.cols, ell0, options.layout.cols)
+        matrix0 = (ell0, eqx.tree_at(lambda p: (p.fine, p.hierarchy), pc0, (ell0, hierarchy)))
     else:
         matrix0 = None
     state = (u_init, rhs, zero, jnp.asarray(StaticResult.max_steps_reached, jnp.int32), jnp.asarray(False), zero, jnp.zeros((), u_init.dtype),
