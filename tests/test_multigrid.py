@@ -81,6 +81,50 @@ def test_ell_from_csr_and_pcg_on_a_known_system():
     assert bool(neg)
 
 
+def _textbook_pcg(A, M, b, steps, stop_below=None):
+    """Textbook PCG (Saad, Alg. 9.1) in NumPy: the preconditioner applied to the starting
+    residual and at the end of every iteration; ``stop_below``: r.z undefined (NaN) when
+    |r| < stop_below, where the iteration stops with the iterate before."""
+    x = np.zeros_like(b)
+    r = b.copy()
+    z = M(r)
+    p, gamma, k = z.copy(), r @ z, 0
+    while k < steps and np.isfinite(gamma):
+        Ap = A @ p
+        alpha = gamma / (p @ Ap)
+        x, r = x + alpha * p, r - alpha * Ap
+        k += 1
+        z = M(r) if stop_below is None or np.linalg.norm(r) >= stop_below else np.full_like(r, np.nan)
+        gamma_new = r @ z
+        p, gamma = z + gamma_new / gamma * p, gamma_new
+    return x, k
+
+
+def test_pcg_iterates_are_the_textbook_ones():
+    # pcg applies the preconditioner once per iteration (at the top of its loop): one copy of
+    # a V-cycle in the compiled program. Its iterates must be the textbook algorithm's, also
+    # where the preconditioner's output stops being finite (the iterate before is kept).
+    rng = np.random.default_rng(3)
+    M = sps.random(40, 40, density=0.15, random_state=4)
+    A = (M @ M.T + 2 * sps.eye(40)).toarray()
+    b = rng.standard_normal(40)
+    d = 1.0 / np.diag(A)
+    ell = ell_from_csr(sps.csr_matrix(A))
+    for steps in (0, 1, 2, 5, 9):
+        x, k, _, neg = pcg(ell.mv, JacobiPreconditioner(jnp.asarray(d)), jnp.asarray(b), jnp.zeros(40), rtol=0.0, max_steps=steps)
+        x_ref, k_ref = _textbook_pcg(A, lambda r: d * r, b, steps)
+        assert int(k) == k_ref == steps and not bool(neg)
+        np.testing.assert_allclose(x, x_ref, rtol=1e-12, atol=1e-14)
+    # A preconditioner that returns NaN once the residual is small: stop with the last finite iterate.
+    x_ref, k_ref = _textbook_pcg(A, lambda r: d * r, b, 100, stop_below=1e-1 * np.linalg.norm(b))
+    nan_below = jnp.asarray(1e-1 * np.linalg.norm(b))
+    pre = lambda r: jnp.where(jnp.linalg.norm(r) >= nan_below, jnp.asarray(d) * r, jnp.nan)
+    x, k, _, neg = pcg(ell.mv, pre, jnp.asarray(b), jnp.zeros(40), rtol=0.0, max_steps=100)
+    assert 0 < k_ref < 100 and int(k) == k_ref and not bool(neg)
+    assert np.all(np.isfinite(np.asarray(x)))
+    np.testing.assert_allclose(x, x_ref, rtol=1e-12, atol=1e-14)
+
+
 def test_rigid_body_modes_are_in_the_null_space_of_the_free_stiffness(springs):
     model, _, _ = springs
     material = Material(1e4, 0.45)

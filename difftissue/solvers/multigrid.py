@@ -389,33 +389,41 @@ def pcg(mv, precondition, b, x0, *, rtol, max_steps: int):
 
     Returns ``(x, steps, relative_residual, negative_curvature)``; on negative curvature
     (``p.Ap <= 0``: ``A`` not positive definite, e.g. a Newton step at a non-convex point)
-    it stops with the iterate reached so far (truncated CG).
+    it stops with the iterate reached so far (truncated CG). A non-finite ``r.z`` (the
+    preconditioner's output) stops it with the iterate before.
+
+    The preconditioner is applied once in the program, at the top of the loop body (the
+    textbook form applies it to the starting residual and again at the end of each
+    iteration: two copies of a V-cycle in the compiled program). The iterates are the
+    textbook ones: the first iteration's direction is ``z`` itself (``beta = 0``).
     """
     bnorm = jnp.linalg.norm(b)
     tol = rtol * bnorm
     r = b - mv(x0)
-    z = precondition(r)
-    state = (x0, r, z, jnp.vdot(r, z), jnp.asarray(0, jnp.int32), jnp.asarray(False))
+    # (x, r, p, gamma = r.z of the previous iteration, k, negative curvature, non-finite r.z)
+    state = (x0, r, jnp.zeros_like(b), jnp.ones((), b.dtype), jnp.asarray(0, jnp.int32), jnp.asarray(False), jnp.asarray(False))
 
     def cond(s):
-        x, r, p, gamma, k, neg = s
-        return (jnp.linalg.norm(r) > tol) & (k < max_steps) & ~neg & jnp.isfinite(gamma)
+        x, r, p, gamma, k, neg, nonfinite = s
+        return (jnp.linalg.norm(r) > tol) & (k < max_steps) & ~neg & ~nonfinite
 
     def body(s):
-        x, r, p, gamma, k, _ = s
-        Ap = mv(p)
-        pAp = jnp.vdot(p, Ap)
-        neg = ~(pAp > 0)
-        alpha = jnp.where(neg, 0.0, gamma / jnp.where(neg, 1.0, pAp))
-        x = x + alpha * p
-        r = r - alpha * Ap
+        x, r, p, gamma, k, _, _ = s
         z = precondition(r)
         gamma_new = jnp.vdot(r, z)
-        beta = gamma_new / jnp.where(gamma != 0, gamma, 1.0)
-        p = z + beta * p
-        return x, r, p, gamma_new, k + 1, neg
+        nonfinite = ~jnp.isfinite(gamma_new)
+        beta = jnp.where(k == 0, 0.0, gamma_new / jnp.where(gamma != 0, gamma, 1.0))
+        p_new = z + beta * p
+        Ap = mv(p_new)
+        pAp = jnp.vdot(p_new, Ap)
+        neg = ~(pAp > 0) & ~nonfinite
+        alpha = jnp.where(neg, 0.0, gamma_new / jnp.where(neg, 1.0, pAp))
+        # A non-finite r.z stops the iteration before this step (the iterate reached is kept).
+        x = jnp.where(nonfinite, x, x + alpha * p_new)
+        r = jnp.where(nonfinite, r, r - alpha * Ap)
+        return x, r, p_new, gamma_new, jnp.where(nonfinite, k, k + 1), neg, nonfinite
 
-    x, _, _, _, k, neg = jax.lax.while_loop(cond, body, state)
+    x, _, _, _, k, neg, _ = jax.lax.while_loop(cond, body, state)
     # The true residual (not the recurrence's) decides success.
     res = jnp.linalg.norm(b - mv(x)) / jnp.where(bnorm > 0, bnorm, 1.0)
     return x, k, res, neg
