@@ -271,9 +271,8 @@ def _nh_target(psi_nh, moduli, l0):
     import jax.numpy as jnp
 
     fz = lambda z: moduli(lambda F: psi_nh(F, l0), z)[0]  # noqa: E731
-    z = jnp.asarray(1.0)
-    for _ in range(40):
-        z = z - fz(z) / jax.grad(fz)(z)
+    # a loop, not 40 unrolled steps: traced and compiled once (the unrolled form took ~1 min to trace and compile)
+    z = jax.lax.fori_loop(0, 40, lambda _, z: z - fz(z) / jax.grad(fz)(z), jnp.asarray(1.0))
     return z, moduli(lambda F: psi_nh(F, l0), z)[1]
 
 
@@ -304,8 +303,11 @@ def path(lam_hi, lam_lo, step, start=(0.393, 1.6536, 0.8749, 0.9743, 0.4605, 0.8
     @jax.jit
     def newton(y, l0):
         z, target = _nh_target(psi_nh, moduli, l0)
-        for _ in range(40):  # each change limited to 0.02: stays on the branch of the start
-            y = y - jnp.clip(solve(jax.jacfwd(resid)(y, l0, target, z), resid(y, l0, target, z)), -0.02, 0.02)
+
+        def step(_, y):  # each change limited to 0.02: stays on the branch of the start
+            return y - jnp.clip(solve(jax.jacfwd(resid)(y, l0, target, z), resid(y, l0, target, z)), -0.02, 0.02)
+
+        y = jax.lax.fori_loop(0, 40, step, y)  # a loop, not 40 unrolled steps: traced and compiled once
         J = jax.jacfwd(resid)(y, l0, target, z)
         r = resid(y, l0, target, z)
         return y, r, z, jnp.linalg.cond(J)
@@ -365,8 +367,11 @@ def design(lams, step=0.005, scan=True):
     @jax.jit
     def newton(y, l0, v):
         z, target = _nh_target(psi_nh, moduli, l0)
-        for _ in range(30):  # each change limited to 0.02: stays on the branch of the start
-            y = y - jnp.clip(jnp.linalg.solve(jax.jacfwd(resid)(y, l0, target, v), resid(y, l0, target, v)), -0.02, 0.02)
+
+        def step(_, y):  # each change limited to 0.02: stays on the branch of the start
+            return y - jnp.clip(jnp.linalg.solve(jax.jacfwd(resid)(y, l0, target, v), resid(y, l0, target, v)), -0.02, 0.02)
+
+        y = jax.lax.fori_loop(0, 30, step, y)  # a loop, not 30 unrolled steps: traced and compiled once
         J = jax.jacfwd(resid)(y, l0, target, v)
         return y, resid(y, l0, target, v), z, jnp.linalg.cond(J)
 

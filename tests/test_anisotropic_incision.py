@@ -58,12 +58,14 @@ def test_cut_opens_across_the_higher_tension_and_the_swap_is_exact(along_x, alon
     print(f"max width: cut along y under (1.08, 1): {np.max(w_y) / MM:.5f} mm, cut along x: {np.max(w_x_low) / MM:.5f} mm")
 
 
-def test_opening_gradients_in_both_pre_stretches_match_central_differences(along_y):
+def test_opening_gradients_in_both_pre_stretches_match_central_differences(compiled):
     """d(surface widths)/d(lambda_x, lambda_y) by implicit differentiation vs central
-    differences (float64, rtol 1e-5)."""
+    differences (float64, rtol 1e-5). The cut along y's program of the module (its JVP pushes two
+    tangents: one jacfwd over both pre-stretches; a primal call runs it with zero tangents), not a
+    second compilation of the same scenario."""
 
     def widths(q):
-        return along_y.predict(SKIN.replace(pre_stretch=q[0], pre_stretch_y=q[1])) / MM
+        return compiled[1].predict(SKIN.replace(pre_stretch=q[0], pre_stretch_y=q[1])) / MM
 
     q0 = np.array([1.07, 1.03])
     jac = np.asarray(jax.jacfwd(widths)(q0))
