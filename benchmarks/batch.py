@@ -16,9 +16,15 @@ resident memory ``ru_maxrss`` is its own):
 
 - ``serial``: a Python loop of single ``fit`` calls, as a user writes it (the first call
   compiles; since this benchmark's change the others reuse that compilation);
+- ``serial-spectral``: the same loop with each scenario switched to the spectral solver by
+  hand (``scenario.spectral_variant(required=True)`` before its fit; the first call computes
+  the mesh's eigendecomposition, inside the timed loop);
 - ``serial-recompile``: the same loop with the engine cache cleared before each fit, i.e.
   how ``fit`` behaved before (one compilation per specimen); a few fits, extrapolated;
-- ``batched``: one ``fit_batch`` call, then a second one on new data (warm: no compile);
+- ``batched``: one ``fit_batch`` call, then a second one on new data (warm: no compile); it
+  picks the spectral solver itself (``spectral=None``, its default rule);
+- ``batched-factorised``: the same with ``fit_batch(spectral=False)`` (a dense factorisation
+  per specimen, step and tangent: fit_batch before the spectral solver);
 - ``sharded``: ``fit_batch(devices=4)`` on 4 simulated CPU devices
   (``XLA_FLAGS=--xla_force_host_platform_device_count=4``) on the same 2 cores;
 - ``scaling``: ``fit_batch`` on the first 1, 2, 4, 8 specimens (each size compiles; 16 is
@@ -96,21 +102,25 @@ def child(mode: str, args) -> dict:
     rss0 = _rss_mib()
     out: dict = {"mode": mode, "tets": mesh.n_tets, "nodes": mesh.n_nodes, "specimens": B, "devices": len(jax.devices()), "rss_before_mib": rss0}
     opts = dict(max_steps=args.max_steps)
-    if mode in ("serial", "serial-recompile"):
-        n = B if mode == "serial" else min(args.recompile_fits, B)
+    if mode in ("serial", "serial-recompile", "serial-spectral"):
+        n = min(args.recompile_fits, B) if mode == "serial-recompile" else B
         times, cpus, steps, vals = [], [], [], []
         for sc, m0 in zip(specs[:n], starts[:n]):
             if mode == "serial-recompile":
                 fit_engine._ENGINE_CACHE.clear()
             t, c = time.perf_counter(), time.process_time()
+            if mode == "serial-spectral":
+                sc = sc.spectral_variant(required=True)
             r = fitmod.fit(sc, param, m0, **opts)
             times.append(time.perf_counter() - t)
             cpus.append(time.process_time() - c)
             steps.append(r.steps)
             vals.append([r.values["youngs_modulus"], r.values["poisson_ratio"], bool(r.converged)])
         out.update(times=times, cpus=cpus, total_s=float(sum(times)), total_cpu_s=float(sum(cpus)), steps=steps, values=vals)
-    elif mode in ("batched", "sharded"):
-        dev = None if mode == "batched" else args.devices
+    elif mode in ("batched", "sharded", "batched-factorised"):
+        dev = args.devices if mode == "sharded" else None
+        if mode == "batched-factorised":
+            opts["spectral"] = False
         t, c = time.perf_counter(), time.process_time()
         r = fit_batch(specs, param, starts, devices=dev, **opts)
         out["cold_s"], out["cold_cpu_s"] = time.perf_counter() - t, time.process_time() - c
@@ -197,7 +207,8 @@ def main() -> None:
     print(f"- {platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, jax {jax.__version__}; "
           f"load average at the start {os.getloadavg()[0]:.1f} (other processes share the cores)")
     res = {}
-    modes = [m for m in ("serial", "serial-recompile", "batched", "sharded", "scaling") if m not in skip and not (m == "scaling" and not args.scaling)]
+    modes = [m for m in ("serial", "serial-spectral", "serial-recompile", "batched", "batched-factorised", "sharded", "scaling")
+             if m not in skip and not (m == "scaling" and not args.scaling)]
     if args.parallel:
         print(f"- the modes {', '.join(modes)} ran as concurrent child processes")
     running = {}
@@ -225,12 +236,16 @@ def main() -> None:
     print("|---|---|---|---|---|---|---|---|---|")
     serial_cpu = s["total_cpu_s"]
     print(f"| serial loop of `fit` (first call compiles) | {serial_total:.1f} | {serial_total / B:.2f} | 1.00 | {serial_cpu:.1f} | 1.00 | {sum(s['steps'])} total | {s['rss_peak_mib']:.0f} | {s['load_start']:.1f}-{s['load_end']:.1f} |")
+    if "serial-spectral" in res:
+        r = res["serial-spectral"]
+        print(f"| serial loop of `fit`, spectral solver by hand (`spectral_variant`, first fit decomposes) | {r['total_s']:.1f} | {r['total_s'] / B:.2f} | {serial_total / r['total_s']:.2f} | "
+              f"{r['total_cpu_s']:.1f} | {serial_cpu / r['total_cpu_s']:.2f} | {sum(r['steps'])} total | {r['rss_peak_mib']:.0f} | {r['load_start']:.1f}-{r['load_end']:.1f} |")
     if "serial-recompile" in res:
         r = res["serial-recompile"]
         per = float(np.mean(r["times"]))
         cper = float(np.mean(r["cpus"]))
         print(f"| serial loop, recompiling per fit (before this change; {len(r['times'])} fits, extrapolated) | {per * B:.1f} (est.) | {per:.2f} | {serial_total / (per * B):.2f} | {cper * B:.1f} (est.) | {serial_cpu / (cper * B):.2f} | - | {r['rss_peak_mib']:.0f} | {r['load_start']:.1f}-{r['load_end']:.1f} |")
-    for mode, name in (("batched", "`fit_batch` (compiles)"), ("sharded", f"`fit_batch(devices={args.devices})`, {args.devices} simulated CPU devices (compiles)")):
+    for mode, name in (("batched", "`fit_batch` (spectral, compiles)"), ("batched-factorised", "`fit_batch(spectral=False)` (compiles)"), ("sharded", f"`fit_batch(devices={args.devices})`, {args.devices} simulated CPU devices (compiles)")):
         if mode in res:
             r = res[mode]
             print(f"| {name} | {r['cold_s']:.1f} | {r['cold_s'] / B:.2f} | **{serial_total / r['cold_s']:.2f}** | {r['cold_cpu_s']:.1f} | {serial_cpu / r['cold_cpu_s']:.2f} | {r['batch_steps']} batched | {r['rss_peak_mib']:.0f} | {r['load_start']:.1f}-{r['load_end']:.1f} |")
@@ -241,6 +256,16 @@ def main() -> None:
         print(f"Warm vs warm: batched {r['warm_s'] / B:.2f} s per specimen vs serial {warm_serial:.2f} s: {warm_serial * B / r['warm_s']:.2f}x.")
         diffs = [abs(a[0] - b[0]) / b[0] for a, b in zip(r["values"], s["values"])]
         print(f"Largest relative difference of E between batched and serial: {max(diffs):.2e}; converged: batched {sum(v[2] for v in r['values'])}/{B}, serial {sum(v[2] for v in s['values'])}/{B}.")
+    for mode in ("serial-spectral", "batched-factorised"):
+        if mode in res:
+            r = res[mode]
+            diffs = [abs(a[0] - b[0]) / b[0] for a, b in zip(r["values"], s["values"])]
+            dnu = [abs(a[1] - b[1]) for a, b in zip(r["values"], s["values"])]
+            print(f"{mode}: largest relative difference of E vs serial {max(diffs):.2e}, of nu {max(dnu):.2e}; converged {sum(v[2] for v in r['values'])}/{B}.")
+    if "batched" in res:
+        r = res["batched"]
+        dnu = [abs(a[1] - b[1]) for a, b in zip(r["values"], s["values"])]
+        print(f"batched: largest difference of nu vs serial {max(dnu):.2e}.")
     if "sharded" in res:
         r = res["sharded"]
         diffs = [abs(a[0] - b[0]) / b[0] for a, b in zip(r["values"], s["values"])]

@@ -57,6 +57,7 @@ from .models import LATTICE_MODELS, ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers import solver_setup
 from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
+from .solvers.spectral import SpectralDecomposition, spectral_decomposition, spectral_unsupported
 from .solvers.host import HOST_MAX_NODES, HostStaticSolver
 from .solvers.static import prediction_rtol, solve_static
 from .structure_keys import data_leaf_indices, hash_scenario_leaves
@@ -576,6 +577,10 @@ class SolverOptions:
     rtol: float = 1e-9
     xtol: float = 1e-8
     max_steps: int = 50
+    #: one of :func:`solve_static`'s (``"auto"``, ``"dense"``, ``"sparse"``, ``"multigrid"``,
+    #: ``"cg"``), or ``"spectral"`` for the condensed indentation of a one-region ``fem_linear``
+    #: body (:mod:`difftissue.solvers.spectral`: one eigendecomposition per mesh, no
+    #: factorisation per material).
     linear_solver: str = "auto"
     #: ``"raise"``: a static solve that fails (no convergence, inverted elements) raises
     #: :class:`~difftissue.errors.ConvergenceError` (an equinox runtime error under jit);
@@ -869,8 +874,10 @@ class _Condensation(eqx.Module):
     penalty_factors: np.ndarray
     contact_fixed: np.ndarray
     others: np.ndarray
+    #: ``linear_solver="spectral"``: the body's eigendecomposition (arrays, shared by equal meshes).
+    spectral: SpectralDecomposition | None
 
-    def __init__(self, contact_model: ContactModel, bc: BoundaryConditions, max_depth: float):
+    def __init__(self, contact_model: ContactModel, bc: BoundaryConditions, max_depth: float, *, spectral: bool = False):
         X = np.asarray(contact_model.rest_points)
         top = np.asarray(contact_model.contact_nodes)
         reach = np.asarray(contact_model.indenter.penetration(jnp.asarray(X[top]), 1.5 * max_depth)) > 0
@@ -887,10 +894,13 @@ class _Condensation(eqx.Module):
         self.penalty_factors = np.asarray(contact_model.penalty_factors)[reach]
         self.contact = CondensedContactModel(X[self.nodes], contact_model.indenter, _PenaltyEnergy(contact_model.indenter))
         self.others = top[~reach]
+        self.spectral = spectral_decomposition(self.base, self.free) if spectral else None
 
     def solve_protocol(self, material: Material, depths, options: SolverOptions):
         """Contact forces on the modelled part [N] and full displacement fields [m] at ``depths``."""
-        Z, G = linear_response_columns(self.base, material, self.free, self.dofs, linear_solver=options.linear_solver)
+        if options.linear_solver == "spectral" and self.spectral is None:
+            raise ConfigError("linear_solver='spectral': this condensation was built without its decomposition (build the scenario with these options)")
+        Z, G = linear_response_columns(self.base, material, self.free, self.dofs, linear_solver=options.linear_solver, decomposition=self.spectral)
         S_free = jnp.linalg.inv(G)
         S_free = 0.5 * (S_free + S_free.T)
         k = self.nodes.size
@@ -1187,7 +1197,46 @@ class Indentation(eqx.Module):
                 "solver='condensed' needs a linear body (model='fem_linear') and penalty contact (indenter 'sphere' or 'cone'); "
                 f"got model={model!r}, indenter={indenter!r}: use solver='full'"
             )
-        self.condensation = _Condensation(self.model, bc, float(d.max())) if (can_condense and solver != "full") else None
+        spectral = options.linear_solver == "spectral"
+        if spectral:
+            if not can_condense or solver == "full":
+                raise ConfigError(
+                    "linear_solver='spectral' applies to the condensed indentation (model='fem_linear', indenter 'sphere' or 'cone', "
+                    f"solver 'auto' or 'condensed'); got model={model!r}, indenter={indenter!r}, solver={solver!r}"
+                )
+            why = spectral_unsupported(base_model, bc.free_mask)
+            if why is not None:
+                raise ConfigError(f"linear_solver='spectral': {why}")
+        self.condensation = _Condensation(self.model, bc, float(d.max()), spectral=spectral) if (can_condense and solver != "full") else None
+
+    def spectral_variant(self, *, required: bool = False) -> "Indentation | None":
+        """This scenario with ``options.linear_solver="spectral"`` (the same predictions to
+        round-off, no factorisation per material: :mod:`difftissue.solvers.spectral`), or None
+        where it does not apply: not a condensed indentation, another linear solver chosen
+        explicitly, or a body out of the spectral solver's scope (not one-region
+        ``fem_linear``, more than ``SPECTRAL_MAX_UNKNOWNS`` unknowns). The decomposition is
+        computed on the host (about 1.2 s CPU at 2,187 unknowns) once per mesh and shared.
+
+        Args:
+            required: raise :class:`~difftissue.errors.ConfigError` with the reason instead of
+                returning None (an explicitly chosen linear solver is then replaced).
+        """
+        if self.options.linear_solver == "spectral":
+            return self
+        if self.condensation is None:
+            why = "not a condensed indentation (model 'fem_linear', sphere or cone, solver 'auto' or 'condensed')"
+        elif self.options.linear_solver != "auto" and not required:
+            why = f"linear_solver={self.options.linear_solver!r} was chosen explicitly"
+        else:
+            why = spectral_unsupported(self.condensation.base, self.condensation.free)
+        if why is not None:
+            if required:
+                raise ConfigError(f"scenario {self.name!r}: the spectral solver does not apply: {why}")
+            return None
+        decomposition = spectral_decomposition(self.condensation.base, self.condensation.free)
+        new = eqx.tree_at(lambda s: s.condensation.spectral, self, decomposition, is_leaf=lambda x: x is None)
+        object.__setattr__(new, "options", dataclasses.replace(self.options, linear_solver="spectral"))  # a static field: a new structure
+        return new
 
     def _force_at(self, material, depth, u0):
         if self.punch_mask is None:

@@ -141,9 +141,16 @@ def test_batched_hertz_fits_equal_the_serial_loop(method):
     assert "| specimen | youngs_modulus |" in batch.table()
 
 
-def test_batched_indentation_fits_equal_the_serial_loop_and_compile_once(caplog, indentation_serial):
+def test_batched_indentation_fits_equal_the_serial_loop_and_compile_once(caplog, monkeypatch, indentation_serial):
+    from difftissue.scenarios import Indentation
+
     specs, starts, serial = (v[:3] for v in indentation_serial)
+    # the batch switches the condensed fem_linear indentations to the spectral solver itself
+    # (SPECTRAL_MIN_SPECIMENS); the serial loop used the default dense Cholesky
+    variant, chosen = Indentation.spectral_variant, []
+    monkeypatch.setattr(Indentation, "spectral_variant", lambda self, **kw: chosen.append(variant(self, **kw).options.linear_solver) or variant(self, **kw))
     batch = fit_batch(specs, P_E, starts)
+    assert chosen == ["spectral"] * 3 and specs[0].options.linear_solver == "auto"
     assert batch.compilations == 1  # one trace of the batched step for all specimens and steps
     assert_same_fits(batch, serial, rtol=1e-6, steps_tol=2)
     assert all(batch.converged)
@@ -157,6 +164,27 @@ def test_batched_indentation_fits_equal_the_serial_loop_and_compile_once(caplog,
     big = [r.getMessage() for r in caplog.records if "ompiling" in r.getMessage() and ("step" in r.getMessage() or "evaluate" in r.getMessage())]
     assert again.compilations == 0 and big == [], big
     assert not np.allclose(again.values, batch.values)
+
+
+def test_batched_indentation_fits_without_the_spectral_solver_equal_the_serial_loop(indentation_serial):
+    """``spectral=False``: every specimen factorises its own stiffness (vmapped dense Cholesky)."""
+    specs, starts, serial = (v[:3] for v in indentation_serial)
+    batch = fit_batch(specs, P_E, starts, spectral=False)
+    assert_same_fits(batch, serial, rtol=1e-6, steps_tol=2)
+
+
+def test_the_spectral_option_of_fit_batch_refuses_what_it_cannot_do():
+    specs, starts = hertz_specimens(2)
+    with pytest.raises(FitError, match="none of its scenarios offers the spectral solver"):
+        fit_batch(specs, P_E, starts, spectral=True)
+    with pytest.raises(FitError, match="spectral must be None"):
+        fit_batch(specs, P_E, starts, spectral="yes")
+    from difftissue.scenarios import Indentation, indentation_block
+
+    punch = Indentation(indentation_block((4e-3, 4e-3, 1.6e-3), (4, 4, 4)), np.array([1e-4, 2e-4]), np.ones(2), model="fem_linear",
+                        indenter="flat_punch", radius=5e-4, symmetry="quarter")
+    with pytest.raises(FitError, match="specimen 0: spectral=True: .*not a condensed indentation"):
+        fit_batch([punch, punch], P_E, starts, spectral=True)
 
 
 def test_batched_compression_fits_equal_the_serial_loop():

@@ -17,6 +17,10 @@ Derivatives with respect to the material come from ``dZ = -K^{-1} dK Z`` with
 ``Z = K^{-1} C^T`` (one more solve with the same factorisation per tangent, a custom JVP that
 JAX transposes for reverse mode), the contact equilibrium on the candidates is differentiated
 implicitly by :func:`~difftissue.solvers.static.solve_static`.
+
+For a one-region ``fem_linear`` body without pre-stretch, ``linear_solver="spectral"`` takes
+``Z`` and ``G`` from one generalised eigendecomposition of the mesh, shared by every material
+(:mod:`difftissue.solvers.spectral`): two matrix products per material, no factorisation.
 """
 
 from __future__ import annotations
@@ -33,6 +37,7 @@ import numpy as np
 from ..errors import ModelError
 from ..models import ElasticModel, ElementTerm
 from .sparse import sparse_pattern
+from .spectral import spectral_decomposition, spectral_response_columns
 from .static import AUTO_DENSE_MAX, _element_data, _Options, _projected_operator, armijo_backtracking
 
 __all__ = ["linear_response_columns", "CondensedParameters", "CondensedContactModel", "solve_condensed_contact"]
@@ -43,7 +48,7 @@ def _options_for(model: ElasticModel, material, linear_solver: str) -> _Options:
     if linear_solver == "auto":
         linear_solver = "dense" if 3 * n <= AUTO_DENSE_MAX else "sparse"  # many columns, one factorisation
     if linear_solver not in ("dense", "sparse"):
-        raise ModelError(f"condensation needs a direct linear solver ('dense' or 'sparse'), got {linear_solver!r}")
+        raise ModelError(f"condensation needs a direct linear solver ('dense', 'sparse' or 'spectral'), got {linear_solver!r}")
     pattern = sparse_pattern([t.nodes for t in model.terms(material)], n) if linear_solver == "sparse" else None
     return _Options(0.0, 0.0, 0.0, 0, linear_solver, 0.0, 0, pattern)
 
@@ -93,7 +98,7 @@ def _columns_jvp(primals, tangents, *, model, free, dofs, options):
     return (Z, G), (dZ, 0.5 * (dG + dG.T))
 
 
-def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear_solver: str = "auto"):
+def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear_solver: str = "auto", decomposition=None):
     """Rows ``Z = C K^{-1}`` (``(m, 3N)``; ``K`` symmetric, so ``Z^T = K^{-1} C^T``) of the inverse
     stiffness at rest for the degrees of freedom ``dofs``, and the compliance ``G = Z C^T``.
 
@@ -108,7 +113,13 @@ def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear
         free: ``(N, 3)`` bool, True on free components (``BoundaryConditions.free_mask``).
         dofs: ``(m,)`` flat degree-of-freedom indices ``3 node + component``; they must be free.
         linear_solver: ``"dense"``, ``"sparse"`` (sparse Cholesky, one factorisation for all
-            columns) or ``"auto"`` (dense up to ``AUTO_DENSE_MAX`` = 3,000 unknowns, sparse above).
+            columns), ``"auto"`` (dense up to ``AUTO_DENSE_MAX`` = 3,000 unknowns, sparse above)
+            or ``"spectral"`` (no factorisation: products with the eigenvectors of
+            ``decomposition``; a one-region ``fem_linear`` body without pre-stretch only, see
+            :mod:`difftissue.solvers.spectral`).
+        decomposition: for ``"spectral"``, the :class:`~difftissue.solvers.spectral.SpectralDecomposition`
+            of ``model`` and ``free`` (:func:`~difftissue.solvers.spectral.spectral_decomposition`;
+            None: computed here, cached per mesh). Ignored by the other solvers.
 
     Returns:
         ``(Z, G)``: ``Z`` ``(m, 3N)`` and ``G`` ``(m, m)`` (symmetric) [m/N]. The derivative of
@@ -122,6 +133,13 @@ def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear
         raise ModelError("condensation degrees of freedom must be free (not prescribed)")
     material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
     model.region_values(material)
+    if linear_solver == "spectral":
+        if decomposition is None:
+            decomposition = spectral_decomposition(model, free)
+        n = int(np.shape(decomposition.vectors)[0])
+        if n != 3 * model.n_nodes:
+            raise ModelError(f"the spectral decomposition has {n} rows, the model {3 * model.n_nodes} unknowns: it belongs to another mesh")
+        return spectral_response_columns(decomposition, model, material, dofs)
     options = _options_for(model, material, linear_solver)
     return _columns(material, model=model, free=free, dofs=dofs, options=options)
 
