@@ -5,6 +5,7 @@ import os
 from pathlib import Path
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -643,6 +644,7 @@ def test_cubic_coefficient_start_of_a_simulated_indentation_states_when_the_curv
     jax.config.update("jax_enable_x64", True)
     from difftissue import Material
     from difftissue.config import load_config
+    from difftissue.errors import UnderResolvedContactWarning
 
     size, cells, R = (4e-3, 4e-3, 2e-3), (4, 4, 4), 2e-3
     depths = np.linspace(0.05, 0.5, 10) * 1e-3
@@ -670,7 +672,9 @@ specimen = {{ size = [{size[0]}, {size[1]}, {size[2]}], cells = [{cells[0]}, {ce
     # program, so the placeholder curve of this first load does not enter it).
     (tmp_path / "curve.csv").write_text("depth,force\n" + "".join(f"{a:.9g},{a:.9g}\n" for a in depths))
     (tmp_path / "fit.toml").write_text(config("material"))
-    (sc,) = load_config(tmp_path / "fit.toml").fit_scenarios()
+    with warnings.catch_warnings():  # the depths' resolution warning: stated by the load below
+        warnings.simplefilter("ignore", UnderResolvedContactWarning)
+        (sc,) = load_config(tmp_path / "fit.toml").fit_scenarios()
     assert sc.inner.model.n_nodes == 125 and not sc.solves_on_host  # the 4 x 4 x 4 quarter block, a compiled protocol
     force = np.asarray(sc.evaluate(Material(8e3, 0.45, cubic_coefficient=1.5)))
     assert force.shape == depths.shape and np.all(np.diff(force) > 0)

@@ -138,7 +138,9 @@ def test_other_measurements_of_the_same_specimen_and_protocol_share_the_program(
 ])
 def test_a_scenario_that_differs_in_what_is_compiled_in_gets_its_own_program(first, tmp_path, change):
     """Two compilations, and the second program gives the numbers of a fresh build (cache
-    cleared) and of the scenario's own jitted predict."""
+    cleared) and of the scenario's own protocol solved on the host (``solve_on_host``: the
+    same Newton iteration outside any compiled protocol, equal to ``predict`` to round-off;
+    no third protocol compiled per case)."""
     sc1, (y1, jt1) = first
     sc = _wrapped(_config(tmp_path, **change))
     assert scenario_structure(sc.inner)[0] != scenario_structure(sc1.inner)[0]
@@ -146,7 +148,8 @@ def test_a_scenario_that_differs_in_what_is_compiled_in_gets_its_own_program(fir
     assert c.compiled == 1 and c.hits == 0 and c.backend >= 1, vars(c)
     if "size" not in change:  # frictionless platens: a cube's stress does not depend on its size
         assert not np.allclose(y, y1, rtol=1e-6)
-    direct = np.asarray(sc.inner.predict(MATERIAL))
+    assert sc.inner.solves_on_host
+    direct, _ = sc.inner.solve_on_host(MATERIAL)
     np.testing.assert_allclose(y, direct, rtol=1e-10, atol=1e-12 * np.max(np.abs(direct)))
     clear_compile_cache()  # (the tests above hold their programs; none below needs the cache)
     fresh = _wrapped(_config(tmp_path, **change))
