@@ -302,7 +302,7 @@ def _full_gradient(model, u, material, force):
 
 # ------------------------------------------------------------------------- Newton
 def armijo_backtracking(potential, u, d, gd, *, max_tries: int = 40, c: float = 1e-4, e0=None, return_energy: bool = False, compare_only=False,
-                        return_full_step: bool = False):
+                        return_full_step: bool = False, e0_in_loop=False):
     """Backtracking line search along ``d`` from ``u`` (Armijo's sufficient decrease).
 
     Halves ``alpha`` from 1 until ``potential(u + alpha d) <= potential(u) + c alpha gd`` (with a
@@ -315,6 +315,9 @@ def armijo_backtracking(potential, u, d, gd, *, max_tries: int = 40, c: float = 
     point (``e0`` if no step was accepted). After ``max_tries`` halvings ``accepted`` is False.
     ``return_full_step=True`` appends the potential at ``u + d`` (its first try, ``alpha = 1``;
     ``inf`` when ``max_tries`` is 0), for a caller that considers the full step itself.
+    ``e0_in_loop`` (a bool, may be traced): ``potential(u)`` is evaluated by the search's own
+    loop, in a pass before the first try (``e0`` is then ignored): the program holds one copy
+    of the energy where the caller would otherwise evaluate it beside the search.
     The Newton solvers of :func:`solve_static` and
     :func:`~difftissue.solvers.condensed.solve_condensed_contact` share it.
 
@@ -322,22 +325,35 @@ def armijo_backtracking(potential, u, d, gd, *, max_tries: int = 40, c: float = 
     ``u + d`` is finite and ``potential(u + d) <= potential(u)`` (the Dirichlet predictor's
     rule in :func:`solve_static`, whose Newton loop runs the predictor as its first pass).
     """
-    e0 = potential(u) if e0 is None else e0
+    in_loop = e0_in_loop is not False  # a Python False: e0 from the caller or evaluated here
+    if e0 is None:
+        e0 = jnp.zeros((), u.dtype) if in_loop else potential(u)  # (in_loop: a placeholder)
     plain = compare_only is False  # a Python False: the Armijo search alone in the program
     tries_allowed = max_tries if plain else jnp.where(compare_only, 1, max_tries)
 
     def body(s):
-        alpha, _, tries, _, e_full = s
-        trial = u + alpha * d
+        alpha, _, tries, _, e_full, e0 = s
+        if in_loop:
+            first = tries < 0  # the pass that evaluates potential(u)
+            trial = jnp.where(first, u, u + alpha * d)
+        else:
+            trial = u + alpha * d
         e1 = potential(trial)
+        if in_loop:
+            e0 = jnp.where(first, e1, e0)
         slack = 64 * jnp.finfo(u.dtype).eps * (jnp.abs(e0) + jnp.abs(e1))
         armijo = jnp.isfinite(e1) & (e1 <= e0 + c * alpha * gd + slack)
         ok = armijo if plain else jnp.where(compare_only, jnp.all(jnp.isfinite(trial)) & (e1 <= e0), armijo)
-        return jnp.where(ok, alpha, 0.5 * alpha), ok, tries + 1, jnp.where(ok, e1, e0), jnp.where(tries == 0, e1, e_full)
+        halved = 0.5 * alpha
+        if in_loop:
+            ok = ok & ~first
+            halved = jnp.where(first, alpha, halved)
+        return jnp.where(ok, alpha, halved), ok, tries + 1, jnp.where(ok, e1, e0), jnp.where(tries == 0, e1, e_full), e0
 
     e0 = jnp.asarray(e0, u.dtype)
-    init = (jnp.asarray(1.0, u.dtype), jnp.asarray(False), 0, e0, jnp.full_like(e0, jnp.inf))
-    alpha, accepted, _, e, e_full = jax.lax.while_loop(lambda s: (~s[1]) & (s[2] < tries_allowed), body, init)
+    tries0 = jnp.where(e0_in_loop, -1, 0) if in_loop else 0
+    init = (jnp.asarray(1.0, u.dtype), jnp.asarray(False), tries0, e0, jnp.full_like(e0, jnp.inf), e0)
+    alpha, accepted, _, e, e_full, _ = jax.lax.while_loop(lambda s: (~s[1]) & (s[2] < tries_allowed), body, init)
     out = (alpha, accepted, e) if return_energy else (alpha, accepted)
     return out + (e_full,) if return_full_step else out
 
@@ -384,7 +400,6 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     # tolerance; it is evaluated in the predictor pass (carried as ``g_cold`` in the loop state:
     # one copy of the residual in the program, below).
     cold = fixed_part
-    e_naive = potential(naive)
 
     def cond(state):
         return ~state[4]
@@ -398,7 +413,8 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
 
     def body(state):
         # In the predictor pass: u = u_init (the linearisation point), g = the predictor's
-        # right-hand side, e = the potential at ``naive`` (where its line search starts).
+        # right-hand side, e a placeholder (its line search evaluates the potential at
+        # ``naive``, where it starts, itself: e0_in_loop).
         u, g, step, code, _, cg_max, _, e, matrix, g_prev, fresh, predictor, g_cold = state
         tiny_g = jnp.finfo(u.dtype).tiny
         tol = tolerance(g_cold)
@@ -457,7 +473,7 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         # The potential at u is carried in the loop state (the line search's accepted value).
         # (e_full: the potential at u_base + d, the search's first try; the round-off rule below)
         alpha, accepted, e_new, e_full = armijo_backtracking(potential, u_base, d, gd, e0=e, return_energy=True, compare_only=predictor,
-                                                             return_full_step=True)
+                                                             return_full_step=True, e0_in_loop=predictor)
         # Below the energy's round-off the Armijo test cannot see a Newton step's decrease
         # (|g.d| / 2, the quadratic model's): it refuses the full step or accepts a tiny one on
         # round-off noise, and the solve creeps until max_steps (measured: a sphere at 8 cells
@@ -545,7 +561,7 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     else:
         matrix0 = None
     state = (u_init, rhs, zero, jnp.asarray(StaticResult.max_steps_reached, jnp.int32), jnp.asarray(False), zero, jnp.zeros((), u_init.dtype),
-             jnp.asarray(e_naive, u_init.dtype), matrix0, jnp.zeros((), u_init.dtype), jnp.asarray(True), jnp.asarray(True), jnp.zeros((), u_init.dtype))
+             jnp.zeros((), u_init.dtype), matrix0, jnp.zeros((), u_init.dtype), jnp.asarray(True), jnp.asarray(True), jnp.zeros((), u_init.dtype))
     u, g, step, code, _, cg_max, cg_res, _, _, _, _, _, _ = jax.lax.while_loop(cond, body, state)
     inverted = model.min_volume_ratio(jnp.asarray(model.rest_points) + u) <= 0
     code = jnp.where((code == StaticResult.successful) & inverted, StaticResult.inverted_elements, code)
