@@ -326,8 +326,8 @@ def test_setup_reads_the_element_node_arrays_without_evaluating_the_terms(column
     """``solver_setup`` takes the node arrays of ``model.terms`` from an abstract trace (no
     eager, op-by-op evaluation of the element parameters): the arrays of the terms as
     evaluated, for the lattice, a FEM model and a contact model; where a node array is
-    computed inside ``terms`` from a JAX array (it is then a tracer of that trace), the terms
-    are evaluated as called, with the same arrays."""
+    computed inside ``terms`` from a JAX array (it is then a tracer of that trace) or ``terms``
+    reads the material's values, the terms are evaluated as called, with the same arrays."""
     import equinox as eqx
 
     from difftissue.contact import ContactModel, SphereIndenter
@@ -337,7 +337,13 @@ def test_setup_reads_the_element_node_arrays_without_evaluating_the_terms(column
     fem = make_model(column, "fem_linear")
     contact = ContactModel(fem, SphereIndenter(0.5, axis_xy=(0.5, 0.5), surface_z=2.0), column)
     traced_nodes = eqx.tree_at(lambda m: m.contact_nodes, contact, jnp.asarray(contact.contact_nodes))
-    for model in (make_model(column, "springs_volume"), fem, contact, traced_nodes):
+
+    class NeedsValues(type(fem)):  # terms that read the material's values in Python
+        def terms(self, material):
+            assert float(jnp.max(self.region_values(material)["youngs_modulus"])) > 0
+            return super().terms(material)
+
+    for model in (make_model(column, "springs_volume"), fem, contact, traced_nodes, NeedsValues(column)):
         nodes = _term_nodes(model, material)
         expected = [t.nodes for t in model.terms(material)]
         assert len(nodes) == len(expected) >= 1

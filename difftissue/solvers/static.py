@@ -849,14 +849,18 @@ def _term_nodes(model: ElasticModel, material):
     abstractly (``jax.eval_shape``): their parameters are not needed here, and evaluated
     eagerly they cost one compiled program per operation (~30 at 106k unknowns, ~1 s CPU).
     Where a node array is itself computed in ``terms`` (it is then a tracer of that
-    abstract trace), the terms are evaluated as they are called."""
+    abstract trace), or where ``terms`` needs the material's values, the terms are evaluated
+    as they are called."""
     nodes = []
 
     def collect(m):
         nodes.extend(t.nodes for t in model.terms(m))
 
-    jax.eval_shape(collect, material)
-    if any(isinstance(a, jax.core.Tracer) for a in nodes):
+    try:
+        jax.eval_shape(collect, material)
+    except jax.errors.ConcretizationTypeError:
+        nodes = [None]
+    if any(a is None or isinstance(a, jax.core.Tracer) for a in nodes):
         nodes = [t.nodes for t in model.terms(material)]
     return nodes
 
