@@ -329,9 +329,16 @@ class ElasticModel(eqx.Module):
         R = self.n_regions
         out = {}
         for name in material_fields(material):
-            v = jnp.asarray(getattr(material, name), dtype=float)
-            if v.ndim == 0:
-                v = jnp.broadcast_to(v, (R,))
+            raw = getattr(material, name)
+            if isinstance(raw, jax.core.Tracer):
+                v = jnp.asarray(raw, dtype=float)
+                if v.ndim == 0:
+                    v = jnp.broadcast_to(v, (R,))
+            else:
+                # Concrete: broadcast in NumPy (the same values; an eager jnp.broadcast_to
+                # compiles a one-operation program of its own).
+                a = np.asarray(raw, dtype=float)
+                v = jnp.asarray(np.broadcast_to(a, (R,)) if a.ndim == 0 else a, dtype=float)
             if v.shape != (R,):
                 raise MaterialError(f"{name} has shape {v.shape}; give a scalar or one value per region ({R}: {list(self.region_names)})")
             out[name] = v

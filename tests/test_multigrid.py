@@ -443,3 +443,33 @@ def test_smoothed_aggregation_is_pyamgs_with_one_spectral_estimate_per_level(spr
         Al, P, R = ours[k][:3]
         nxt = ours[k + 1][0] if k + 1 < len(ours) else coarse
         np.testing.assert_allclose(nxt.toarray(), (R @ Al @ P).toarray(), rtol=0, atol=1e-12 * abs(Al).max())
+
+
+def test_block_ell_to_scipy_is_the_canonical_matrix_of_its_blocks(springs):
+    """``BlockEllMatrix.to_scipy`` drops the padding slots instead of sorting every block
+    (SciPy's ``sum_duplicates``): the same matrix bit for bit, in canonical form; a matrix
+    whose columns are not in order (here every row reversed) takes the sorting path and gives
+    the same matrix."""
+    from difftissue.solvers.multigrid import BlockEllMatrix
+    from difftissue.solvers.static import solver_setup
+
+    model, bc, _ = springs
+    setup = solver_setup(model, Material(1e4, 0.45, 1.0), bc, linear_solver="multigrid")
+    P = jnp.asarray(1.0 - np.asarray(bc.fixed, float).reshape(-1))
+    x = jnp.asarray(model.rest_points) + 1e-4 * jnp.sin(jnp.asarray(model.rest_points) * 300.0)
+    ell = _assemble_ell(setup.layout, model, x, Material(1e4, 0.45, 1.0), P)
+    cols = np.array(ell.cols)  # a copy: SciPy sorts in place (the layout's own array is cached)
+    n, w = cols.shape
+    assert np.any(np.sum(cols == np.arange(n)[:, None], axis=1) > 1)  # there is padding to drop
+    blocks = np.array(ell.blocks())
+    sorted_ = sps.bsr_matrix((blocks.reshape(-1, 3, 3).copy(), cols.reshape(-1).copy(), np.arange(0, n * w + 1, w)), shape=(3 * n, 3 * n))
+    sorted_.sum_duplicates()
+    A = ell.to_scipy()
+    assert A.has_canonical_format and A.has_sorted_indices
+    np.testing.assert_array_equal(A.indptr, sorted_.indptr)
+    np.testing.assert_array_equal(A.indices, sorted_.indices)
+    np.testing.assert_array_equal(A.data, sorted_.data)
+    reversed_ = BlockEllMatrix.from_blocks(jnp.asarray(blocks[:, ::-1]), jnp.asarray(cols[:, ::-1].copy()))
+    B = reversed_.to_scipy()
+    np.testing.assert_array_equal(B.indices, sorted_.indices)
+    np.testing.assert_array_equal(B.toarray(), sorted_.toarray())

@@ -293,3 +293,60 @@ def test_a_round_off_newton_step_is_convergence_only_at_a_positive_definite_matr
         assert np.hypot(*np.asarray(sol.displacement[apex[0], :2])) > 1e-5, ls
     force = {ls: float(jnp.sum(sol.reaction[:, 2])) for ls, sol in sols.items()}
     assert force["sparse"] == pytest.approx(force["dense"], rel=1e-9)
+
+
+def test_line_search_evaluates_its_start_in_its_loop_and_reports_the_full_step():
+    """``armijo_backtracking(e0_in_loop=True)`` evaluates ``potential(u)`` in a pass of its own
+    loop (the predictor pass of ``solve_static``): the same step, acceptance and energy as with
+    ``e0`` given, for the Armijo rule (a step that needs halving, one that fails) and the
+    predictor's compare-only rule; ``return_full_step`` gives ``potential(u + d)``."""
+    from difftissue.solvers.static import armijo_backtracking
+
+    def potential(u):  # inf where inadmissible, as solve_static's
+        e = jnp.sum((u - 1.0) ** 4) + 0.5 * jnp.sum(u**2)
+        return jnp.where(jnp.all(u < 5.0), e, jnp.inf)
+
+    u = jnp.array([0.2, -0.3])
+    g = jax.grad(potential)(u)
+    for d, compare in ((-0.1 * g, False), (-3.0 * g, False), (-100.0 * g, False), (-3.0 * g, True), (+0.5 * g, True), (jnp.array([jnp.nan, 0.0]), True)):
+        gd = jnp.vdot(g, d)
+        kw = dict(return_energy=True, compare_only=compare, max_tries=6)
+        given = armijo_backtracking(potential, u, d, gd, e0=potential(u), return_full_step=True, **kw)
+        in_loop = armijo_backtracking(potential, u, d, gd, e0=jnp.asarray(123.0), e0_in_loop=jnp.asarray(True), return_full_step=True, **kw)
+        traced_off = armijo_backtracking(potential, u, d, gd, e0=potential(u), e0_in_loop=jnp.asarray(False), return_full_step=True, **kw)
+        for a, b, c in zip(given, in_loop, traced_off):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(c))
+        np.testing.assert_array_equal(np.asarray(given[3]), np.asarray(potential(u + d)))
+    alpha, accepted, e = armijo_backtracking(potential, u, -3.0 * g, jnp.vdot(g, -3.0 * g), return_energy=True)
+    assert bool(accepted) and 0 < float(alpha) < 1 and float(e) < float(potential(u))
+
+
+def test_setup_reads_the_element_node_arrays_without_evaluating_the_terms(column):
+    """``solver_setup`` takes the node arrays of ``model.terms`` from an abstract trace (no
+    eager, op-by-op evaluation of the element parameters): the arrays of the terms as
+    evaluated, for the lattice, a FEM model and a contact model; where a node array is
+    computed inside ``terms`` from a JAX array (it is then a tracer of that trace) or ``terms``
+    reads the material's values, the terms are evaluated as called, with the same arrays."""
+    import equinox as eqx
+
+    from difftissue.contact import ContactModel, SphereIndenter
+    from difftissue.solvers.static import _term_nodes
+
+    material = Material(E0, 0.4)
+    fem = make_model(column, "fem_linear")
+    contact = ContactModel(fem, SphereIndenter(0.5, axis_xy=(0.5, 0.5), surface_z=2.0), column)
+    traced_nodes = eqx.tree_at(lambda m: m.contact_nodes, contact, jnp.asarray(contact.contact_nodes))
+
+    class NeedsValues(type(fem)):  # terms that read the material's values in Python
+        def terms(self, material):
+            assert float(jnp.max(self.region_values(material)["youngs_modulus"])) > 0
+            return super().terms(material)
+
+    for model in (make_model(column, "springs_volume"), fem, contact, traced_nodes, NeedsValues(column)):
+        nodes = _term_nodes(model, material)
+        expected = [t.nodes for t in model.terms(material)]
+        assert len(nodes) == len(expected) >= 1
+        for a, b in zip(nodes, expected):
+            assert not isinstance(a, jax.core.Tracer)
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -155,8 +155,28 @@ class BlockEllMatrix(eqx.Module):
         import scipy.sparse as sps
 
         data = np.array(self.blocks())  # a writable copy (SciPy sorts in place)
+        cols = np.array(self.cols)
         n, w = data.shape[:2]
-        A = sps.bsr_matrix((data.reshape(-1, 3, 3), np.array(self.cols).reshape(-1), np.arange(0, n * w + 1, w)), shape=(3 * n, 3 * n))
+        # The padding slots (the row's own node after its first slot of it; zero blocks by
+        # construction) dropped: where the remaining columns of every row then increase, that
+        # is the canonical BSR matrix as it is, without SciPy's sort of all blocks
+        # (sum_duplicates, ~0.7 s at 106k unknowns).
+        own = cols == np.arange(n)[:, None]
+        keep = ~own
+        first = np.argmax(own, axis=1)
+        keep[np.arange(n), first] |= own.any(axis=1)
+        c = cols[keep]  # every row keeps at least one slot
+        indptr = np.concatenate([[0], np.cumsum(keep.sum(axis=1))])
+        within = np.ones(max(c.size - 1, 0), bool)  # consecutive entries of one row
+        within[indptr[1:-1] - 1] = False
+        canonical = bool(np.all(np.diff(c)[within] > 0))
+        if canonical:
+            # (padding holds zeros; any other block dropped is added to the row's kept own block)
+            data[np.arange(n), first] += np.where((own & ~keep)[:, :, None, None], data, 0.0).sum(axis=1)
+            A = sps.bsr_matrix((data[keep], c, indptr), shape=(3 * n, 3 * n))
+            A.has_canonical_format = True
+            return A
+        A = sps.bsr_matrix((data.reshape(-1, 3, 3), cols.reshape(-1), np.arange(0, n * w + 1, w)), shape=(3 * n, 3 * n))
         A.sum_duplicates()
         return A
 

@@ -301,7 +301,8 @@ def _full_gradient(model, u, material, force):
 
 
 # ------------------------------------------------------------------------- Newton
-def armijo_backtracking(potential, u, d, gd, *, max_tries: int = 40, c: float = 1e-4, e0=None, return_energy: bool = False, compare_only=False):
+def armijo_backtracking(potential, u, d, gd, *, max_tries: int = 40, c: float = 1e-4, e0=None, return_energy: bool = False, compare_only=False,
+                        return_full_step: bool = False, e0_in_loop=False):
     """Backtracking line search along ``d`` from ``u`` (Armijo's sufficient decrease).
 
     Halves ``alpha`` from 1 until ``potential(u + alpha d) <= potential(u) + c alpha gd`` (with a
@@ -312,6 +313,11 @@ def armijo_backtracking(potential, u, d, gd, *, max_tries: int = 40, c: float = 
     less in the compiled program). Returns ``(alpha, accepted)``, or with
     ``return_energy=True`` ``(alpha, accepted, e)`` where ``e`` is the potential at the accepted
     point (``e0`` if no step was accepted). After ``max_tries`` halvings ``accepted`` is False.
+    ``return_full_step=True`` appends the potential at ``u + d`` (its first try, ``alpha = 1``;
+    ``inf`` when ``max_tries`` is 0), for a caller that considers the full step itself.
+    ``e0_in_loop`` (a bool, may be traced): ``potential(u)`` is evaluated by the search's own
+    loop, in a pass before the first try (``e0`` is then ignored): the program holds one copy
+    of the energy where the caller would otherwise evaluate it beside the search.
     The Newton solvers of :func:`solve_static` and
     :func:`~difftissue.solvers.condensed.solve_condensed_contact` share it.
 
@@ -319,22 +325,37 @@ def armijo_backtracking(potential, u, d, gd, *, max_tries: int = 40, c: float = 
     ``u + d`` is finite and ``potential(u + d) <= potential(u)`` (the Dirichlet predictor's
     rule in :func:`solve_static`, whose Newton loop runs the predictor as its first pass).
     """
-    e0 = potential(u) if e0 is None else e0
+    in_loop = e0_in_loop is not False  # a Python False: e0 from the caller or evaluated here
+    if e0 is None:
+        e0 = jnp.zeros((), u.dtype) if in_loop else potential(u)  # (in_loop: a placeholder)
     plain = compare_only is False  # a Python False: the Armijo search alone in the program
     tries_allowed = max_tries if plain else jnp.where(compare_only, 1, max_tries)
 
     def body(s):
-        alpha, _, tries, _ = s
-        trial = u + alpha * d
+        alpha, _, tries, _, e_full, e0 = s
+        if in_loop:
+            first = tries < 0  # the pass that evaluates potential(u)
+            trial = jnp.where(first, u, u + alpha * d)
+        else:
+            trial = u + alpha * d
         e1 = potential(trial)
+        if in_loop:
+            e0 = jnp.where(first, e1, e0)
         slack = 64 * jnp.finfo(u.dtype).eps * (jnp.abs(e0) + jnp.abs(e1))
         armijo = jnp.isfinite(e1) & (e1 <= e0 + c * alpha * gd + slack)
         ok = armijo if plain else jnp.where(compare_only, jnp.all(jnp.isfinite(trial)) & (e1 <= e0), armijo)
-        return jnp.where(ok, alpha, 0.5 * alpha), ok, tries + 1, jnp.where(ok, e1, e0)
+        halved = 0.5 * alpha
+        if in_loop:
+            ok = ok & ~first
+            halved = jnp.where(first, alpha, halved)
+        return jnp.where(ok, alpha, halved), ok, tries + 1, jnp.where(ok, e1, e0), jnp.where(tries == 0, e1, e_full), e0
 
-    init = (jnp.asarray(1.0, u.dtype), jnp.asarray(False), 0, jnp.asarray(e0, u.dtype))
-    alpha, accepted, _, e = jax.lax.while_loop(lambda s: (~s[1]) & (s[2] < tries_allowed), body, init)
-    return (alpha, accepted, e) if return_energy else (alpha, accepted)
+    e0 = jnp.asarray(e0, u.dtype)
+    tries0 = jnp.where(e0_in_loop, -1, 0) if in_loop else 0
+    init = (jnp.asarray(1.0, u.dtype), jnp.asarray(False), tries0, e0, jnp.full_like(e0, jnp.inf), e0)
+    alpha, accepted, _, e, e_full, _ = jax.lax.while_loop(lambda s: (~s[1]) & (s[2] < tries_allowed), body, init)
+    out = (alpha, accepted, e) if return_energy else (alpha, accepted)
+    return out + (e_full,) if return_full_step else out
 
 
 def _newton(model: ElasticModel, material, displacement, force, free, u_init, options: _Options):
@@ -375,24 +396,29 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         ell, pc = matrix
         return _ell_operator(ell, struct), newton_cg, {"preconditioner": pc}
 
+    # The residual at the cold state (the prescribed values, free components zero) sets the
+    # tolerance; it is evaluated in the predictor pass (carried as ``g_cold`` in the loop state:
+    # one copy of the residual in the program, below).
     cold = fixed_part
-    g_cold = jnp.linalg.norm(residual(cold))
-    tol = jnp.maximum(options.atol, options.rtol * g_cold)
-    e_naive = potential(naive)
 
     def cond(state):
         return ~state[4]
 
-    g_scale = jnp.maximum(g_cold, jnp.finfo(u_init.dtype).tiny)
+    def tolerance(g_cold):
+        return jnp.maximum(options.atol, options.rtol * g_cold)
+
     # The predictor is a starting guess that Newton corrects: solved to the loosest forcing
     # term, not to cg_rtol (an exact predictor cost as many CG iterations as a tangent).
     predictor_rtol = max(NEWTON_FORCING_MAX, options.cg_rtol)
 
     def body(state):
         # In the predictor pass: u = u_init (the linearisation point), g = the predictor's
-        # right-hand side, e = the potential at ``naive`` (where its line search starts).
-        u, g, step, code, _, cg_max, _, e, matrix, g_prev, fresh, predictor = state
+        # right-hand side, e a placeholder (its line search evaluates the potential at
+        # ``naive``, where it starts, itself: e0_in_loop).
+        u, g, step, code, _, cg_max, _, e, matrix, g_prev, fresh, predictor, g_cold = state
         tiny_g = jnp.finfo(u.dtype).tiny
+        tol = tolerance(g_cold)
+        g_scale = jnp.maximum(g_cold, tiny_g)
         gn = jnp.linalg.norm(g)
         # Inexact Newton: the forcing term (NEWTON_FORCING_MAX), at least the safeguard's
         # share of the tolerance (a finishing step need not go far below it).
@@ -445,7 +471,9 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         u_base = jnp.where(predictor, naive, u)
         d = jnp.where(predictor, Pf * d, d)
         # The potential at u is carried in the loop state (the line search's accepted value).
-        alpha, accepted, e_new = armijo_backtracking(potential, u_base, d, gd, e0=e, return_energy=True, compare_only=predictor)
+        # (e_full: the potential at u_base + d, the search's first try; the round-off rule below)
+        alpha, accepted, e_new, e_full = armijo_backtracking(potential, u_base, d, gd, e0=e, return_energy=True, compare_only=predictor,
+                                                             return_full_step=True, e0_in_loop=predictor)
         # Below the energy's round-off the Armijo test cannot see a Newton step's decrease
         # (|g.d| / 2, the quadratic model's): it refuses the full step or accepts a tiny one on
         # round-off noise, and the solve creeps until max_steps (measured: a sphere at 8 cells
@@ -456,21 +484,39 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         # hide; far from the solution the energy test alone decides, so the solve still heads
         # for a minimum, not a saddle).
         unresolved = ~bad & ~predictor & definite & (alpha < 1.0) & (0.5 * jnp.abs(gd) <= ENERGY_ROUNDOFF * jnp.finfo(u.dtype).eps * jnp.abs(e))
+        # The full step's potential is the line search's first try (u_base = u outside the
+        # predictor pass). The residual is evaluated in a loop of one or two passes, so that
+        # the program holds one copy of it and a vmapped solve evaluates a second one only
+        # while a specimen needs it (both branches of a ``lax.cond`` run under vmap): first
+        # where the step ends (u + d for an unresolved step, else the line search's point);
+        # then, for an unresolved step whose full step is not taken, at the line search's
+        # point, and in the predictor pass at the cold state (the tolerance's scale).
+        u_ls = jnp.where(accepted, u_base + alpha * d, u_base)
+        u_full = u + d
+        g_norm = jnp.linalg.norm(g)
 
-        def full_step(_):
-            u_full = u + d
-            return residual(u_full), potential(u_full)
+        def full_step_taken(g_full):
+            return jnp.isfinite(e_full) & (jnp.linalg.norm(g_full) < (1.0 - 1e-4) * g_norm)
 
-        def no_full_step(_):
-            return jnp.full_like(g, jnp.inf), e_new
+        def residual_cond(s):
+            i, g0, _ = s
+            return (i == 0) | ((i == 1) & (predictor | (unresolved & ~full_step_taken(g0))))
 
-        g_full, e_full = jax.lax.cond(unresolved, full_step, no_full_step, None)
-        take_full = unresolved & jnp.isfinite(e_full) & (jnp.linalg.norm(g_full) < (1.0 - 1e-4) * jnp.linalg.norm(g))
+        def residual_body(s):
+            i, g0, g1 = s
+            first = i == 0
+            r = residual(jnp.where(first, jnp.where(unresolved, u_full, u_ls), jnp.where(predictor, cold, u_ls)))
+            return i + 1, jnp.where(first, r, g0), jnp.where(first, g1, r)
+
+        n_residuals, g0, g1 = jax.lax.while_loop(residual_cond, residual_body, (jnp.asarray(0, jnp.int32), jnp.zeros_like(g), jnp.zeros_like(g)))
+        take_full = unresolved & (n_residuals == 1)
         alpha = jnp.where(take_full, jnp.asarray(1.0, alpha.dtype), alpha)
         accepted = accepted | take_full
         e_new = jnp.where(take_full, e_full, e_new)
-        u_new = jnp.where(accepted, u_base + alpha * d, u_base)
-        g_new = residual(u_new)
+        u_new = jnp.where(take_full, u_full, u_ls)
+        g_new = jnp.where(unresolved & ~take_full, g1, g0)
+        g_cold = jnp.where(predictor, jnp.linalg.norm(g1), g_cold)
+        tol = tolerance(g_cold)
         rn = jnp.linalg.norm(g_new)
         step = jnp.where(predictor, step, step + 1)
         finite = jnp.all(jnp.isfinite(u_new)) & jnp.isfinite(rn)
@@ -497,7 +543,7 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
         code = jnp.where(predictor, jnp.where(rn <= tol, StaticResult.successful, StaticResult.max_steps_reached), code).astype(jnp.int32)
         done = (code != StaticResult.max_steps_reached) | (step >= options.max_steps)
         # The predictor's matrix counts as fresh, its starting residual being that of the jump.
-        return u_new, g_new, step, code, done, jnp.maximum(cg_max, cg_steps), cg_res, e_new, matrix, gn, ~reused, jnp.asarray(False)
+        return u_new, g_new, step, code, done, jnp.maximum(cg_max, cg_steps), cg_res, e_new, matrix, gn, ~reused, jnp.asarray(False), g_cold
 
     zero = jnp.asarray(0, jnp.int32)
     if multigrid:
@@ -515,8 +561,8 @@ def _newton(model: ElasticModel, material, displacement, force, free, u_init, op
     else:
         matrix0 = None
     state = (u_init, rhs, zero, jnp.asarray(StaticResult.max_steps_reached, jnp.int32), jnp.asarray(False), zero, jnp.zeros((), u_init.dtype),
-             jnp.asarray(e_naive, u_init.dtype), matrix0, jnp.zeros((), u_init.dtype), jnp.asarray(True), jnp.asarray(True))
-    u, g, step, code, _, cg_max, cg_res, _, _, _, _, _ = jax.lax.while_loop(cond, body, state)
+             jnp.zeros((), u_init.dtype), matrix0, jnp.zeros((), u_init.dtype), jnp.asarray(True), jnp.asarray(True), jnp.zeros((), u_init.dtype))
+    u, g, step, code, _, cg_max, cg_res, _, _, _, _, _, _ = jax.lax.while_loop(cond, body, state)
     inverted = model.min_volume_ratio(jnp.asarray(model.rest_points) + u) <= 0
     code = jnp.where((code == StaticResult.successful) & inverted, StaticResult.inverted_elements, code)
     return u, jnp.linalg.norm(g), step, code, cg_max, cg_res
@@ -776,7 +822,7 @@ def solver_setup(model: ElasticModel, material: Material, bc: BoundaryConditions
     if material_is_traced:  # its values are not those of the solves: only its structure is used
         material = _reference_material(material, preconditioner_material, True)
     model.region_values(material)  # range checks (raise now when concrete)
-    node_arrays = [t.nodes for t in model.terms(material)]
+    node_arrays = _term_nodes(model, material)
     concrete_nodes = not any(isinstance(a, jax.core.Tracer) for a in node_arrays)
     concrete_fixed = not isinstance(bc.fixed, jax.core.Tracer)
     if linear_solver == "auto":
@@ -796,6 +842,27 @@ def solver_setup(model: ElasticModel, material: Material, bc: BoundaryConditions
     if linear_solver == "multigrid":
         layout, hierarchy = _multigrid_for(model, material, bc.fixed, node_arrays, preconditioner_material, material_is_traced)
     return SolverSetup(linear_solver, n, pattern, layout, hierarchy)
+
+
+def _term_nodes(model: ElasticModel, material):
+    """The node arrays ``[(E_t, k_t), ...]`` of ``model.terms(material)``, the terms traced
+    abstractly (``jax.eval_shape``): their parameters are not needed here, and evaluated
+    eagerly they cost one compiled program per operation (~30 at 106k unknowns, ~1 s CPU).
+    Where a node array is itself computed in ``terms`` (it is then a tracer of that
+    abstract trace), or where ``terms`` needs the material's values, the terms are evaluated
+    as they are called."""
+    nodes = []
+
+    def collect(m):
+        nodes.extend(t.nodes for t in model.terms(m))
+
+    try:
+        jax.eval_shape(collect, material)
+    except jax.errors.ConcretizationTypeError:
+        nodes = [None]
+    if any(a is None or isinstance(a, jax.core.Tracer) for a in nodes):
+        nodes = [t.nodes for t in model.terms(material)]
+    return nodes
 
 
 #: The linear solvers of :func:`solve_static`.
