@@ -65,15 +65,16 @@ def test_closed_form_cell_tangents_are_the_energies_derivatives(shape):
     c, s, lz, lam, mu = jnp.array([0.4, 1.6, 0.9, 1.01]), 1.13, 0.82, 9.0, 1.3
     F = jnp.diag(jnp.array([1.0, 1.0, lz]))
     g = jnp.asarray(M._cell_spring_factors(np.asarray(shape)[None])[0])
-    P, A = M._matched_cell_tangent(c, s, lz, jnp.asarray(shape), g, lam, mu)
+    # every side jitted: one program each instead of the operations compiled one by one
+    P, A = jax.jit(M._matched_cell_tangent)(c, s, lz, jnp.asarray(shape), g, lam, mu)
     dens = lambda F: _cell_density(c, s, F, shape, lam, mu)  # noqa: E731
-    np.testing.assert_allclose(P, jax.grad(dens)(F), rtol=0, atol=1e-12 * np.max(np.abs(P)))
-    np.testing.assert_allclose(A, jax.hessian(dens)(F), rtol=0, atol=1e-12 * np.max(np.abs(A)))
+    np.testing.assert_allclose(P, jax.jit(jax.grad(dens))(F), rtol=0, atol=1e-12 * np.max(np.abs(P)))
+    np.testing.assert_allclose(A, jax.jit(jax.hessian(dens))(F), rtol=0, atol=1e-12 * np.max(np.abs(A)))
     lam0 = 1.15
     nh = lambda F: neo_hookean_energy_density(F @ jnp.diag(jnp.array([lam0, lam0, 1.0])), lam, mu) / lam0**2  # noqa: E731
-    P, A = M._pre_stretched_neo_hookean_tangent(lam0, lz, lam, mu)
-    np.testing.assert_allclose(P, jax.grad(nh)(F), rtol=0, atol=1e-12 * np.max(np.abs(P)))
-    np.testing.assert_allclose(A, jax.hessian(nh)(F), rtol=0, atol=1e-12 * np.max(np.abs(A)))
+    P, A = jax.jit(M._pre_stretched_neo_hookean_tangent)(lam0, lz, lam, mu)
+    np.testing.assert_allclose(P, jax.jit(jax.grad(nh))(F), rtol=0, atol=1e-12 * np.max(np.abs(P)))
+    np.testing.assert_allclose(A, jax.jit(jax.hessian(nh))(F), rtol=0, atol=1e-12 * np.max(np.abs(A)))
 
 
 def test_the_cell_carries_the_neo_hookean_tension_and_moduli():
@@ -118,14 +119,17 @@ def test_factor_gradients_match_central_differences():
         c, s = matched_lattice_design(lam0, nu)
         return jnp.concatenate([c, jnp.atleast_1d(s)])
 
+    # jitted: forward mode with the value as its auxiliary output (one program, which the
+    # difference evaluations reuse) and reverse mode, instead of the operations one by one
+    jac_and_value = jax.jit(jax.jacfwd(lambda a, b: (lambda y: (y, y))(f(a, b)), argnums=(0, 1), has_aux=True))
     x = (1.12, 0.45)
-    J = [np.asarray(v) for v in jax.jacfwd(f, argnums=(0, 1))(*x)]
-    Jr = np.asarray(jax.jacrev(f)(*x))
+    J = [np.asarray(v) for v in jac_and_value(*x)[0]]
+    Jr = np.asarray(jax.jit(jax.jacrev(f))(*x))
     for i, h in ((0, 1e-5), (1, 1e-6)):
         up, dn = list(x), list(x)
         up[i] += h
         dn[i] -= h
-        fd = (np.asarray(f(*up)) - np.asarray(f(*dn))) / (2 * h)
+        fd = (np.asarray(jac_and_value(*up)[1]) - np.asarray(jac_and_value(*dn)[1])) / (2 * h)
         np.testing.assert_allclose(J[i], fd, rtol=1e-5, atol=1e-8)
     np.testing.assert_allclose(Jr, J[0], rtol=1e-10)
 
