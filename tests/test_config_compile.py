@@ -1,7 +1,10 @@
 """The compile cache of :class:`difftissue.config.SeparatelyCompiled` (issue 18): equal
 scenarios built twice in one process share one compiled program; scenarios that differ in
-anything compiled into the program (mesh, protocol, model) get their own, with the numbers of a
-fresh build; measured data are arguments of the programs, not constants.
+anything compiled into the program (static configuration, model) get their own, with the
+numbers of a fresh build; measured data are arguments of the programs, not constants, and so
+are the mesh, the protocol and the solver setup of the scenarios whose protocol takes its
+arrays as arguments (other node coordinates or depths of the same shapes share a program,
+each with its own numbers).
 
 Compilations are counted two ways: XLA backend compilations reported by
 ``jax.monitoring`` ('/jax/core/compile/backend_compile_duration') and the cache's own
