@@ -256,7 +256,8 @@ class SeparatelyCompiled:
         #: data, protocol, measured data) and the solver setup of its static solves as
         #: arguments (:func:`difftissue.scenarios.compiles_with_arguments`); otherwise only the
         #: measured data, the rest compiled in as constants
-        self.arrays_as_arguments = bool(ARRAYS_AS_ARGUMENTS and compiles_with_arguments(scenario))
+        host = mode == "forward" and HOST_SOLVES and bool(getattr(scenario, "solves_on_host", False))  # no program compiled
+        self.arrays_as_arguments = bool(ARRAYS_AS_ARGUMENTS and not host and compiles_with_arguments(scenario))
         if self.arrays_as_arguments:
             # Every array is an argument, keyed by shape and dtype: the program holds no
             # mesh-sized constant, and scenarios of one structure with other mesh values,
@@ -266,8 +267,13 @@ class SeparatelyCompiled:
             key, leaves, treedef, data_leaves = scenario_structure(scenario, arrays=True)
             probe = Material(*(jnp.asarray(x, dtype=jnp.float64) for x in (1.0, 0.25, 0.0, 1000.0, 1.0, 1.0)[:n_leaves]))
 
-            def data():
-                return tuple(leaves[i] for i in data_leaves), argument_setup(scenario, probe)
+            built: list = []
+
+            def data():  # once for all the programs of this scenario (value, tangents, VJP)
+                if not built:
+                    arrays = tuple(jnp.asarray(leaves[i]) for i in data_leaves)
+                    built.append((arrays, argument_setup(scenario, probe)))
+                return built[0]
         else:
             # The measured data are arguments of the compiled programs (``data``), everything
             # else of the scenario is compiled in and keys the programs shared with equal scenarios.
