@@ -31,6 +31,7 @@ from __future__ import annotations
 import collections
 import contextvars
 import dataclasses
+import functools
 import hashlib
 import math
 import warnings
@@ -759,6 +760,75 @@ class _ScenarioSolve:
         return self.program.fn(self._dynamic, self.setup(material), material, *extra)
 
 
+#: ``(scenario, setup, material key)`` while an outer program traces ``scenario``'s arrays as
+#: its arguments (:func:`traced_arguments`), None otherwise: read by :func:`_jitted_solve`.
+_TRACED_ARGUMENTS: contextvars.ContextVar = contextvars.ContextVar("difftissue_scenario_traced_arguments", default=None)
+
+
+def _material_key(material):
+    """The structure of a material that a solver setup is built for (pytree, leaf shapes and dtypes)."""
+    leaves, treedef = jax.tree_util.tree_flatten(material)
+    return (treedef, tuple((jnp.shape(v), jnp.result_type(v)) for v in leaves))
+
+
+def compiles_with_arguments(scenario) -> bool:
+    """Whether ``scenario`` (concrete) has :func:`argument_setup`: its protocol can be compiled
+    with its arrays and a solver setup as arguments (every static solve through the scenario's
+    own model and fixed DOFs: the full indentation, compression, FEM field). False for the
+    condensed indentation (its protocol needs its NumPy index sets), scenarios of other kinds
+    and scenarios with traced leaves."""
+    return _takes_arguments(scenario, jax.tree_util.tree_leaves(scenario))
+
+
+def argument_setup(scenario, material):
+    """The :class:`~difftissue.solvers.static.SolverSetup` of ``scenario``'s static solves for
+    materials of ``material``'s structure (values unused), when its protocol can be compiled
+    with its arrays as arguments (the full indentation, compression, FEM field: every solve
+    through the scenario's own model and fixed DOFs); None otherwise (the condensed
+    indentation, whose protocol needs its NumPy index sets, and scenarios of other kinds).
+    ``scenario`` must be concrete (not traced). With it, an outer program can take the
+    scenario's array leaves and the setup's as arguments (:func:`traced_arguments`)."""
+    if not compiles_with_arguments(scenario):
+        return None
+    fn = _jitted_solve(scenario)
+    if not isinstance(fn, _ScenarioSolve):
+        return None
+    return fn.setup(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material))
+
+
+class traced_arguments:
+    """Context manager: while it is active, the protocol of ``scenario`` (a scenario whose
+    array leaves an outer transformation traces, e.g. the program of
+    :class:`~difftissue.config.SeparatelyCompiled`) is traced inline with ``setup`` (from
+    :func:`argument_setup` of the concrete scenario, its arrays possibly traced too) for its
+    static solves, instead of building a setup from its (traced) mesh. Only for materials of
+    the structure the setup was built for (``material``); another raises ConfigError."""
+
+    def __init__(self, scenario, setup, material):
+        self._value = (scenario, setup, _material_key(jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)))
+        self._token = None
+
+    def __enter__(self):
+        self._token = _TRACED_ARGUMENTS.set(self._value)
+        return self
+
+    def __exit__(self, *exc):
+        _TRACED_ARGUMENTS.reset(self._token)
+        return False
+
+
+def _traced_solve(scenario, setup, material_key, material, *extra):
+    """``scenario._solve_protocol`` traced inline with ``setup`` (see :class:`traced_arguments`)."""
+    if _material_key(material) != material_key:
+        raise ConfigError(f"{getattr(scenario, 'name', type(scenario).__name__)}: solved with a material of another structure than the "
+                          "solver setup passed to traced_arguments was built for")
+    token = _SOLVE_SETUP.set(setup)
+    try:
+        return scenario._solve_protocol(material, *extra)
+    finally:
+        _SOLVE_SETUP.reset(token)
+
+
 def _jitted_solve(scenario):
     """``scenario.solve`` compiled once per scenario, shared by equal scenarios.
 
@@ -771,8 +841,12 @@ def _jitted_solve(scenario):
     The others (the condensed indentation, a scenario traced by an outer transformation) are
     closed over (their arrays stay concrete NumPy, which their protocol needs), shared by
     equal scenarios (:func:`_structure_key`: same mesh, protocol and settings) when small.
-    Inside an outer ``jit`` (a fit) the call is simply inlined.
+    Inside an outer ``jit`` (a fit) the call is simply inlined. A scenario traced by an outer
+    program with its setup given (:class:`traced_arguments`) is traced inline with that setup.
     """
+    traced = _TRACED_ARGUMENTS.get()
+    if traced is not None and traced[0] is scenario:
+        return functools.partial(_traced_solve, *traced)
     key = id(scenario)
     hit = _JITTED.get(key)
     if hit is not None and hit[0]() is scenario:
@@ -1959,6 +2033,10 @@ class FEMField(eqx.Module):
     #: ``"interpolate"``: ``(n, 3)`` coordinates [m] of the observed reference nodes
     #: (``observe_dofs // 3`` indexes them); ``"own"``: ``None`` (the model's nodes).
     observed_points: np.ndarray | None = None
+    #: the axes (0, 1, 2: x, y, z) of the measured reaction components, in the order of the
+    #: prediction (static: they set its length; ``predict`` must not read ``reaction_mask``'s
+    #: values, which a compiled program may take as an argument)
+    reaction_components: tuple[int, ...] = eqx.field(static=True, default=())
 
     def __init__(
         self,
@@ -2000,6 +2078,7 @@ class FEMField(eqx.Module):
             fields = _interpolated_fem_field(mesh, displacement, specimen, prescribed, model, observe, reaction, displacement_sigma, force_sigma, tolerance)
             for k, v in fields.items():
                 setattr(self, k, v)
+            self.reaction_components = _reaction_components(self.reaction_mask)
             return
         if tolerance is not None:
             raise ConfigError("tolerance is used only when the reference is interpolated onto a specimen mesh")
@@ -2076,6 +2155,7 @@ class FEMField(eqx.Module):
         self.x_label, self.y_label = "observation index", "displacement [m] / force [N]"
         self.bc = bc
         self.model = make_model(mesh, model)
+        self.reaction_components = _reaction_components(self.reaction_mask)
 
     def solve(self, material: Material):
         """The static solution of the model under the reference's boundary conditions
@@ -2119,8 +2199,8 @@ class FEMField(eqx.Module):
         u = sol.displacement if self.interpolation is None else self.interpolation(sol.displacement)
         out = [u.reshape(-1)[self.observe_dofs]]
         if self.reaction_mask is not None:
-            m = self.reaction_mask
-            out.append(jnp.stack([jnp.sum(jnp.where(jnp.asarray(m[:, c]), sol.reaction[:, c], 0.0)) for c in range(3) if m[:, c].any()]))
+            m = jnp.asarray(self.reaction_mask)
+            out.append(jnp.stack([jnp.sum(jnp.where(m[:, c], sol.reaction[:, c], 0.0)) for c in self.reaction_components]))
         return jnp.concatenate(out)
 
     def record(self) -> dict:
@@ -2255,6 +2335,11 @@ def _interpolated_fem_field(ref, displacement, specimen: TetMesh, prescribed, mo
         "bc": bc,
         "model": make_model(specimen, model),
     }
+
+
+def _reaction_components(mask) -> tuple[int, ...]:
+    """The axes with a measured reaction in a FEM field's ``(n, 3)`` reaction mask (None: none)."""
+    return () if mask is None else tuple(int(c) for c in range(3) if np.asarray(mask)[:, c].any())
 
 
 def _node_set(mesh: TetMesh, spec: Any, key: str) -> np.ndarray:

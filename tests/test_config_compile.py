@@ -1,7 +1,10 @@
 """The compile cache of :class:`difftissue.config.SeparatelyCompiled` (issue 18): equal
 scenarios built twice in one process share one compiled program; scenarios that differ in
-anything compiled into the program (mesh, protocol, model) get their own, with the numbers of a
-fresh build; measured data are arguments of the programs, not constants.
+anything compiled into the program (static configuration, model) get their own, with the
+numbers of a fresh build; measured data are arguments of the programs, not constants, and so
+are the mesh, the protocol and the solver setup of the scenarios whose protocol takes its
+arrays as arguments (other node coordinates or depths of the same shapes share a program,
+each with its own numbers).
 
 Compilations are counted two ways: XLA backend compilations reported by
 ``jax.monitoring`` ('/jax/core/compile/backend_compile_duration') and the cache's own
@@ -132,8 +135,7 @@ def test_other_measurements_of_the_same_specimen_and_protocol_share_the_program(
 
 
 @pytest.mark.parametrize("change", [
-    {"size": 0.02},                          # another concrete mesh, same shapes and connectivity (same stresses)
-    {"strains": [0.05, 0.1, 0.15, 0.25]},    # another protocol, same number of steps
+    {"size": 0.02},                          # another cube size: its height and area are static floats, compiled in
     {"platens": "bonded"},                   # another static configuration (and boundary data)
 ])
 def test_a_scenario_that_differs_in_what_is_compiled_in_gets_its_own_program(first, tmp_path, change):
@@ -157,6 +159,72 @@ def test_a_scenario_that_differs_in_what_is_compiled_in_gets_its_own_program(fir
     assert c2.compiled == 1 and c2.hits == 0
     np.testing.assert_array_equal(y, yf)
     np.testing.assert_array_equal(jt, jtf)
+
+
+def test_another_protocol_of_the_same_shapes_shares_the_program_and_gets_its_own_numbers(first, tmp_path):
+    """The compression's arrays (mesh, boundary data, the strains) are arguments of its
+    programs: other strains of the same number share the program, with the numbers of the
+    scenario's own predict."""
+    sc1, (y1, _) = first
+    assert sc1.arrays_as_arguments
+    base = _wrapped(_config(tmp_path))
+    base.evaluate(MATERIAL)  # the reference program in the cache (compiled or shared)
+    other = _wrapped(_config(tmp_path, strains=[0.05, 0.1, 0.15, 0.25]))
+    assert scenario_structure(other.inner, arrays=True)[0] == scenario_structure(base.inner, arrays=True)[0]
+    y, _, c = _value_and_tangents(other)
+    assert c.compiled == 0 and c.hits == 1 and c.backend == 0, vars(c)
+    assert not np.allclose(y, y1, rtol=1e-6)
+    direct = np.asarray(other.inner.predict(MATERIAL))
+    np.testing.assert_allclose(y, direct, rtol=1e-12, atol=1e-12 * np.max(np.abs(direct)))
+
+
+def _indentation(width):
+    """A small sphere indentation (stable neo-Hookean, full solve) on a quarter block of the
+    given width [m] (1 mm thick): the same pytree structure and shapes for any width (the
+    indenter, placed on the top surface, is a static field)."""
+    from difftissue.scenarios import Indentation, indentation_block
+
+    mesh = indentation_block((width, width, 1e-3), (3, 3, 2), symmetry="quarter")
+    d = np.array([20e-6, 40e-6])
+    return Indentation(mesh, d, np.ones(2), indenter="sphere", radius=1e-3, model="stable_neo_hookean", symmetry="quarter", name="s")
+
+
+def test_other_mesh_coordinates_share_the_program_and_get_their_own_predictions():
+    """Two indentation blocks of other width (other node coordinates, the same structure):
+    the mesh and the solver setup are arguments, not constants, so the second scenario takes
+    the first one's program (no compilation) and still gets its own forces and tangents,
+    those of its own ``predict`` (its own compiled protocol) to 1e-12."""
+    thin, thick = _indentation(1.0e-3), _indentation(3.0e-3)
+    assert not np.array_equal(np.asarray(thin.model.rest_points), np.asarray(thick.model.rest_points))
+    wt, wk = (SeparatelyCompiled(sc, fields=("youngs_modulus", "poisson_ratio")) for sc in (thin, thick))
+    assert wt.arrays_as_arguments and wk.arrays_as_arguments
+    assert scenario_structure(thin, arrays=True)[0] == scenario_structure(thick, arrays=True)[0]
+    assert scenario_structure(thin)[0] != scenario_structure(thick)[0]  # the closed-over key tells them apart
+    m = Material(1.0e4, 0.45)
+    with _Compiles() as c1:
+        yt = wt.evaluate(m)
+    with _Compiles() as c2:
+        yk = wk.evaluate(m)
+    assert c1.compiled == 1 and c2.compiled == 0 and c2.hits == 1 and c2.backend == 0, (vars(c1), vars(c2))
+    assert not np.allclose(yk, yt, rtol=1e-4)  # other forces: each its own numbers
+    for w, sc, y in ((wt, thin, yt), (wk, thick, yk)):
+        direct = np.asarray(sc.predict(m))
+        np.testing.assert_allclose(y, direct, rtol=1e-12, atol=0)
+        # the Poisson's ratio tangent (an implicit solve per depth) through the shared program
+        _, t = jax.jvp(lambda nu: w.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
+        _, td = jax.jvp(lambda nu: sc.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
+        np.testing.assert_allclose(np.asarray(t), np.asarray(td), rtol=1e-10, atol=1e-12 * np.max(np.abs(td)))
+
+
+def test_the_condensed_indentation_keeps_its_arrays_compiled_in():
+    """The condensed indentation reads its NumPy index sets while traced: its programs take
+    the measured data only (the mesh a constant), keyed by content."""
+    from difftissue.scenarios import Indentation, indentation_block
+
+    mesh = indentation_block((2e-3, 2e-3, 1e-3), (3, 3, 2), symmetry="quarter")
+    sc = Indentation(mesh, np.array([20e-6]), np.ones(1), indenter="sphere", radius=1e-3, model="fem_linear", symmetry="quarter")
+    assert sc.condensation is not None
+    assert not SeparatelyCompiled(sc).arrays_as_arguments
 
 
 def test_the_key_holds_what_is_compiled_in_and_not_the_measured_data(tmp_path):

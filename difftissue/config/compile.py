@@ -19,6 +19,7 @@ import collections
 import hashlib
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,6 +27,7 @@ import numpy as np
 from ..errors import ConfigError
 from ..fit.problem import data_leaf_indices, hash_scenario_leaves
 from ..materials import Material
+from ..scenarios import argument_setup, compiles_with_arguments, traced_arguments
 
 __all__ = ["SeparatelyCompiled", "compile_cache_info", "clear_compile_cache", "COMPILE_CACHE_SIZE", "HOST_SOLVES"]
 
@@ -67,23 +69,29 @@ def clear_compile_cache() -> None:
         _STATS[k] = 0
 
 
-def scenario_structure(scenario) -> tuple[tuple | None, list, Any, tuple[int, ...]]:
+def scenario_structure(scenario, *, arrays: bool = False) -> tuple[tuple | None, list, Any, tuple[int, ...]]:
     """``(key, leaves, treedef, data)`` of a scenario as a pytree: ``leaves`` and ``treedef``
-    from :func:`jax.tree_util.tree_flatten`; ``data`` the indices of the leaves that are its
-    measured data (:data:`~difftissue.fit.problem.DATA_ATTRIBUTES`: arguments of the compiled
-    programs); ``key`` what the traced program depends on besides those (see the module
-    docstring; the leaves are hashed by :func:`difftissue.fit.problem.hash_scenario_leaves`, the
-    formula of the fit engine's :meth:`~difftissue.fit.FitProblem.structure_key`), or None when the
-    static configuration cannot be hashed (then the programs are not shared). A scenario that
-    is not a pytree is one leaf, keyed by identity."""
+    from :func:`jax.tree_util.tree_flatten`; ``data`` the indices of the leaves that are
+    arguments of the compiled programs: its measured data
+    (:data:`~difftissue.fit.problem.DATA_ATTRIBUTES`), or with ``arrays`` every array leaf
+    (mesh, boundary data, protocol, measured data, ...); ``key`` what the traced program
+    depends on besides those (see the module docstring; the leaves are hashed by
+    :func:`difftissue.fit.problem.hash_scenario_leaves`, the formula of the fit engine's
+    :meth:`~difftissue.fit.FitProblem.structure_key`: the arguments by shape and dtype), or None
+    when the static configuration cannot be hashed (then the programs are not shared). A
+    scenario that is not a pytree is one leaf, keyed by identity."""
     leaves, treedef = jax.tree_util.tree_flatten(scenario)
-    data = data_leaf_indices(scenario, leaves)
+    if arrays:
+        data = tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf))
+    else:
+        data = data_leaf_indices(scenario, leaves)
     try:
         hash(treedef)
     except TypeError:  # a static field that cannot be hashed
         return None, leaves, treedef, data
     h = hashlib.sha256()
-    objects = hash_scenario_leaves(h, leaves, data, data_tag="data")  # objects by identity: the cached program keeps them alive
+    # objects by identity: the cached program keeps them alive; the tag tells the two kinds apart
+    objects = hash_scenario_leaves(h, leaves, data, data_tag="arg" if arrays else "data")
     return (type(scenario), treedef, h.hexdigest(), tuple(objects)), leaves, treedef, data
 
 
@@ -99,7 +107,8 @@ def _program(jitted, specs, key, options=None):
         _STATS["compilations"] += 1
         _STATS["unshared"] += 1
         return jitted.lower(*specs).compile(compiler_options=options)
-    key = (key, jax.tree_util.tree_map(lambda s: (s.shape, str(s.dtype)), specs), _settings(), tuple(sorted((options or {}).items())))
+    spec_leaves, spec_tree = jax.tree_util.tree_flatten(specs)
+    key = (key, spec_tree, tuple((s.shape, str(s.dtype)) for s in spec_leaves), _settings(), tuple(sorted((options or {}).items())))
     program = _PROGRAMS.pop(key, None)
     if program is None:
         _STATS["compilations"] += 1
@@ -114,8 +123,10 @@ def _program(jitted, specs, key, options=None):
 
 def _compiled_per_shape(fn, key=None, data=(), options=None):
     """``fn(data, *args)`` compiled ahead of time for the shapes of the float64 ``args`` it is
-    called with, once per shape; called as ``call(*args)``. ``key``: what the program depends
-    on besides its arguments (:func:`scenario_structure` and the program's kind), so that an
+    called with, once per shape; called as ``call(*args)``. ``data``: a pytree of arrays passed
+    as the program's first argument, or a function returning it (called once, at the first
+    call: e.g. a solver setup built only when needed). ``key``: what the program depends on
+    besides its arguments (:func:`scenario_structure` and the program's kind), so that an
     equal scenario reuses the program; None: compiled for this function alone. ``options``:
     XLA compiler options (None: the defaults).
 
@@ -124,15 +135,22 @@ def _compiled_per_shape(fn, key=None, data=(), options=None):
     cache on that context. The ahead-of-time executable is one compilation for both."""
     jitted = jax.jit(fn)
     compiled: dict[tuple, Any] = {}
-    data = tuple(jnp.asarray(d) for d in data)
-    data_specs = tuple(jax.ShapeDtypeStruct(d.shape, d.dtype) for d in data)
+    state: dict[str, Any] = {}
+
+    def arguments():
+        if "data" not in state:
+            d = jax.tree_util.tree_map(jnp.asarray, data() if callable(data) else data)
+            state["data"] = d
+            state["specs"] = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), d)
+        return state["data"], state["specs"]
 
     def call(*args):
         shapes = tuple(np.shape(a) for a in args)
+        d, data_specs = arguments()
         if shapes not in compiled:
             specs = (data_specs, *(jax.ShapeDtypeStruct(sh, jnp.float64) for sh in shapes))
             compiled[shapes] = _program(jitted, specs, key, options)
-        return compiled[shapes](data, *args)
+        return compiled[shapes](d, *args)
 
     return call
 
@@ -151,6 +169,12 @@ def _compiler_options(scenario) -> dict | None:
 #: of compiling their protocol: the same numbers to round-off, without the seconds of tracing
 #: and compiling it (the one-cube Ecoflex fit). False: always the compiled protocol.
 HOST_SOLVES = True
+
+#: Scenarios whose protocol can take its arrays as arguments
+#: (:func:`difftissue.scenarios.compiles_with_arguments`) are compiled with every array and
+#: the solver setup as arguments (:attr:`SeparatelyCompiled.arrays_as_arguments`). False:
+#: only the measured data are arguments, the mesh and the solver setup constants.
+ARRAYS_AS_ARGUMENTS = True
 
 _MATERIAL_LEAVES = ("youngs_modulus", "poisson_ratio", "cubic_coefficient", "density", "pre_stretch")
 
@@ -227,21 +251,49 @@ class SeparatelyCompiled:
         self._leaves = _MATERIAL_LEAVES + (("pre_stretch_y",) if pre_stretch_y else ())
         n_leaves = len(self._leaves)
 
-        # The measured data are arguments of the compiled programs (``data``), everything else
-        # of the scenario is compiled in and keys the programs shared with equal scenarios.
-        key, leaves, treedef, data_leaves = scenario_structure(scenario)
-        data = tuple(leaves[i] for i in data_leaves)
         options = _compiler_options(scenario)
+        #: whether the compiled programs take every array of the scenario (mesh, boundary
+        #: data, protocol, measured data) and the solver setup of its static solves as
+        #: arguments (:func:`difftissue.scenarios.compiles_with_arguments`); otherwise only the
+        #: measured data, the rest compiled in as constants
+        host = mode == "forward" and HOST_SOLVES and bool(getattr(scenario, "solves_on_host", False))  # no program compiled
+        self.arrays_as_arguments = bool(ARRAYS_AS_ARGUMENTS and not host and compiles_with_arguments(scenario))
+        if self.arrays_as_arguments:
+            # Every array is an argument, keyed by shape and dtype: the program holds no
+            # mesh-sized constant, and scenarios of one structure with other mesh values,
+            # depths or data share it. The setup (block layout, multigrid hierarchy) is built
+            # from the concrete scenario at the first compilation, for the material structure
+            # of the program (the values of ``probe`` are not used).
+            key, leaves, treedef, data_leaves = scenario_structure(scenario, arrays=True)
+            probe = Material(*(jnp.asarray(x, dtype=jnp.float64) for x in (1.0, 0.25, 0.0, 1000.0, 1.0, 1.0)[:n_leaves]))
+
+            built: list = []
+
+            def data():  # once for all the programs of this scenario (value, tangents, VJP)
+                if not built:
+                    arrays = tuple(jnp.asarray(leaves[i]) for i in data_leaves)
+                    built.append((arrays, argument_setup(scenario, probe)))
+                return built[0]
+        else:
+            # The measured data are arguments of the compiled programs (``data``), everything
+            # else of the scenario is compiled in and keys the programs shared with equal scenarios.
+            key, leaves, treedef, data_leaves = scenario_structure(scenario)
+            data = (tuple(leaves[i] for i in data_leaves), None)
 
         def f(data, v):
+            arrays, setup = data
             if data_leaves:
                 rebuilt = list(leaves)
-                for i, d in zip(data_leaves, data):
+                for i, d in zip(data_leaves, arrays):
                     rebuilt[i] = d
                 sc = jax.tree_util.tree_unflatten(treedef, rebuilt)
             else:
                 sc = scenario
-            return sc.predict(Material(*(v[i] for i in range(n_leaves))))
+            material = Material(*(v[i] for i in range(n_leaves)))
+            if setup is None:
+                return sc.predict(material)
+            with traced_arguments(sc, setup, material):
+                return sc.predict(material)
 
         def program_key(kind):
             return None if key is None else (kind, key)
@@ -263,6 +315,8 @@ class SeparatelyCompiled:
             asarray = np.asarray if self.solves_on_host else jnp.asarray
             try:
                 return fn(asarray(v, dtype=np.float64), *(asarray(a, dtype=np.float64) for a in args))
+            except jax.errors.JAXTypeError:
+                raise  # a tracing error (a value read on the host while traced): a defect, not a failed solve
             except Exception as e:  # a static solve that failed to converge, an inverted element, ...
                 # an equinox runtime error ends with a paragraph on filter_jit after a dashed
                 # line: keep the message before it
