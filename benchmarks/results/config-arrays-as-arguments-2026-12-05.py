@@ -1,6 +1,6 @@
 """108k (cells_per_contact_radius 6) automatic 3-D sphere indentation through the config path:
 SeparatelyCompiled forward (value) + one-tangent JVP. argv: model cells_per_a [direct]"""
-import sys, time, resource, os
+import sys, time, resource, os, tempfile
 import numpy as np
 import jax
 jax.config.update("jax_enable_x64", True)
@@ -12,8 +12,7 @@ model, m = sys.argv[1], float(sys.argv[2])
 direct = len(sys.argv) > 3 and sys.argv[3] == "direct"
 d = np.array([10e-6, 15e-6, 20e-6])
 f = np.asarray(analytic.hertz_force(d, 1e4, 0.45, 1e-3))
-tmp = f"/work/scratch/cfgargs/cfg/{model}_{m}"
-os.makedirs(tmp, exist_ok=True)
+tmp = tempfile.mkdtemp(prefix=f"cfg-{model}-{m}-")
 open(f"{tmp}/s.csv", "w").write("depth (um),force (uN)\n" + "\n".join(f"{a*1e6:.9f},{b*1e6:.12g}" for a, b in zip(d, f)) + "\n")
 open(f"{tmp}/s.toml", "w").write(f"""[material]
 youngs_modulus = 7e3
