@@ -36,6 +36,7 @@ import scipy.sparse
 from ..errors import ModelError
 from ..materials import Material, lame_parameters
 from ..models import ElasticModel, FEMModel
+from ..structure_keys import hash_scenario_leaves
 from .static import AUTO_DENSE_MAX, _element_data
 
 __all__ = ["SpectralDecomposition", "spectral_decomposition", "spectral_response_columns", "spectral_unsupported", "SPECTRAL_MAX_UNKNOWNS"]
@@ -83,16 +84,15 @@ def spectral_unsupported(model: ElasticModel, free=None) -> str | None:
     return None
 
 
-def _key(model: ElasticModel, free: np.ndarray) -> str:
+def _key(model: ElasticModel, free: np.ndarray) -> tuple:
+    """The cache key of a decomposition: the model's pytree structure and leaves (hashed by
+    :func:`~difftissue.structure_keys.hash_scenario_leaves`, the project's one formula) and ``free``."""
     h = hashlib.sha256()
     leaves, treedef = jax.tree_util.tree_flatten(model)
     h.update(repr(treedef).encode())
-    for a in leaves:
-        a = np.ascontiguousarray(a)
-        h.update(f"{a.shape}{a.dtype}|".encode())
-        h.update(a.tobytes())
+    objects = hash_scenario_leaves(h, leaves, ())
     h.update(np.ascontiguousarray(free, dtype=bool).tobytes())
-    return h.hexdigest()
+    return h.hexdigest(), tuple(objects)
 
 
 @eqx.filter_jit
@@ -145,9 +145,9 @@ def spectral_decomposition(model: ElasticModel, free) -> SpectralDecomposition:
     hit = _CACHE.pop(key, None)
     if hit is None:
         fi = np.flatnonzero(free.reshape(-1))
-        X = jnp.asarray(model.rest_points, dtype=jnp.float64) if jax.config.jax_enable_x64 else None
-        if X is None:
+        if not jax.config.jax_enable_x64:
             raise ModelError("the spectral decomposition needs float64 (jax.config.update('jax_enable_x64', True))")
+        X = jnp.asarray(model.rest_points, dtype=jnp.float64)
         k1, k2 = _pencil(model, X, fi)
         k_mu = k1
         k_lam = k2 - k1
