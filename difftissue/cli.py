@@ -20,7 +20,7 @@ from pathlib import Path
 
 from ._version import __version__
 
-__all__ = ["main", "build_parser", "xla_flags", "XLA_CPU_FLAGS", "XLA_CPU_FLAGS_JAXLIB"]
+__all__ = ["main", "build_parser"]
 
 _UNITS = ("m", "cm", "mm", "um")
 
@@ -1090,49 +1090,10 @@ def build_parser() -> argparse.ArgumentParser:
 OPENBLAS_THREADS = "1"
 
 
-#: XLA options of a command-line run (and of the test suite, which sets the same through
-#: :func:`xla_flags`): XLA's older element-wise fusion on a CPU (the newer fusion emitters off).
-#: Compilation dominates a command-line fit of a small specimen, and it compiles the programs
-#: in 20-30 % less CPU with the same call speed; results differ from the default compilation
-#: in the last bits (docs/performance.md, "XLA options of the command line").
-XLA_CPU_FLAGS = {"xla_cpu_use_fusion_emitters": "false"}
-
-#: jaxlib releases (major, minor) known to have every flag of :data:`XLA_CPU_FLAGS`. XLA stops
-#: the process on a flag in ``XLA_FLAGS`` that it does not know, so another jaxlib gets none.
-XLA_CPU_FLAGS_JAXLIB = ((0, 10),)
-
-
-def xla_flags(current: str | None, jaxlib_version: str | None = None) -> str | None:
-    """The ``XLA_FLAGS`` value a command-line run uses: ``current`` (the user's value, None
-    when unset) with each flag of :data:`XLA_CPU_FLAGS` appended that it does not set itself.
-    ``current`` unchanged when ``jaxlib_version`` (default: the installed jaxlib's) is not a
-    release of :data:`XLA_CPU_FLAGS_JAXLIB`. The flags must be in the environment before JAX
-    compiles its first program (XLA reads them once)."""
-    if jaxlib_version is None:
-        from importlib.metadata import PackageNotFoundError, version
-
-        try:
-            jaxlib_version = version("jaxlib")
-        except PackageNotFoundError:
-            return current
-    release = tuple(int(x) for x in re.findall(r"\d+", jaxlib_version)[:2])
-    if release not in XLA_CPU_FLAGS_JAXLIB:
-        return current
-    value = current or ""
-    for name, setting in XLA_CPU_FLAGS.items():
-        if not re.search(rf"(^|\s)--{re.escape(name)}(=|\s|$)", value):
-            value = f"{value} --{name}={setting}".strip()
-    return value or current
-
-
 def main(argv: list[str] | None = None) -> int:
     # Before anything loads NumPy: OpenBLAS reads it once, when it is loaded. The command line
     # is the one place that sets it (the library does not touch the environment).
     os.environ.setdefault("OPENBLAS_NUM_THREADS", OPENBLAS_THREADS)
-    # Before JAX compiles anything (XLA reads its flags once); a flag the user set is kept.
-    flags = xla_flags(os.environ.get("XLA_FLAGS"))
-    if flags is not None:
-        os.environ["XLA_FLAGS"] = flags
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "func", None):

@@ -9,11 +9,7 @@ One OpenBLAS thread (``OPENBLAS_NUM_THREADS=1`` unless set): jaxlib's CPU LAPACK
 dense Cholesky of every small static solve) run in SciPy's OpenBLAS, whose worker threads
 busy-wait; on the suite's shared cores one evaluation of a 125-node indentation protocol
 cost 0.3-10 s CPU with them and 0.064 s without (docs/dev/performance-history.md, 2026-12-05).
-It must be set before NumPy / SciPy load OpenBLAS, i.e. before ``import jax``.
-
-``XLA_FLAGS`` gets the command line's XLA options (``difftissue.cli.xla_flags``: the user's
-flags kept, ``--xla_cpu_use_fusion_emitters=false`` added), so the suite runs the programs that
-``difftissue`` commands run."""
+It must be set before NumPy / SciPy load OpenBLAS, i.e. before ``import jax``."""
 
 import faulthandler
 import os
@@ -21,13 +17,6 @@ from pathlib import Path
 
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
-# The command line's XLA options (XLA's older CPU fusion), so that the tests compile and run the
-# programs a command-line user gets; XLA reads XLA_FLAGS when JAX compiles its first program.
-from difftissue.cli import xla_flags  # noqa: E402
-
-if (_XLA_FLAGS := xla_flags(os.environ.get("XLA_FLAGS"))) is not None:
-    os.environ["XLA_FLAGS"] = _XLA_FLAGS
 
 import jax  # noqa: E402
 import pytest  # noqa: E402
