@@ -2,8 +2,8 @@
 
 :func:`fit_batch` fits the same material parameters to each of ``B`` specimens -- the same
 scenarios (same mesh, model, indenter, protocol length) with their own measured data and
-their own initial material -- as one ``jax.vmap`` over the specimens of the ``jax.vmap`` over
-the starts that :func:`difftissue.fit.fit` already runs. The optimiser (the same
+their own initial material -- as one ``jax.vmap`` over every start of every specimen of the
+single-start step that :func:`difftissue.fit.fit` runs. The optimiser (the same
 Levenberg--Marquardt / Gauss--Newton of optimistix, Adam or L-BFGS of optax, the same losses,
 tolerances and stopping rule as :func:`~difftissue.fit.fit`) steps every specimen at once; a
 specimen whose starts have all stopped is frozen while the others go on. The result holds one
@@ -60,7 +60,15 @@ SPECTRAL_MIN_SPECIMENS = 2
 #: concurrency-optimised CPU scheduler (the default of jaxlib 0.10) deadlocked batched
 #: Levenberg--Marquardt steps of simulated compressions in earlier versions
 #: (docs/dev/scale-investigation.md); with it off they ran.
-CPU_COMPILER_OPTIONS = {"xla_cpu_enable_concurrency_optimized_scheduler": False, "xla_backend_optimization_level": 0}
+CPU_COMPILER_OPTIONS = {"xla_cpu_enable_concurrency_optimized_scheduler": False}
+
+#: XLA options added on a CPU for batches whose scenarios use the spectral solver: a batched
+#: step of such a batch runs in milliseconds (0.07 s CPU for 16 specimens of 2,187 unknowns)
+#: while compiling it takes seconds; XLA's backend optimisation level 0 compiles it in 4.0 s
+#: CPU instead of 6.3 s and runs it in 0.087 s instead of 0.074 s (break-even after about 180
+#: steps). Results agree with the default level to round-off (1e-12 relative in the fits of
+#: ``benchmarks/batch.py``). Batches that factorise per specimen keep XLA's default level.
+SPECTRAL_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
 # ============================================================================ result
@@ -312,8 +320,11 @@ def fit_batch(
         raise FitError(f"labels must be {B} distinct names, got {len(labels)} ({len(set(labels))} distinct)")
     if spectral is not None and not isinstance(spectral, bool):
         raise FitError(f"spectral must be None (automatic), True or False, got {spectral!r}")
+    uses_spectral = False
     if spectral or (spectral is None and B >= SPECTRAL_MIN_SPECIMENS):
-        specimens = [_spectral_specimen(sp, required=bool(spectral), label=label) for sp, label in zip(specimens, labels)]
+        switched = [_spectral_specimen(sp, required=bool(spectral), label=label) for sp, label in zip(specimens, labels)]
+        uses_spectral = any(a is not b for new, old in zip(switched, specimens) for a, b in zip(new, old))
+        specimens = switched
     if isinstance(initial, Material):
         initials = [initial] * B
     elif isinstance(initial, Sequence) and all(isinstance(m, Material) for m in initial):
@@ -353,7 +364,7 @@ def fit_batch(
     # (the batched init below reuses the trace and is the one program compiled)
     jax.eval_shape(engine.init, U[0], first)
     U = jnp.asarray(U)
-    fns = _batched_functions(engine, mesh)
+    fns = _batched_functions(engine, mesh, fast_compile=uses_spectral)
     dyn = fns["init"](U, data) if mesh is None else strong(jax.vmap(engine.init)(U, data))
     traces_before = fns["traces"][0]
     U, dyn, done_d, data_d = _place((U, dyn, done, data), mesh)
@@ -509,12 +520,14 @@ def _shared_structure(problems: list[FitProblem], labels) -> list[FitProblem]:
     return [pb._with_dynamic(dynamic) for pb in problems]
 
 
-def _batched_functions(engine, mesh) -> dict[str, Any]:
-    """The compiled batched step and evaluation of ``engine`` (kept with it, per mesh), from
-    the same single-start step as :func:`difftissue.fit.fit`: ``vmap`` over the starts inside
-    ``vmap`` over the specimens; with a mesh, called on each device's part of the batch."""
+def _batched_functions(engine, mesh, *, fast_compile: bool = False) -> dict[str, Any]:
+    """The compiled batched init, step and evaluation of ``engine`` (kept with it, per mesh and
+    ``fast_compile``: :data:`SPECTRAL_COMPILER_OPTIONS`), from the same single-start step as
+    :func:`difftissue.fit.fit`: one ``vmap`` over every start of every specimen; the step of an
+    optimistix method also returns the final evaluation of its new state. With a mesh, called
+    on each device's part of the batch."""
     cache = engine.__dict__.setdefault("_batch_functions", {})
-    key = None if mesh is None else (tuple(d.id for d in mesh.devices.reshape(-1)), mesh.axis_names)
+    key = (fast_compile, None if mesh is None else (tuple(d.id for d in mesh.devices.reshape(-1)), mesh.axis_names))
     hit = cache.get(key)
     if hit is not None:
         return hit
@@ -551,7 +564,9 @@ def _batched_functions(engine, mesh) -> dict[str, Any]:
         # broadcast by a separately compiled eager operation
         return strong(jax.vmap(engine.init)(U, data))
 
-    options = dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
+    options = None
+    if jax.default_backend() == "cpu":
+        options = {**CPU_COMPILER_OPTIONS, **(SPECTRAL_COMPILER_OPTIONS if fast_compile else {})}
     fns = {"step": jax.jit(step, compiler_options=options), "evaluate": jax.jit(evaluate, compiler_options=options), "traces": traces,
            "init": jax.jit(init, compiler_options=options)}
     if single_final is not None:
