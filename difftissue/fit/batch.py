@@ -2,8 +2,8 @@
 
 :func:`fit_batch` fits the same material parameters to each of ``B`` specimens -- the same
 scenarios (same mesh, model, indenter, protocol length) with their own measured data and
-their own initial material -- as one ``jax.vmap`` over the specimens of the ``jax.vmap`` over
-the starts that :func:`difftissue.fit.fit` already runs. The optimiser (the same
+their own initial material -- as one ``jax.vmap`` over every start of every specimen of the
+single-start step that :func:`difftissue.fit.fit` runs. The optimiser (the same
 Levenberg--Marquardt / Gauss--Newton of optimistix, Adam or L-BFGS of optax, the same losses,
 tolerances and stopping rule as :func:`~difftissue.fit.fit`) steps every specimen at once; a
 specimen whose starts have all stopped is frozen while the others go on. The result holds one
@@ -61,6 +61,14 @@ SPECTRAL_MIN_SPECIMENS = 2
 #: Levenberg--Marquardt steps of simulated compressions in earlier versions
 #: (docs/dev/scale-investigation.md); with it off they ran.
 CPU_COMPILER_OPTIONS = {"xla_cpu_enable_concurrency_optimized_scheduler": False}
+
+#: XLA options added on a CPU for batches whose scenarios use the spectral solver: a batched
+#: step of such a batch runs in milliseconds (0.07 s CPU for 16 specimens of 2,187 unknowns)
+#: while compiling it takes seconds; XLA's backend optimisation level 0 compiles it in 4.0 s
+#: CPU instead of 6.3 s and runs it in 0.087 s instead of 0.074 s (break-even after about 180
+#: steps). Results agree with the default level to round-off (1e-12 relative in the fits of
+#: ``benchmarks/batch.py``). Batches that factorise per specimen keep XLA's default level.
+SPECTRAL_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
 
 
 # ============================================================================ result
@@ -312,8 +320,11 @@ def fit_batch(
         raise FitError(f"labels must be {B} distinct names, got {len(labels)} ({len(set(labels))} distinct)")
     if spectral is not None and not isinstance(spectral, bool):
         raise FitError(f"spectral must be None (automatic), True or False, got {spectral!r}")
+    uses_spectral = False
     if spectral or (spectral is None and B >= SPECTRAL_MIN_SPECIMENS):
-        specimens = [_spectral_specimen(sp, required=bool(spectral), label=label) for sp, label in zip(specimens, labels)]
+        switched = [_spectral_specimen(sp, required=bool(spectral), label=label) for sp, label in zip(specimens, labels)]
+        uses_spectral = any(a is not b for new, old in zip(switched, specimens) for a, b in zip(new, old))
+        specimens = switched
     if isinstance(initial, Material):
         initials = [initial] * B
     elif isinstance(initial, Sequence) and all(isinstance(m, Material) for m in initial):
@@ -348,11 +359,13 @@ def fit_batch(
     done = np.zeros((B + padding, n_starts), dtype=bool)
     done[B:] = True  # padding: frozen from the start
 
-    U = jnp.asarray(U)
     first = jax.tree_util.tree_map(lambda x: x[0], data)
-    engine.init(U[0], first)  # fixes the optimiser state's static part, which the step closes over
-    dyn = strong(jax.vmap(engine.init)(U, data))
-    fns = _batched_functions(engine, mesh)
+    # fixes the optimiser state's static part, which the step closes over: traced, not compiled
+    # (the batched init below reuses the trace and is the one program compiled)
+    jax.eval_shape(engine.init, U[0], first)
+    U = jnp.asarray(U)
+    fns = _batched_functions(engine, mesh, fast_compile=uses_spectral)
+    dyn = fns["init"](U, data) if mesh is None else strong(jax.vmap(engine.init)(U, data))
     traces_before = fns["traces"][0]
     U, dyn, done_d, data_d = _place((U, dyn, done, data), mesh)
 
@@ -363,7 +376,14 @@ def fit_batch(
     finished = done.all(axis=1)
     spec_steps = np.zeros(B + padding, dtype=int)
 
-    step_fn = fns["step"]
+    last_final = []  # optimistix methods: the final evaluation of the last step's state (computed by the step)
+
+    def step_fn(U, dyn, done, data):
+        out = fns["step"](U, dyn, done, data)
+        if "final" not in fns:
+            return out
+        last_final[:] = [out[5]]
+        return out[:5]
 
     bar = progress_bar(progress, max_steps)
     task = None
@@ -386,7 +406,10 @@ def fit_batch(
             bar.stop()
     spec_steps[~finished] = state.step
     # padding rows never step and are dropped: only the specimens' rows must hold an evaluation
-    result = final_evaluation(fns.get("final"), fns["evaluate"], state.U, state.dyn, data_d, rows=slice(0, B), to_host=_to_host)
+    final_fn = fns.get("final")
+    if last_final:
+        final_fn = lambda U, dyn, data: last_final[0]  # noqa: E731 - the state after the last step: state.U, state.dyn
+    result = final_evaluation(final_fn, fns["evaluate"], state.U, state.dyn, data_d, rows=slice(0, B), to_host=_to_host)
     all_values, final, all_J, all_preds = (jax.tree_util.tree_map(_to_host, x) for x in result)
     history = state.history
     if not history:  # no step taken
@@ -497,12 +520,14 @@ def _shared_structure(problems: list[FitProblem], labels) -> list[FitProblem]:
     return [pb._with_dynamic(dynamic) for pb in problems]
 
 
-def _batched_functions(engine, mesh) -> dict[str, Any]:
-    """The compiled batched step and evaluation of ``engine`` (kept with it, per mesh), from
-    the same single-start step as :func:`difftissue.fit.fit`: ``vmap`` over the starts inside
-    ``vmap`` over the specimens; with a mesh, called on each device's part of the batch."""
+def _batched_functions(engine, mesh, *, fast_compile: bool = False) -> dict[str, Any]:
+    """The compiled batched init, step and evaluation of ``engine`` (kept with it, per mesh and
+    ``fast_compile``: :data:`SPECTRAL_COMPILER_OPTIONS`), from the same single-start step as
+    :func:`difftissue.fit.fit`: one ``vmap`` over every start of every specimen; the step of an
+    optimistix method also returns the final evaluation of its new state. With a mesh, called
+    on each device's part of the batch."""
     cache = engine.__dict__.setdefault("_batch_functions", {})
-    key = None if mesh is None else (tuple(d.id for d in mesh.devices.reshape(-1)), mesh.axis_names)
+    key = (fast_compile, None if mesh is None else (tuple(d.id for d in mesh.devices.reshape(-1)), mesh.axis_names))
     hit = cache.get(key)
     if hit is not None:
         return hit
@@ -511,8 +536,20 @@ def _batched_functions(engine, mesh) -> dict[str, Any]:
 
     def step(U, dyn, done, data):
         traces[0] += 1  # Python side effect: once per trace (compilation)
-        per_specimen = jax.vmap(one, in_axes=(0, 0, 0, None))
-        return strong(jax.vmap(per_specimen)(U, dyn, done, data))
+        # ONE vmap over the specimens' starts, (B, S) flattened to B S rows with each
+        # specimen's data repeated for its starts, rather than a vmap over the starts inside a
+        # vmap over the specimens: tracing the step under one batching level instead of two
+        # (the trace is about a third of the program's cold cost).
+        B, S = U.shape[:2]
+        rows = lambda x: x.reshape((B * S,) + x.shape[2:])  # noqa: E731
+        out = jax.vmap(one)(rows(U), jax.tree_util.tree_map(rows, dyn), rows(done), jax.tree_util.tree_map(lambda x: jnp.repeat(x, S, axis=0), data))
+        out = strong(jax.tree_util.tree_map(lambda x: x.reshape((B, S) + x.shape[1:]), out))
+        if single_final is None:
+            return out
+        # Optimistix methods: the final evaluation of the new state (values, loss, Jacobian,
+        # predictions from the solver state: a few 2 x 2 solves) in the same program, so that
+        # no separate final program is compiled (fit_batch keeps the last step's).
+        return (*out, final(out[0], out[1], data))
 
     def evaluate(U, data):
         return jax.vmap(engine.evaluate)(U, data)
@@ -522,8 +559,16 @@ def _batched_functions(engine, mesh) -> dict[str, Any]:
     def final(U, dyn, data):
         return jax.vmap(single_final)(U, dyn, data)
 
-    options = dict(CPU_COMPILER_OPTIONS) if jax.default_backend() == "cpu" else None
-    fns = {"step": jax.jit(step, compiler_options=options), "evaluate": jax.jit(evaluate, compiler_options=options), "traces": traces}
+    def init(U, data):
+        # in one program: vmapped outside a jit, the init's unbatched outputs would each be
+        # broadcast by a separately compiled eager operation
+        return strong(jax.vmap(engine.init)(U, data))
+
+    options = None
+    if jax.default_backend() == "cpu":
+        options = {**CPU_COMPILER_OPTIONS, **(SPECTRAL_COMPILER_OPTIONS if fast_compile else {})}
+    fns = {"step": jax.jit(step, compiler_options=options), "evaluate": jax.jit(evaluate, compiler_options=options), "traces": traces,
+           "init": jax.jit(init, compiler_options=options)}
     if single_final is not None:
         fns["final"] = jax.jit(final, compiler_options=options)
     if mesh is not None:

@@ -97,8 +97,10 @@ def _key(model: ElasticModel, free: np.ndarray) -> tuple:
 
 @eqx.filter_jit
 def _element_hessians(model, X, E, nu):
-    """Element Hessians and their DOFs at rest for the materials ``(E[i], nu[i])`` (one program)."""
-    return [_element_data(model, X, Material(E[i], nu[i])) for i in range(2)]
+    """Element Hessians and their DOFs at rest for the materials ``(E[i], nu[i])`` (one program,
+    the element kernels traced once and vmapped over the materials)."""
+    data = jax.vmap(lambda e, n: _element_data(model, X, Material(e, n)))(E, nu)
+    return [[(hess[i], dofs[i]) for hess, dofs in data] for i in range(E.shape[0])]
 
 
 def _pencil(model, X, fi):
