@@ -109,10 +109,17 @@ def test_indentation_without_a_block_is_refused_for_the_variant(tmp_path):
 def test_cli_fit_of_an_incision_with_the_variant_recovers_its_pre_stretch_and_names_it(tmp_path, capsys):
     """Data: the variant's own max width at lambda0 = 1.08 (a fit with one datum and one parameter
     reproduces it exactly). springs_volume opens the same cut 5-10 % less, so recovering 1.08 to
-    1e-5 shows that the variant ran."""
+    1e-5 shows that the variant ran.
+
+    The datum is the prediction the fit itself calls (``fit_scenarios()``, ``predict``: its
+    compiled prediction-and-tangent program, run from a host callback as in a fit) of the same
+    experiment with the same start (pre_stretch = 1.04: the layers' start values are compiled
+    in), so the CLI fit below reuses that program: one compilation of the variant's incision,
+    not two."""
     lam0 = 1.08
     mat = Material(2e5, 0.45, pre_stretch=lam0)
-    w = float(parse_config(incision_config(VARIANT)).experiments[0].scenario.predict(mat)[0])
+    (variant,) = parse_config(incision_config(VARIANT, lam0=1.04)).fit_scenarios()
+    w = float(variant.predict(mat)[0])
     w_default = float(parse_config(incision_config("springs_volume")).experiments[0].scenario.predict(mat)[0])
     assert 0.03 < w / w_default - 1 < 0.2  # measured +13 % on this 1 mm mesh
     layers = ", ".join("{ " + ", ".join(f"{k} = {json.dumps(v)}" for k, v in lay.items()) + " }"

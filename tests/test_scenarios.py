@@ -290,21 +290,28 @@ def test_contact_offset_derivative_of_indentation(depth_sphere, solver):
 
 def test_failed_solve_gives_nan_values_and_derivatives_in_both_modes(cube):
     """SolverOptions(failure="nan"): value, forward tangent and reverse gradient all NaN (a
-    ``where`` mask gave a zero, finite gradient at a failed point)."""
+    ``where`` mask gave a zero, finite gradient at a failed point).
+
+    One compiled program (the scenario is its argument: the strains are arrays, the options
+    static) gives the value, the reverse-mode gradient (its primal is the value) and the
+    forward-mode tangent. The control runs the same program, with the same options, on a
+    strain its one Newton step does solve: finite, and consistent (the stress of a
+    displacement-controlled test is proportional to E, so d/dE = value / E)."""
     from difftissue.scenarios import SolverOptions
 
-    def value_reverse_forward(sc):
-        """One compiled program per scenario: the value, the reverse-mode gradient (its
-        primal is the value) and the forward-mode tangent."""
+    @jax.jit
+    def value_reverse_forward(sc, E):
         out = lambda E: sc.predict(Material(E, 0.45))[0]  # noqa: E731
-        return jax.jit(lambda E: (*jax.value_and_grad(out)(E), jax.jvp(out, (E,), (1.0,))[1]))(1e3)
+        return (*jax.value_and_grad(out)(E), jax.jvp(out, (E,), (1.0,))[1])
 
-    failing = Compression(cube, [0.3], model="fem_neo_hookean", options=SolverOptions(max_steps=1, failure="nan", linear_solver="dense"))
-    value, grad, tangent = (float(a) for a in value_reverse_forward(failing))
+    options = SolverOptions(max_steps=1, failure="nan", linear_solver="dense")
+    failing = Compression(cube, [0.3], model="fem_neo_hookean", options=options)
+    value, grad, tangent = (float(a) for a in value_reverse_forward(failing, 1e3))
     assert np.isnan(value) and np.isnan(grad) and np.isnan(tangent)
-    ok = Compression(cube, [0.3], model="fem_neo_hookean", options=SolverOptions(failure="nan", linear_solver="dense"))
-    value, grad = (float(a) for a in jax.jit(jax.value_and_grad(lambda E: ok.predict(Material(E, 0.45))[0]))(1e3))
-    assert np.isfinite(value) and np.isfinite(grad)
+    ok = Compression(cube, [1e-3], model="fem_neo_hookean", options=options)
+    value, grad, tangent = (float(a) for a in value_reverse_forward(ok, 1e3))
+    assert np.isfinite(value) and value > 0.9 * 1e3 * 1e-3
+    assert grad == pytest.approx(value / 1e3, rel=1e-8) and tangent == pytest.approx(grad, rel=1e-9)
 
 
 def test_an_equal_scenario_rebuilt_reuses_the_compiled_protocol(cube, caplog):
