@@ -57,7 +57,7 @@ from .interpolation import interpolation_operator
 from .models import LATTICE_MODELS, ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers import solver_setup
-from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
+from .solvers.condensed import CondensedContactModel, CondensedParameters, condensation_setup, linear_response_columns, solve_condensed_contact
 from .solvers.spectral import SpectralDecomposition, spectral_decomposition, spectral_unsupported
 from .solvers.host import HOST_MAX_NODES, HostStaticSolver
 from .solvers.static import prediction_rtol, solve_static
@@ -677,10 +677,9 @@ def _takes_arguments(scenario, leaves) -> bool:
     """Whether ``scenario``'s protocol is compiled with its arrays and solver setup as
     arguments (:class:`_ArgumentSolve`): every static solve of the protocol goes through
     :func:`_solve` with ``scenario.model`` (or it at another indenter depth) and
-    ``scenario.bc.fixed``, and nothing is traced by an outer transformation. The condensed
-    indentation (:class:`_Condensation`: NumPy index sets at trace time) stays closed over."""
-    if getattr(scenario, "condensation", None) is not None:
-        return False
+    ``scenario.bc.fixed`` (or, for the condensed indentation, the condensation's columns of
+    its base model: :func:`~difftissue.solvers.condensed.condensation_setup`), and nothing is
+    traced by an outer transformation."""
     if not all(isinstance(getattr(scenario, a, None), t) for a, t in (("model", ElasticModel), ("bc", BoundaryConditions), ("options", SolverOptions))):
         return False
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
@@ -739,13 +738,18 @@ class _ScenarioSolve:
             # the reference state of a contact model: the indenter at depth 0 (the depth is traced in the protocol)
             self._model = model.with_depth(0.0) if isinstance(model, ContactModel) else model
         self._bc, self._options = scenario.bc, scenario.options
+        self._condensation = getattr(scenario, "condensation", None)
         self._setups: dict = {}
 
     def setup(self, material):
         leaves, treedef = jax.tree_util.tree_flatten(material)
         key = (treedef, tuple((jnp.shape(v), jnp.result_type(v)) for v in leaves))
         hit = self._setups.get(key)
-        if hit is None:
+        if hit is None and self._condensation is not None:
+            # the condensed indentation: the direct solver (and CSR pattern) of its base model's
+            # columns; None for the spectral solver (its arrays are the decomposition's)
+            hit = self._setups[key] = condensation_setup(self._condensation.base, material, linear_solver=self._options.linear_solver)
+        elif hit is None:
             o = self._options
             built = []
             # Built while the material is traced (abstractly, nothing compiled or run but the
@@ -948,6 +952,8 @@ class _Condensation(eqx.Module):
     penalty_factors: np.ndarray
     contact_fixed: np.ndarray
     others: np.ndarray
+    #: the free components among the candidates' ``3 k`` (``flatnonzero(~contact_fixed)``)
+    rows: np.ndarray
     #: ``linear_solver="spectral"``: the body's eigendecomposition (arrays, shared by equal meshes).
     spectral: SpectralDecomposition | None
 
@@ -968,18 +974,20 @@ class _Condensation(eqx.Module):
         self.penalty_factors = np.asarray(contact_model.penalty_factors)[reach]
         self.contact = CondensedContactModel(X[self.nodes], contact_model.indenter, _PenaltyEnergy(contact_model.indenter))
         self.others = top[~reach]
+        self.rows = np.flatnonzero(~self.contact_fixed.reshape(-1))
         self.spectral = spectral_decomposition(self.base, self.free) if spectral else None
 
     def solve_protocol(self, material: Material, depths, options: SolverOptions):
         """Contact forces on the modelled part [N] and full displacement fields [m] at ``depths``."""
         if options.linear_solver == "spectral" and self.spectral is None:
             raise ConfigError("linear_solver='spectral': this condensation was built without its decomposition (build the scenario with these options)")
-        Z, G = linear_response_columns(self.base, material, self.free, self.dofs, linear_solver=options.linear_solver, decomposition=self.spectral)
+        # the setup of a protocol compiled with the arrays as arguments (_ScenarioSolve), else None: built here
+        Z, G = linear_response_columns(self.base, material, self.free, self.dofs, linear_solver=options.linear_solver, decomposition=self.spectral,
+                                       setup=_SOLVE_SETUP.get())
         S_free = jnp.linalg.inv(G)
         S_free = 0.5 * (S_free + S_free.T)
         k = self.nodes.size
-        mask = ~self.contact_fixed.reshape(-1)
-        idx = np.flatnonzero(mask)
+        idx = jnp.asarray(self.rows)
         S = jnp.zeros((3 * k, 3 * k), dtype=G.dtype).at[idx[:, None], idx[None, :]].set(S_free)
         E = jnp.max(self.base.region_values(material)["youngs_modulus"])
         params = CondensedParameters(S, E * jnp.asarray(self.penalty_factors))
