@@ -603,7 +603,7 @@ class SolverOptions:
         return prediction_rtol(self.rtol, self.xtol)
 
 
-_JITTED: dict[int, tuple[Any, Any]] = {}
+_JITTED: dict[tuple[int, str], tuple[Any, Any]] = {}
 
 #: Most compiled protocols kept for sharing between equal scenarios (least recently used
 #: dropped first); each keeps the scenario it was compiled for (and its mesh) alive.
@@ -646,14 +646,15 @@ class _SharedSolve:
     traces with any one still alive (they are equal: the same program), so the executable
     survives as long as one of them does, and none is kept alive by it."""
 
-    def __init__(self):
+    def __init__(self, method: str = "_solve_protocol"):
         self._users: list = []
+        self.method = method
         self.fn = jax.jit(self._trace)
 
     def _trace(self, material, *extra):
         token = _SOLVE_SETUP.set(None)  # the solves build their own setup (closed-over mesh)
         try:
-            return self._live()._solve_protocol(material, *extra)
+            return getattr(self._live(), self.method)(material, *extra)
         finally:
             _SOLVE_SETUP.reset(token)
 
@@ -678,14 +679,17 @@ def _takes_arguments(scenario, leaves) -> bool:
     arguments (:class:`_ArgumentSolve`): every static solve of the protocol goes through
     :func:`_solve` with ``scenario.model`` (or it at another indenter depth) and
     ``scenario.bc.fixed`` (or, for the condensed indentation, the condensation's columns of
-    its base model: :func:`~difftissue.solvers.condensed.condensation_setup`), and nothing is
+    its base model: :func:`~difftissue.solvers.condensed.condensation_setup`), or the scenario
+    builds the setup of its solves itself (``_setup_builder``: the incision), and nothing is
     traced by an outer transformation."""
+    if callable(getattr(scenario, "_setup_builder", None)):
+        return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
     if not all(isinstance(getattr(scenario, a, None), t) for a, t in (("model", ElasticModel), ("bc", BoundaryConditions), ("options", SolverOptions))):
         return False
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
 
 
-def _argument_key(scenario, leaves, treedef):
+def _argument_key(scenario, leaves, treedef, method: str = "_solve_protocol"):
     """The structure key of a protocol compiled with the scenario's arrays as arguments: its
     type, pytree structure (static configuration) and every leaf that is not an array
     (Python scalars by value, other objects by identity); arrays by shape and dtype only, so
@@ -698,7 +702,7 @@ def _argument_key(scenario, leaves, treedef):
     h = hashlib.sha256()
     arrays = tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf))
     objects = hash_scenario_leaves(h, leaves, arrays, data_tag="arg")
-    return ("arguments", type(scenario), treedef, h.hexdigest(), tuple(objects))
+    return ("arguments", method, type(scenario), treedef, h.hexdigest(), tuple(objects))
 
 
 class _ArgumentSolve:
@@ -709,14 +713,15 @@ class _ArgumentSolve:
     scenarios of the same structure share it. It keeps only the non-array part of the
     scenario it was built for (``static``), which equal scenarios have in common."""
 
-    def __init__(self, static):
+    def __init__(self, static, method: str = "_solve_protocol"):
         self.static = static
+        self.method = method
         self.fn = jax.jit(self._trace)
 
     def _trace(self, dynamic, setup, material, *extra):
         token = _SOLVE_SETUP.set(setup)
         try:
-            return eqx.combine(dynamic, self.static)._solve_protocol(material, *extra)
+            return getattr(eqx.combine(dynamic, self.static), self.method)(material, *extra)
         finally:
             _SOLVE_SETUP.reset(token)
 
@@ -739,13 +744,19 @@ class _ScenarioSolve:
             self._model = model.with_depth(0.0) if isinstance(model, ContactModel) else model
         self._bc, self._options = scenario.bc, scenario.options
         self._condensation = getattr(scenario, "condensation", None)
+        # a scenario that builds its own setup (the incision): a function of the material that
+        # keeps what it needs, not the scenario (which this cache must not keep alive)
+        builder = getattr(scenario, "_setup_builder", None)
+        self._builder = builder() if callable(builder) else None
         self._setups: dict = {}
 
     def setup(self, material):
         leaves, treedef = jax.tree_util.tree_flatten(material)
         key = (treedef, tuple((jnp.shape(v), jnp.result_type(v)) for v in leaves))
         hit = self._setups.get(key)
-        if hit is None and self._condensation is not None:
+        if hit is None and self._builder is not None:
+            hit = self._setups[key] = self._builder(material)
+        elif hit is None and self._condensation is not None:
             # the condensed indentation: the direct solver (and CSR pattern) of its base model's
             # columns; None for the spectral solver (its arrays are the decomposition's)
             hit = self._setups[key] = condensation_setup(self._condensation.base, material, linear_solver=self._options.linear_solver)
@@ -821,19 +832,19 @@ class traced_arguments:
         return False
 
 
-def _traced_solve(scenario, setup, material_key, material, *extra):
+def _traced_solve(scenario, setup, material_key, method, material, *extra):
     """``scenario._solve_protocol`` traced inline with ``setup`` (see :class:`traced_arguments`)."""
     if _material_key(material) != material_key:
         raise ConfigError(f"{getattr(scenario, 'name', type(scenario).__name__)}: solved with a material of another structure than the "
                           "solver setup passed to traced_arguments was built for")
     token = _SOLVE_SETUP.set(setup)
     try:
-        return scenario._solve_protocol(material, *extra)
+        return getattr(scenario, method)(material, *extra)
     finally:
         _SOLVE_SETUP.reset(token)
 
 
-def _jitted_solve(scenario):
+def _jitted_solve(scenario, method: str = "_solve_protocol"):
     """``scenario.solve`` compiled once per scenario, shared by equal scenarios.
 
     Scenarios whose static solves all use the scenario's own model and fixed DOFs
@@ -850,24 +861,25 @@ def _jitted_solve(scenario):
     """
     traced = _TRACED_ARGUMENTS.get()
     if traced is not None and traced[0] is scenario:
-        return functools.partial(_traced_solve, *traced)
-    key = id(scenario)
+        return functools.partial(_traced_solve, *traced, method)
+    key = (id(scenario), method)
     hit = _JITTED.get(key)
     if hit is not None and hit[0]() is scenario:
         return hit[1]
     leaves, treedef = jax.tree_util.tree_flatten(scenario)
     if _takes_arguments(scenario, leaves):
         dynamic, static = eqx.partition(scenario, eqx.is_array)
-        shared_key = _argument_key(scenario, leaves, treedef)
+        shared_key = _argument_key(scenario, leaves, treedef, method)
         entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
         if entry is None:
-            entry = (static, _ArgumentSolve(static))
+            entry = (static, _ArgumentSolve(static, method))
         fn = _ScenarioSolve(entry[1], scenario, dynamic)
     else:
         shared_key = _structure_key(scenario)
+        shared_key = None if shared_key is None else (method,) + shared_key
         entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
         if entry is None:
-            entry = (scenario, _SharedSolve())
+            entry = (scenario, _SharedSolve(method))
         entry[1].add(scenario)
         fn = entry[1].fn
     if shared_key is not None:
