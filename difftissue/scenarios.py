@@ -609,7 +609,7 @@ _JITTED: dict[tuple[int, str], tuple[Any, Any]] = {}
 #: dropped first); each keeps the scenario it was compiled for (and its mesh) alive.
 SHARED_SOLVES_SIZE = 8
 
-#: Only closed-over scenarios (the condensed indentation, see :func:`_jitted_solve`) whose
+#: Only closed-over scenarios (see :func:`_jitted_solve`) whose
 #: arrays hold at most this many bytes share their compiled protocol: a large mesh's program
 #: embeds its arrays (GBs at 10^5 unknowns, docs/dev/solver-design.md), which must go with the
 #: scenario, not stay in a cache. Programs taking the arrays as arguments share at any size.
@@ -788,19 +788,18 @@ def _material_key(material):
 
 def compiles_with_arguments(scenario) -> bool:
     """Whether ``scenario`` (concrete) has :func:`argument_setup`: its protocol can be compiled
-    with its arrays and a solver setup as arguments (every static solve through the scenario's
-    own model and fixed DOFs: the full indentation, compression, FEM field). False for the
-    condensed indentation (its protocol needs its NumPy index sets), scenarios of other kinds
-    and scenarios with traced leaves."""
+    with its arrays and a solver setup as arguments (the full and the condensed indentation,
+    compression, FEM field, incision: :func:`_takes_arguments`). False for scenarios of other
+    kinds and scenarios with traced leaves."""
     return _takes_arguments(scenario, jax.tree_util.tree_leaves(scenario))
 
 
 def argument_setup(scenario, material):
     """The :class:`~difftissue.solvers.static.SolverSetup` of ``scenario``'s static solves for
     materials of ``material``'s structure (values unused), when its protocol can be compiled
-    with its arrays as arguments (the full indentation, compression, FEM field: every solve
-    through the scenario's own model and fixed DOFs); None otherwise (the condensed
-    indentation, whose protocol needs its NumPy index sets, and scenarios of other kinds).
+    with its arrays as arguments (:func:`compiles_with_arguments`; for the condensed
+    indentation the setup of its condensation's columns,
+    :func:`~difftissue.solvers.condensed.condensation_setup`); None otherwise.
     ``scenario`` must be concrete (not traced). With it, an outer program can take the
     scenario's array leaves and the setup's as arguments (:func:`traced_arguments`)."""
     if not compiles_with_arguments(scenario):
@@ -845,15 +844,17 @@ def _traced_solve(scenario, setup, material_key, method, material, *extra):
 
 
 def _jitted_solve(scenario, method: str = "_solve_protocol"):
-    """``scenario.solve`` compiled once per scenario, shared by equal scenarios.
+    """``getattr(scenario, method)`` (its ``_solve_protocol`` by default) compiled once per
+    scenario, shared by equal scenarios.
 
-    Scenarios whose static solves all use the scenario's own model and fixed DOFs
-    (:func:`_takes_arguments`: the full indentation, compression, FEM field) are compiled with
-    their arrays and the solver setup (:func:`~difftissue.solvers.static.solver_setup`, built
-    from the concrete mesh before the call) as arguments (:class:`_ScenarioSolve`): the
-    executable holds no mesh-sized constant, and every scenario of the same structure
-    (:func:`_argument_key`: type, static configuration, scalars, array shapes) shares it.
-    The others (the condensed indentation, a scenario traced by an outer transformation) are
+    Scenarios of :func:`_takes_arguments` (the full and condensed indentation, compression,
+    FEM field, incision) are compiled with their arrays and the solver setup
+    (:func:`~difftissue.solvers.static.solver_setup`, the condensation's or the scenario's own
+    ``_setup_builder``, built from the concrete mesh before the call) as arguments
+    (:class:`_ScenarioSolve`): the executable holds no mesh-sized constant, and every scenario
+    of the same structure (:func:`_argument_key`: method, type, static configuration,
+    scalars, array shapes) shares it.
+    The others (scenarios of other kinds, a scenario traced by an outer transformation) are
     closed over (their arrays stay concrete NumPy, which their protocol needs), shared by
     equal scenarios (:func:`_structure_key`: same mesh, protocol and settings) when small.
     Inside an outer ``jit`` (a fit) the call is simply inlined. A scenario traced by an outer
