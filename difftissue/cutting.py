@@ -1736,7 +1736,9 @@ class CutClosureModel(ElasticModel):
     pairs: np.ndarray
     rest_offset: np.ndarray
     closed: Any
-    edge_length: float = eqx.field(static=True)
+    #: median edge length of the cut mesh [m] (a 0-d array: a mesh value, so not static,
+    #: which would split the compiled programs of meshes of one structure)
+    edge_length: Any
     penalty_factor: float = eqx.field(static=True)
 
     def __init__(self, base: ElasticModel, cut: Cut, s, *, penalty_factor: float = 1e4):
@@ -1765,7 +1767,7 @@ class CutClosureModel(ElasticModel):
         self.closed = (closed_mask(cut, s_val)).astype(float)
         e = cut.mesh.edges
         p = np.asarray(cut.mesh.points)
-        self.edge_length = float(np.median(np.linalg.norm(p[e[:, 1]] - p[e[:, 0]], axis=1)))
+        self.edge_length = np.asarray(np.median(np.linalg.norm(p[e[:, 1]] - p[e[:, 0]], axis=1)), dtype=float)
         self.penalty_factor = float(penalty_factor)
 
     def terms(self, material):

@@ -27,7 +27,6 @@ Lengths in metres, stresses in Pa. See ``docs/cutting.md`` ("Incision").
 from __future__ import annotations
 
 import dataclasses
-import weakref
 from pathlib import Path
 from typing import Any, NamedTuple, Sequence
 
@@ -44,7 +43,8 @@ from .constitutive import surface_tension as _model_surface_tension
 from .materials import Material, explicit_pre_stretch_y
 from .mesh import Specimen, signed_volumes, write_mesh
 from .models import make_model, stack_materials
-from .solvers.static import prediction_rtol, solve_static
+from .scenarios import _SOLVE_SETUP, _jitted_solve
+from .solvers.static import prediction_rtol, solve_static, solver_setup
 
 __all__ = [
     "QUANTITIES",
@@ -239,7 +239,13 @@ class Incision(eqx.Module):
     positions: np.ndarray | None
     kind: str = eqx.field(static=True)
     options: IncisionOptions = eqx.field(static=True)
-    atol: float = eqx.field(static=True)
+    #: the absolute residual floor of the static solves [N] (a 0-d array: it comes from the
+    #: mesh's edge length, a mesh value)
+    atol: np.ndarray
+    #: whether the surface profile starts / ends with a crack tip of zero width (no surface
+    #: pair at ``s = 0`` / ``s = length``): the shape of the interpolated profile
+    tip_start: bool = eqx.field(static=True)
+    tip_end: bool = eqx.field(static=True)
     x_label: str = eqx.field(static=True, default="arc length along the cut [m]")
     y_label: str = eqx.field(static=True, default="opening width [m]")
 
@@ -286,7 +292,10 @@ class Incision(eqx.Module):
         if not isinstance(options, IncisionOptions):
             raise ConfigError(f"options must be IncisionOptions, got {type(options).__name__}")
         self.name = str(name)
-        self.cut = cut
+        # The cut without its quality report (mesh-value metadata, a static field that would
+        # split the compiled programs of meshes of one structure; it stays on ``cut``).
+        self.cut = eqx.tree_at(lambda c: c.pairs, cut, np.asarray(cut.pairs))
+        object.__setattr__(self.cut, "quality", None)
         self.kind = str(model)
         self.options = options
         self.quantity = quantity
@@ -314,14 +323,16 @@ class Incision(eqx.Module):
             self.fitted_regions = None
             self.base_materials = None
         if options.atol is not None:
-            self.atol = float(options.atol)
+            self.atol = np.asarray(float(options.atol))
         elif materials is not None:
             E_ref = max(float(np.max(np.asarray(m.youngs_modulus))) for m in materials)
-            self.atol = 1e-12 * E_ref * self.model.edge_length**2
+            self.atol = np.asarray(1e-12 * E_ref * float(self.model.edge_length) ** 2)
         else:
-            self.atol = 0.0
+            self.atol = np.asarray(0.0)
         # the observable
         surf_s = np.asarray(cut.pair_s)[cut.surface_pairs]
+        self.tip_start = bool(surf_s.min() > 1e-9 * cut.length)
+        self.tip_end = bool(surf_s.max() < cut.length - 1e-9 * cut.length)
         if quantity == "surface_width":
             pos = surf_s.copy() if positions is None else np.asarray(positions, dtype=float).reshape(-1)
             if pos.size == 0 or not np.all(np.isfinite(pos)):
@@ -368,21 +379,7 @@ class Incision(eqx.Module):
     def region_material(self, material: Material) -> Material:
         """The per-region material the model sees: ``material`` on the fitted regions, the
         fixed materials elsewhere (``material`` itself when every region is fitted)."""
-        if self.fitted_regions is None:
-            return material
-        idx = jnp.asarray(self.fitted_regions)
-        base = self.base_materials
-        fields = _FIELDS
-        if material.pre_stretch_y is not None or base.pre_stretch_y is not None:
-            fields = _FIELDS + ("pre_stretch_y",)  # anisotropic: lambda_y = lambda_x where a material has none
-            material, base = explicit_pre_stretch_y(material), explicit_pre_stretch_y(base)
-        vals = []
-        for f in fields:
-            v = jnp.asarray(getattr(material, f), dtype=float)
-            if v.ndim != 0:
-                raise ConfigError(f"with fitted_regions the material's {f} must be a scalar, got shape {v.shape}")
-            vals.append(jnp.asarray(getattr(base, f), dtype=float).at[idx].set(v))
-        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in fields), base, tuple(vals))
+        return _region_material(material, self.fitted_regions, self.base_materials)
 
     def fitted_layers(self) -> list[tuple[str, float, np.ndarray | None]]:
         """The regions the fitted material applies to, as layers: ``(name, thickness [m], cell)``.
@@ -439,6 +436,7 @@ class Incision(eqx.Module):
 
     def _solve_at(self, material, s, u0):
         o = self.options
+        # the setup of a program compiled with the arrays as arguments (None: built from the mesh)
         sol = solve_static(
             self._closure(s),
             material,
@@ -451,6 +449,7 @@ class Incision(eqx.Module):
             preconditioner_material=o.preconditioner_material,
             initial_displacement=jax.lax.stop_gradient(u0),
             throw=o.failure == "raise",
+            setup=_SOLVE_SETUP.get(),
         )
         u = sol.displacement
         if o.failure == "nan":
@@ -490,7 +489,7 @@ class Incision(eqx.Module):
 
     def solve(self, material: Material) -> IncisionResult:
         """Equilibria before and after the cut and the opening (compiled once per scenario)."""
-        return _jitted(self, "_solve_cut")(material)
+        return _jitted_solve(self, "_solve_cut")(_as_arrays(material))
 
     def progress(self, material: Material, positions):
         """The opening as the scalpel advances (seed 002): for each arc length in
@@ -502,7 +501,7 @@ class Incision(eqx.Module):
         pos = np.asarray(positions, dtype=float).reshape(-1)
         if pos.size == 0 or np.any(np.diff(pos) < 0):
             raise DataError("positions must be a non-empty, non-decreasing sequence of arc lengths [m]")
-        return _jitted(self, "_progress")(material, pos)
+        return _jitted_solve(self, "_progress")(_as_arrays(material), pos)
 
     def _observable(self, op: Opening):
         if self.quantity == "max_width":
@@ -513,16 +512,37 @@ class Incision(eqx.Module):
             return op.width
         s, w = op.surface_s, op.surface_width
         L = self.cut.length
-        tol = 1e-9 * L
-        surf = np.asarray(self.cut.pair_s)[self.cut.surface_pairs]
-        if surf.min() > tol:  # the crack tip at the start: zero width
+        if self.tip_start:  # the crack tip at the start: zero width
             s, w = jnp.concatenate([jnp.zeros(1), s]), jnp.concatenate([jnp.zeros(1), w])
-        if surf.max() < L - tol:
+        if self.tip_end:
             s, w = jnp.concatenate([s, jnp.full(1, L)]), jnp.concatenate([w, jnp.zeros(1)])
         return jnp.interp(jnp.asarray(self.positions), s, w)
 
-    def _predict(self, material):
+    def _solve_protocol(self, material):
+        """The observable (the protocol :func:`difftissue.scenarios._jitted_solve` compiles)."""
         return self._observable(self._solve_cut(material).opening)
+
+    def _setup_builder(self):
+        """``material -> SolverSetup`` of this incision's static solves (for a material of that
+        structure, values unused), as a solve traced with the mesh closed over builds it: the
+        closure weights and the material traced (the multigrid hierarchy for
+        ``IncisionOptions.preconditioner_material`` or E = 1 Pa, nu = 0.45, at rest with every
+        pair released). It keeps the model and the boundary conditions, not the scenario."""
+        model, bc, o = self.model, self.bc, self.options
+        fitted, base, pair_s = self.fitted_regions, self.base_materials, np.asarray(self.cut.pair_s)
+
+        def build(material):
+            built = []
+
+            def trace(m, s):
+                closure = eqx.tree_at(lambda c: c.closed, model, (jnp.asarray(pair_s) > s).astype(float))
+                built.append(solver_setup(closure, _region_material(m, fitted, base), bc, linear_solver=o.linear_solver,
+                                          preconditioner_material=o.preconditioner_material))
+
+            jax.eval_shape(trace, material, jnp.zeros(()))
+            return built[0]
+
+        return build
 
     @property
     def prediction_rtol(self) -> float:
@@ -531,7 +551,7 @@ class Incision(eqx.Module):
 
     def predict(self, material: Material):
         """The ``quantity`` after the cut, shape ``observed.shape`` (its unit)."""
-        return _jitted(self, "_predict")(material)
+        return _jitted_solve(self)(_as_arrays(material))
 
     def record(self) -> dict:
         """The experiment as a material card's scenario record (:func:`difftissue.export.card.scenario_record`):
@@ -542,23 +562,29 @@ class Incision(eqx.Module):
                 "quantity": self.quantity, "cut_length": float(self.cut.length), "cut_depth": float(self.cut.depth)}
 
 
-_JITTED: dict[tuple[int, str], tuple[Any, Any]] = {}
+def _as_arrays(material):
+    return jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
 
 
-def _jitted(obj, method: str):
-    """``obj.method`` compiled once per object (closed over: the mesh arrays stay concrete,
-    which the sparse solver needs for its pattern); inside an outer ``jit`` it is inlined."""
-    key = (id(obj), method)
-    hit = _JITTED.get(key)
-    if hit is not None and hit[0]() is obj:
-        return hit[1]
-    ref = weakref.ref(obj, lambda _, k=key, cache=_JITTED: cache.pop(k, None))
-    fn = jax.jit(lambda *args: getattr(ref(), method)(*args))
-    _JITTED[key] = (ref, fn)
-    return fn
+def _region_material(material: Material, fitted_regions, base: Material | None) -> Material:
+    """``material`` on the regions ``fitted_regions`` (indices; None: all, ``material`` itself),
+    ``base`` (one material per region) elsewhere (see :meth:`Incision.region_material`)."""
+    if fitted_regions is None:
+        return material
+    idx = jnp.asarray(fitted_regions)
+    fields = _FIELDS
+    if material.pre_stretch_y is not None or base.pre_stretch_y is not None:
+        fields = _FIELDS + ("pre_stretch_y",)  # anisotropic: lambda_y = lambda_x where a material has none
+        material, base = explicit_pre_stretch_y(material), explicit_pre_stretch_y(base)
+    vals = []
+    for f in fields:
+        v = jnp.asarray(getattr(material, f), dtype=float)
+        if v.ndim != 0:
+            raise ConfigError(f"with fitted_regions the material's {f} must be a scalar, got shape {v.shape}")
+        vals.append(jnp.asarray(getattr(base, f), dtype=float).at[idx].set(v))
+    return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in fields), base, tuple(vals))
 
 
-# ============================================================================ pictures
 def _top_faces(mesh):
     """The boundary faces facing up (outward normal with a positive z component): the flat top
     of a block, the whole curved top of a dome or a cylinder."""

@@ -57,7 +57,7 @@ from .interpolation import interpolation_operator
 from .models import LATTICE_MODELS, ElasticModel, make_model
 from .selectors import select_nodes
 from .solvers import solver_setup
-from .solvers.condensed import CondensedContactModel, CondensedParameters, linear_response_columns, solve_condensed_contact
+from .solvers.condensed import CondensedContactModel, CondensedParameters, condensation_setup, linear_response_columns, solve_condensed_contact
 from .solvers.spectral import SpectralDecomposition, spectral_decomposition, spectral_unsupported
 from .solvers.host import HOST_MAX_NODES, HostStaticSolver
 from .solvers.static import prediction_rtol, solve_static
@@ -603,13 +603,13 @@ class SolverOptions:
         return prediction_rtol(self.rtol, self.xtol)
 
 
-_JITTED: dict[int, tuple[Any, Any]] = {}
+_JITTED: dict[tuple[int, str], tuple[Any, Any]] = {}
 
 #: Most compiled protocols kept for sharing between equal scenarios (least recently used
 #: dropped first); each keeps the scenario it was compiled for (and its mesh) alive.
 SHARED_SOLVES_SIZE = 8
 
-#: Only closed-over scenarios (the condensed indentation, see :func:`_jitted_solve`) whose
+#: Only closed-over scenarios (see :func:`_jitted_solve`) whose
 #: arrays hold at most this many bytes share their compiled protocol: a large mesh's program
 #: embeds its arrays (GBs at 10^5 unknowns, docs/dev/solver-design.md), which must go with the
 #: scenario, not stay in a cache. Programs taking the arrays as arguments share at any size.
@@ -646,14 +646,15 @@ class _SharedSolve:
     traces with any one still alive (they are equal: the same program), so the executable
     survives as long as one of them does, and none is kept alive by it."""
 
-    def __init__(self):
+    def __init__(self, method: str = "_solve_protocol"):
         self._users: list = []
+        self.method = method
         self.fn = jax.jit(self._trace)
 
     def _trace(self, material, *extra):
         token = _SOLVE_SETUP.set(None)  # the solves build their own setup (closed-over mesh)
         try:
-            return self._live()._solve_protocol(material, *extra)
+            return getattr(self._live(), self.method)(material, *extra)
         finally:
             _SOLVE_SETUP.reset(token)
 
@@ -677,16 +678,18 @@ def _takes_arguments(scenario, leaves) -> bool:
     """Whether ``scenario``'s protocol is compiled with its arrays and solver setup as
     arguments (:class:`_ArgumentSolve`): every static solve of the protocol goes through
     :func:`_solve` with ``scenario.model`` (or it at another indenter depth) and
-    ``scenario.bc.fixed``, and nothing is traced by an outer transformation. The condensed
-    indentation (:class:`_Condensation`: NumPy index sets at trace time) stays closed over."""
-    if getattr(scenario, "condensation", None) is not None:
-        return False
+    ``scenario.bc.fixed`` (or, for the condensed indentation, the condensation's columns of
+    its base model: :func:`~difftissue.solvers.condensed.condensation_setup`), or the scenario
+    builds the setup of its solves itself (``_setup_builder``: the incision), and nothing is
+    traced by an outer transformation."""
+    if callable(getattr(scenario, "_setup_builder", None)):
+        return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
     if not all(isinstance(getattr(scenario, a, None), t) for a, t in (("model", ElasticModel), ("bc", BoundaryConditions), ("options", SolverOptions))):
         return False
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
 
 
-def _argument_key(scenario, leaves, treedef):
+def _argument_key(scenario, leaves, treedef, method: str = "_solve_protocol"):
     """The structure key of a protocol compiled with the scenario's arrays as arguments: its
     type, pytree structure (static configuration) and every leaf that is not an array
     (Python scalars by value, other objects by identity); arrays by shape and dtype only, so
@@ -699,7 +702,7 @@ def _argument_key(scenario, leaves, treedef):
     h = hashlib.sha256()
     arrays = tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf))
     objects = hash_scenario_leaves(h, leaves, arrays, data_tag="arg")
-    return ("arguments", type(scenario), treedef, h.hexdigest(), tuple(objects))
+    return ("arguments", method, type(scenario), treedef, h.hexdigest(), tuple(objects))
 
 
 class _ArgumentSolve:
@@ -710,14 +713,15 @@ class _ArgumentSolve:
     scenarios of the same structure share it. It keeps only the non-array part of the
     scenario it was built for (``static``), which equal scenarios have in common."""
 
-    def __init__(self, static):
+    def __init__(self, static, method: str = "_solve_protocol"):
         self.static = static
+        self.method = method
         self.fn = jax.jit(self._trace)
 
     def _trace(self, dynamic, setup, material, *extra):
         token = _SOLVE_SETUP.set(setup)
         try:
-            return eqx.combine(dynamic, self.static)._solve_protocol(material, *extra)
+            return getattr(eqx.combine(dynamic, self.static), self.method)(material, *extra)
         finally:
             _SOLVE_SETUP.reset(token)
 
@@ -739,13 +743,24 @@ class _ScenarioSolve:
             # the reference state of a contact model: the indenter at depth 0 (the depth is traced in the protocol)
             self._model = model.with_depth(0.0) if isinstance(model, ContactModel) else model
         self._bc, self._options = scenario.bc, scenario.options
+        self._condensation = getattr(scenario, "condensation", None)
+        # a scenario that builds its own setup (the incision): a function of the material that
+        # keeps what it needs, not the scenario (which this cache must not keep alive)
+        builder = getattr(scenario, "_setup_builder", None)
+        self._builder = builder() if callable(builder) else None
         self._setups: dict = {}
 
     def setup(self, material):
         leaves, treedef = jax.tree_util.tree_flatten(material)
         key = (treedef, tuple((jnp.shape(v), jnp.result_type(v)) for v in leaves))
         hit = self._setups.get(key)
-        if hit is None:
+        if hit is None and self._builder is not None:
+            hit = self._setups[key] = self._builder(material)
+        elif hit is None and self._condensation is not None:
+            # the condensed indentation: the direct solver (and CSR pattern) of its base model's
+            # columns; None for the spectral solver (its arrays are the decomposition's)
+            hit = self._setups[key] = condensation_setup(self._condensation.base, material, linear_solver=self._options.linear_solver)
+        elif hit is None:
             o = self._options
             built = []
             # Built while the material is traced (abstractly, nothing compiled or run but the
@@ -773,19 +788,18 @@ def _material_key(material):
 
 def compiles_with_arguments(scenario) -> bool:
     """Whether ``scenario`` (concrete) has :func:`argument_setup`: its protocol can be compiled
-    with its arrays and a solver setup as arguments (every static solve through the scenario's
-    own model and fixed DOFs: the full indentation, compression, FEM field). False for the
-    condensed indentation (its protocol needs its NumPy index sets), scenarios of other kinds
-    and scenarios with traced leaves."""
+    with its arrays and a solver setup as arguments (the full and the condensed indentation,
+    compression, FEM field, incision: :func:`_takes_arguments`). False for scenarios of other
+    kinds and scenarios with traced leaves."""
     return _takes_arguments(scenario, jax.tree_util.tree_leaves(scenario))
 
 
 def argument_setup(scenario, material):
     """The :class:`~difftissue.solvers.static.SolverSetup` of ``scenario``'s static solves for
     materials of ``material``'s structure (values unused), when its protocol can be compiled
-    with its arrays as arguments (the full indentation, compression, FEM field: every solve
-    through the scenario's own model and fixed DOFs); None otherwise (the condensed
-    indentation, whose protocol needs its NumPy index sets, and scenarios of other kinds).
+    with its arrays as arguments (:func:`compiles_with_arguments`; for the condensed
+    indentation the setup of its condensation's columns,
+    :func:`~difftissue.solvers.condensed.condensation_setup`); None otherwise.
     ``scenario`` must be concrete (not traced). With it, an outer program can take the
     scenario's array leaves and the setup's as arguments (:func:`traced_arguments`)."""
     if not compiles_with_arguments(scenario):
@@ -817,28 +831,30 @@ class traced_arguments:
         return False
 
 
-def _traced_solve(scenario, setup, material_key, material, *extra):
+def _traced_solve(scenario, setup, material_key, method, material, *extra):
     """``scenario._solve_protocol`` traced inline with ``setup`` (see :class:`traced_arguments`)."""
     if _material_key(material) != material_key:
         raise ConfigError(f"{getattr(scenario, 'name', type(scenario).__name__)}: solved with a material of another structure than the "
                           "solver setup passed to traced_arguments was built for")
     token = _SOLVE_SETUP.set(setup)
     try:
-        return scenario._solve_protocol(material, *extra)
+        return getattr(scenario, method)(material, *extra)
     finally:
         _SOLVE_SETUP.reset(token)
 
 
-def _jitted_solve(scenario):
-    """``scenario.solve`` compiled once per scenario, shared by equal scenarios.
+def _jitted_solve(scenario, method: str = "_solve_protocol"):
+    """``getattr(scenario, method)`` (its ``_solve_protocol`` by default) compiled once per
+    scenario, shared by equal scenarios.
 
-    Scenarios whose static solves all use the scenario's own model and fixed DOFs
-    (:func:`_takes_arguments`: the full indentation, compression, FEM field) are compiled with
-    their arrays and the solver setup (:func:`~difftissue.solvers.static.solver_setup`, built
-    from the concrete mesh before the call) as arguments (:class:`_ScenarioSolve`): the
-    executable holds no mesh-sized constant, and every scenario of the same structure
-    (:func:`_argument_key`: type, static configuration, scalars, array shapes) shares it.
-    The others (the condensed indentation, a scenario traced by an outer transformation) are
+    Scenarios of :func:`_takes_arguments` (the full and condensed indentation, compression,
+    FEM field, incision) are compiled with their arrays and the solver setup
+    (:func:`~difftissue.solvers.static.solver_setup`, the condensation's or the scenario's own
+    ``_setup_builder``, built from the concrete mesh before the call) as arguments
+    (:class:`_ScenarioSolve`): the executable holds no mesh-sized constant, and every scenario
+    of the same structure (:func:`_argument_key`: method, type, static configuration,
+    scalars, array shapes) shares it.
+    The others (scenarios of other kinds, a scenario traced by an outer transformation) are
     closed over (their arrays stay concrete NumPy, which their protocol needs), shared by
     equal scenarios (:func:`_structure_key`: same mesh, protocol and settings) when small.
     Inside an outer ``jit`` (a fit) the call is simply inlined. A scenario traced by an outer
@@ -846,24 +862,25 @@ def _jitted_solve(scenario):
     """
     traced = _TRACED_ARGUMENTS.get()
     if traced is not None and traced[0] is scenario:
-        return functools.partial(_traced_solve, *traced)
-    key = id(scenario)
+        return functools.partial(_traced_solve, *traced, method)
+    key = (id(scenario), method)
     hit = _JITTED.get(key)
     if hit is not None and hit[0]() is scenario:
         return hit[1]
     leaves, treedef = jax.tree_util.tree_flatten(scenario)
     if _takes_arguments(scenario, leaves):
         dynamic, static = eqx.partition(scenario, eqx.is_array)
-        shared_key = _argument_key(scenario, leaves, treedef)
+        shared_key = _argument_key(scenario, leaves, treedef, method)
         entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
         if entry is None:
-            entry = (static, _ArgumentSolve(static))
+            entry = (static, _ArgumentSolve(static, method))
         fn = _ScenarioSolve(entry[1], scenario, dynamic)
     else:
         shared_key = _structure_key(scenario)
+        shared_key = None if shared_key is None else (method,) + shared_key
         entry = _SHARED.pop(shared_key, None) if shared_key is not None else None
         if entry is None:
-            entry = (scenario, _SharedSolve())
+            entry = (scenario, _SharedSolve(method))
         entry[1].add(scenario)
         fn = entry[1].fn
     if shared_key is not None:
@@ -948,6 +965,8 @@ class _Condensation(eqx.Module):
     penalty_factors: np.ndarray
     contact_fixed: np.ndarray
     others: np.ndarray
+    #: the free components among the candidates' ``3 k`` (``flatnonzero(~contact_fixed)``)
+    rows: np.ndarray
     #: ``linear_solver="spectral"``: the body's eigendecomposition (arrays, shared by equal meshes).
     spectral: SpectralDecomposition | None
 
@@ -968,18 +987,20 @@ class _Condensation(eqx.Module):
         self.penalty_factors = np.asarray(contact_model.penalty_factors)[reach]
         self.contact = CondensedContactModel(X[self.nodes], contact_model.indenter, _PenaltyEnergy(contact_model.indenter))
         self.others = top[~reach]
+        self.rows = np.flatnonzero(~self.contact_fixed.reshape(-1))
         self.spectral = spectral_decomposition(self.base, self.free) if spectral else None
 
     def solve_protocol(self, material: Material, depths, options: SolverOptions):
         """Contact forces on the modelled part [N] and full displacement fields [m] at ``depths``."""
         if options.linear_solver == "spectral" and self.spectral is None:
             raise ConfigError("linear_solver='spectral': this condensation was built without its decomposition (build the scenario with these options)")
-        Z, G = linear_response_columns(self.base, material, self.free, self.dofs, linear_solver=options.linear_solver, decomposition=self.spectral)
+        # the setup of a protocol compiled with the arrays as arguments (_ScenarioSolve), else None: built here
+        Z, G = linear_response_columns(self.base, material, self.free, self.dofs, linear_solver=options.linear_solver, decomposition=self.spectral,
+                                       setup=_SOLVE_SETUP.get())
         S_free = jnp.linalg.inv(G)
         S_free = 0.5 * (S_free + S_free.T)
         k = self.nodes.size
-        mask = ~self.contact_fixed.reshape(-1)
-        idx = np.flatnonzero(mask)
+        idx = jnp.asarray(self.rows)
         S = jnp.zeros((3 * k, 3 * k), dtype=G.dtype).at[idx[:, None], idx[None, :]].set(S_free)
         E = jnp.max(self.base.region_values(material)["youngs_modulus"])
         params = CondensedParameters(S, E * jnp.asarray(self.penalty_factors))

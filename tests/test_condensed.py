@@ -1,13 +1,14 @@
 """Static condensation of a linear body onto its contact candidates (difftissue.solvers.condensed):
 the same equilibrium as the full solve, exact derivatives, clear refusals."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from jax.test_util import check_grads
 
-from difftissue import errors
+from difftissue import errors, scenarios
 from difftissue.boundary import BoundaryConditions
 from difftissue.contact import ConeIndenter, _PenaltyEnergy
 from difftissue.contact import top_surface_nodes
@@ -195,3 +196,36 @@ def test_a_too_small_candidate_set_is_detected(quarter):
     assert np.isfinite(forces[0]) and np.isnan(forces[-1])
     with pytest.raises(Exception, match="outside the candidate set"):
         jax.block_until_ready(shallow.solve_protocol(Material(12e3, 0.42), jnp.asarray(DEPTHS), SolverOptions(failure="raise")))
+
+
+def _stretched_below_top(mesh, factor):
+    """``mesh`` with every node's depth below the top surface multiplied by ``factor``: other
+    node coordinates, the same top surface (the same candidate contact nodes) and structure."""
+    p = np.asarray(mesh.points).copy()
+    top = p[:, 2].max()
+    p[:, 2] = top - (top - p[:, 2]) * factor
+    return eqx.tree_at(lambda m: m.points, mesh, p)
+
+
+@pytest.mark.parametrize("linear_solver", ["auto", "sparse", "spectral"])
+def test_the_condensed_protocol_takes_its_arrays_as_arguments(linear_solver):
+    """The condensed indentation is compiled with its mesh, index sets, condensation data (and
+    the spectral decomposition) as arguments: two specimens of one structure with other node
+    coordinates share one program, and each gets the forces and tangents of its protocol
+    compiled with its arrays closed over (the program before the arguments) to 1e-13."""
+    mesh = indentation_block((2e-3, 2e-3, 1e-3), (3, 3, 2), symmetry="quarter")
+    depths = np.array([20e-6, 40e-6, 60e-6])
+    opts = SolverOptions(linear_solver=linear_solver)
+    a, b = (Indentation(m, depths, model="fem_linear", indenter="sphere", radius=1e-3, symmetry="quarter", options=opts)
+            for m in (mesh, _stretched_below_top(mesh, 1.5)))
+    assert a.condensation is not None and scenarios.compiles_with_arguments(a)
+    fa, fb = scenarios._jitted_solve(a), scenarios._jitted_solve(b)
+    assert isinstance(fa, scenarios._ScenarioSolve) and fb.program is fa.program
+    m = Material(1.0e4, 0.45)
+    for sc in (a, b):
+        closed = lambda nu, sc=sc: sc._solve_protocol(Material(1.0e4, nu))[0]  # noqa: E731
+        y, t = jax.jvp(lambda nu, sc=sc: sc.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
+        yc, tc = jax.jit(lambda nu: jax.jvp(closed, (nu,), (1.0,)))(0.45)
+        np.testing.assert_allclose(np.asarray(y), np.asarray(yc), rtol=1e-13, atol=0)
+        np.testing.assert_allclose(np.asarray(t), np.asarray(tc), rtol=1e-13, atol=1e-13 * np.abs(np.asarray(tc)).max())
+    assert not np.allclose(np.asarray(a.predict(m)), np.asarray(b.predict(m)), rtol=1e-3)  # each its own forces

@@ -216,15 +216,38 @@ def test_other_mesh_coordinates_share_the_program_and_get_their_own_predictions(
         np.testing.assert_allclose(np.asarray(t), np.asarray(td), rtol=1e-10, atol=1e-12 * np.max(np.abs(td)))
 
 
-def test_the_condensed_indentation_keeps_its_arrays_compiled_in():
-    """The condensed indentation reads its NumPy index sets while traced: its programs take
-    the measured data only (the mesh a constant), keyed by content."""
-    from difftissue.scenarios import Indentation, indentation_block
+@pytest.mark.parametrize("linear_solver", ["auto", "spectral"])
+def test_condensed_indentations_of_other_mesh_coordinates_share_the_program(linear_solver):
+    """The condensed indentation (a config's 3-D fem_linear sphere or cone) takes its mesh,
+    its index sets, its condensation data and its solver setup (the spectral decomposition
+    with ``linear_solver="spectral"``) as arguments: a specimen of one structure with other
+    node coordinates (deeper nodes moved, the same candidate contact nodes) takes the first
+    one's program and gets its own forces and Poisson's ratio tangents, those of its own
+    ``predict`` to 1e-12."""
+    from difftissue.scenarios import Indentation, SolverOptions, indentation_block
 
     mesh = indentation_block((2e-3, 2e-3, 1e-3), (3, 3, 2), symmetry="quarter")
-    sc = Indentation(mesh, np.array([20e-6]), np.ones(1), indenter="sphere", radius=1e-3, model="fem_linear", symmetry="quarter")
-    assert sc.condensation is not None
-    assert not SeparatelyCompiled(sc).arrays_as_arguments
+    p = np.asarray(mesh.points).copy()
+    p[:, 2] = 1e-3 - (1e-3 - p[:, 2]) * 1.5  # a thicker block, the same top surface
+    opts = SolverOptions(linear_solver=linear_solver)
+    a, b = (Indentation(m, np.array([20e-6, 40e-6]), np.ones(2), indenter="sphere", radius=1e-3, model="fem_linear", symmetry="quarter",
+                        options=opts) for m in (mesh, eqx.tree_at(lambda m: m.points, mesh, p)))
+    assert a.condensation is not None and (a.condensation.spectral is not None) == (linear_solver == "spectral")
+    wa, wb = (SeparatelyCompiled(sc, fields=("youngs_modulus", "poisson_ratio")) for sc in (a, b))
+    assert wa.arrays_as_arguments and wb.arrays_as_arguments
+    assert scenario_structure(a, arrays=True)[0] == scenario_structure(b, arrays=True)[0]
+    m = Material(1.0e4, 0.45)
+    with _Compiles() as c1:
+        ya = wa.evaluate(m)
+    with _Compiles() as c2:
+        yb = wb.evaluate(m)
+    assert c1.compiled == 1 and c2.compiled == 0 and c2.hits == 1 and c2.backend == 0, (vars(c1), vars(c2))
+    assert not np.allclose(ya, yb, rtol=1e-3)
+    for w, sc, y in ((wa, a, ya), (wb, b, yb)):
+        np.testing.assert_allclose(y, np.asarray(sc.predict(m)), rtol=1e-12, atol=0)
+        _, t = jax.jvp(lambda nu: w.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
+        _, td = jax.jvp(lambda nu: sc.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
+        np.testing.assert_allclose(np.asarray(t), np.asarray(td), rtol=1e-10, atol=1e-12 * np.max(np.abs(td)))
 
 
 def test_the_key_holds_what_is_compiled_in_and_not_the_measured_data(tmp_path):

@@ -11,6 +11,7 @@ bad_input or example"`) ~30 s.
 """
 
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -20,10 +21,10 @@ from difftissue.config import SeparatelyCompiled
 from difftissue.cutting import ScalpelPath, cut_specimen
 from difftissue.errors import ConfigError, CutError, DataError
 from difftissue.fit import fit
-from difftissue.incision import Incision, IncisionOptions, _jitted, depth_profile, incision_boundary, plot_incision, write_incision_series
+from difftissue.incision import Incision, IncisionOptions, depth_profile, incision_boundary, plot_incision, write_incision_series
 from difftissue.materials import Material, MaterialParameterization, lame_parameters, surface_tension_from_pre_stretch
 from difftissue.mesh import layered_skin
-from difftissue.scenarios import AnalyticIndentation
+from difftissue.scenarios import AnalyticIndentation, _jitted_solve
 
 MM = 1e-3
 SKIN, FAT = Material(2e5, 0.45), Material(5e3, 0.45)
@@ -146,7 +147,7 @@ def test_progressive_reference_opens_without_recompiling(cut, reference, progres
     mat = SKIN.replace(pre_stretch=1.1)
     pos, us, w, mx = progressive
     us2, w2, _ = (np.asarray(a) for a in reference.progress(mat, pos + np.array([0.2 * MM, 0.2 * MM, 0.0])))
-    assert _jitted(reference, "_progress")._cache_size() == 1
+    assert _jitted_solve(reference, "_progress").program.fn._cache_size() == 1
     np.testing.assert_allclose(w2[-1], w[-1], rtol=1e-6)  # the released cut does not depend on the path there
     ps = np.asarray(cut.pair_s)
     for k, s in enumerate(pos):
@@ -290,3 +291,27 @@ def test_example_config_builds():
     cfg = load_config(Path(__file__).resolve().parents[1] / "experiments" / "configs" / "incision_skin.toml")
     assert [e.kind for e in cfg.experiments] == ["incision"]
     assert cfg.parameterization.fields == ("pre_stretch",)
+
+
+def test_an_incision_of_other_node_coordinates_shares_the_program(cut, incision):
+    """The incision is compiled with its arrays (mesh, cut pairs, boundary data, fixed
+    materials, the residual floor) and its solver setup as arguments: the same cut in a
+    specimen whose fat nodes lie deeper (other node coordinates, one structure) takes the
+    first one's program and gets the widths and tangents of its protocol compiled with its
+    arrays closed over (the program before the arguments) to 1e-13."""
+    p = np.asarray(cut.mesh.points).copy()
+    below = p[:, 2].max() - T_DERMIS
+    p[:, 2] = np.where(p[:, 2] < below - 1e-12, below - (below - p[:, 2]) * 1.5, p[:, 2])
+    deeper = Incision(eqx.tree_at(lambda c: c.mesh.points, cut, p), model="stable_neo_hookean", fitted_regions=("dermis",), options=OPTS)
+    first, second = _jitted_solve(incision), _jitted_solve(deeper)
+    assert second.program is first.program
+    mat = SKIN.replace(pre_stretch=1.1)
+    ys = []
+    for sc in (incision, deeper):
+        y, t = jax.jvp(lambda E, sc=sc: sc.predict(mat.replace(youngs_modulus=E)), (2e5,), (1.0,))
+        closed = lambda E, sc=sc: sc._solve_protocol(mat.replace(youngs_modulus=E))  # noqa: E731
+        yc, tc = jax.jit(lambda E: jax.jvp(closed, (E,), (1.0,)))(2e5)
+        np.testing.assert_allclose(np.asarray(y), np.asarray(yc), rtol=1e-13, atol=1e-13 * np.abs(np.asarray(yc)).max())
+        np.testing.assert_allclose(np.asarray(t), np.asarray(tc), rtol=1e-12, atol=1e-12 * np.abs(np.asarray(tc)).max())
+        ys.append(np.asarray(y))
+    assert not np.allclose(ys[0], ys[1], rtol=1e-4)  # each its own widths

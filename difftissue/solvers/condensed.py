@@ -38,19 +38,40 @@ from ..errors import ModelError
 from ..models import ElasticModel, ElementTerm
 from .sparse import sparse_pattern
 from .spectral import spectral_decomposition, spectral_response_columns
-from .static import AUTO_DENSE_MAX, _element_data, _Options, _projected_operator, armijo_backtracking
+from .static import AUTO_DENSE_MAX, SolverSetup, _element_data, _Options, _projected_operator, armijo_backtracking
 
-__all__ = ["linear_response_columns", "CondensedParameters", "CondensedContactModel", "solve_condensed_contact"]
+__all__ = ["linear_response_columns", "condensation_setup", "CondensedParameters", "CondensedContactModel", "solve_condensed_contact"]
 
 
-def _options_for(model: ElasticModel, material, linear_solver: str) -> _Options:
+def _options_for(model: ElasticModel, material, linear_solver: str, setup: SolverSetup | None = None) -> _Options:
     n = model.n_nodes
+    if setup is not None:
+        if not isinstance(setup, SolverSetup) or setup.linear_solver not in ("dense", "sparse") or setup.n_nodes != n:
+            raise ModelError("setup must be the condensation_setup of this model (a 'dense' or 'sparse' SolverSetup of its nodes)")
+        if linear_solver not in ("auto", setup.linear_solver):
+            raise ModelError(f"linear_solver={linear_solver!r} but the setup was built for {setup.linear_solver!r}")
+        return _Options(0.0, 0.0, 0.0, 0, setup.linear_solver, 0.0, 0, setup.pattern)
     if linear_solver == "auto":
         linear_solver = "dense" if 3 * n <= AUTO_DENSE_MAX else "sparse"  # many columns, one factorisation
     if linear_solver not in ("dense", "sparse"):
         raise ModelError(f"condensation needs a direct linear solver ('dense', 'sparse' or 'spectral'), got {linear_solver!r}")
     pattern = sparse_pattern([t.nodes for t in model.terms(material)], n) if linear_solver == "sparse" else None
     return _Options(0.0, 0.0, 0.0, 0, linear_solver, 0.0, 0, pattern)
+
+
+def condensation_setup(model: ElasticModel, material, *, linear_solver: str = "auto") -> SolverSetup:
+    """What :func:`linear_response_columns` derives from ``model``'s mesh before it solves, as a
+    :class:`~difftissue.solvers.static.SolverSetup` (every field static, no array): the
+    direct solver (``"auto"``: dense up to ``AUTO_DENSE_MAX`` unknowns, sparse above) and, for
+    ``"sparse"``, the CSR pattern (hashed by content); for ``"spectral"`` nothing but the name
+    (its arrays are the decomposition's). Needs the connectivity concrete; ``material`` only
+    for its structure (values unused). With it, ``linear_response_columns(..., setup=...)``
+    runs with the mesh, the boundary mask and the degrees of freedom as traced arguments of a
+    compiled program."""
+    if linear_solver == "spectral":
+        return SolverSetup("spectral", model.n_nodes)
+    options = _options_for(model, material, linear_solver)
+    return SolverSetup(options.linear_solver, model.n_nodes, options.pattern)
 
 
 def _solve_columns(material, model, free, dofs, options):
@@ -98,7 +119,7 @@ def _columns_jvp(primals, tangents, *, model, free, dofs, options):
     return (Z, G), (dZ, 0.5 * (dG + dG.T))
 
 
-def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear_solver: str = "auto", decomposition=None):
+def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear_solver: str = "auto", decomposition=None, setup=None):
     """Rows ``Z = C K^{-1}`` (``(m, 3N)``; ``K`` symmetric, so ``Z^T = K^{-1} C^T``) of the inverse
     stiffness at rest for the degrees of freedom ``dofs``, and the compliance ``G = Z C^T``.
 
@@ -120,27 +141,35 @@ def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear
         decomposition: for ``"spectral"``, the :class:`~difftissue.solvers.spectral.SpectralDecomposition`
             of ``model`` and ``free`` (:func:`~difftissue.solvers.spectral.spectral_decomposition`;
             None: computed here, cached per mesh). Ignored by the other solvers.
+        setup: the :func:`condensation_setup` of ``model`` for ``linear_solver`` (None:
+            built now, which needs the connectivity concrete). With it, ``model``, ``free`` and ``dofs`` may be traced
+            arguments of a compiled program (their checks then run where they are concrete).
 
     Returns:
         ``(Z, G)``: ``Z`` ``(m, 3N)`` and ``G`` ``(m, m)`` (symmetric) [m/N]. The derivative of
         ``G`` needs no extra solve (``dG = -Z dK Z^T``); that of ``Z`` one per tangent.
     """
-    dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
-    free = np.asarray(free, dtype=bool)
+    if isinstance(dofs, jax.core.Tracer) or isinstance(free, jax.core.Tracer):
+        dofs = jnp.reshape(dofs, (-1,))  # traced (a compiled program's arguments): checked where they were built
+    else:
+        dofs = np.asarray(dofs, dtype=np.int64).reshape(-1)
+        free = np.asarray(free, dtype=bool)
+        if not np.all(free.reshape(-1)[dofs]):
+            raise ModelError("condensation degrees of freedom must be free (not prescribed)")
     if dofs.size == 0:
         raise ModelError("no degrees of freedom to condense onto")
-    if not np.all(free.reshape(-1)[dofs]):
-        raise ModelError("condensation degrees of freedom must be free (not prescribed)")
     material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
     model.region_values(material)
     if linear_solver == "spectral":
+        if setup is not None and (not isinstance(setup, SolverSetup) or setup.linear_solver != "spectral"):
+            raise ModelError("linear_solver='spectral' takes the condensation_setup built for 'spectral'")
         if decomposition is None:
             decomposition = spectral_decomposition(model, free)
         n = int(np.shape(decomposition.vectors)[0])
         if n != 3 * model.n_nodes:
             raise ModelError(f"the spectral decomposition has {n} rows, the model {3 * model.n_nodes} unknowns: it belongs to another mesh")
         return spectral_response_columns(decomposition, model, material, dofs)
-    options = _options_for(model, material, linear_solver)
+    options = _options_for(model, material, linear_solver, setup)
     return _columns(material, model=model, free=free, dofs=dofs, options=options)
 
 

@@ -189,7 +189,7 @@ def spectral_response_columns(decomposition: SpectralDecomposition, model: Elast
     V = jnp.asarray(decomposition.vectors)
     theta = jnp.asarray(decomposition.theta, dtype=V.dtype)
     d = 1.0 / (mu + lam * theta)
-    VC = V[jnp.asarray(np.asarray(dofs, dtype=np.int64))]
+    VC = V[jnp.asarray(dofs)]  # (a NumPy or a traced index array)
     W = VC * d[None, :]
     Z = W @ V.T
     G = W @ VC.T

@@ -693,7 +693,8 @@ def solve_static(
         material: a :class:`~difftissue.materials.Material` (scalars or one value per region).
         bc: prescribed displacements [m] and nodal forces [N]; they must remove every
             rigid-body mode (checked when values are concrete: :class:`RigidModeError`).
-        rtol, atol: residual tolerance ``|grad Pi|_free <= max(atol [N], rtol * |grad Pi|_start)``.
+        rtol, atol: residual tolerance ``|grad Pi|_free <= max(atol [N], rtol * |grad Pi|_start)``
+            (``atol`` may be a 0-d array, also a traced one).
         xtol: also converged when a full Newton correction is below ``xtol * |u|`` (2-norms)
             and that step's matrix was positive definite (Cholesky succeeded, CG met no
             negative curvature, the sparse factorisation's pivots were positive): the residual
@@ -753,7 +754,9 @@ def solve_static(
     n = model.n_nodes
     linear_solver, pattern, layout, hierarchy = setup.linear_solver, setup.pattern, setup.layout, setup.hierarchy
     default_steps = 500 if linear_solver == "multigrid" else 10 * 3 * n
-    options = _Options(float(rtol), float(atol), float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or default_steps), pattern, layout, hierarchy)
+    # atol may be an array (a mesh-derived floor passed as an argument of a compiled program)
+    atol = jnp.asarray(atol, dtype=float) if eqx.is_array(atol) else float(atol)
+    options = _Options(float(rtol), atol, float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or default_steps), pattern, layout, hierarchy)
     # Python floats would be static under jit (a recompile per value): make every leaf an array.
     material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
     u_init = jnp.zeros((n, 3)) if initial_displacement is None else jnp.asarray(initial_displacement, dtype=float)
