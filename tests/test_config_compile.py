@@ -122,6 +122,21 @@ def test_an_equal_config_built_again_reuses_the_compiled_program(first, tmp_path
     assert sc2.calls == sc1.calls == {"value": 1, "value_and_tangents": 1}  # each wrapper counts its own solves
 
 
+def test_a_program_compiled_outside_a_fit_is_the_one_the_fit_runs(first, tmp_path):
+    """A fit evaluates its scenarios inside a host callback, where JAX sets the default device to
+    the CPU device; outside it is None. Both resolve to one device here, so the program compiled
+    before the fit is the fit's own (the key held the unresolved setting and compiled again)."""
+    sc1, (y1, jt1) = first
+    sc2 = _wrapped(_config(tmp_path))
+    with jax.default_device(jax.devices("cpu")[0]):
+        y2, jt2, c = _value_and_tangents(sc2)
+    # (JAX's own small eager programs around the call are compiled again under the other
+    # setting: ``c.backend`` counts them; the scenario's program is not among them)
+    assert c.compiled == 0 and c.hits == 1, vars(c)
+    np.testing.assert_array_equal(y2, y1)
+    np.testing.assert_array_equal(jt2, jt1)
+
+
 def test_other_measurements_of_the_same_specimen_and_protocol_share_the_program(first, tmp_path):
     """The measured stresses (and sigma) are arguments: 3x other data, same program, same
     predictions; each wrapper keeps its own observed data."""

@@ -96,8 +96,17 @@ def scenario_structure(scenario, *, arrays: bool = False) -> tuple[tuple | None,
 
 
 def _settings() -> tuple:
-    """The JAX settings a program is compiled under (part of its key)."""
-    return (bool(jax.config.jax_enable_x64), jax.default_backend(), str(jax.config.jax_default_device))
+    """The JAX settings a program is compiled under (part of its key): float64 or not, and the
+    device it runs on. The device is resolved (``jax_default_device`` None means the first
+    device of the default backend; JAX sets it to the CPU device inside a host callback, where
+    a fit evaluates its scenarios), so that a program compiled before a fit is the fit's own
+    program when both resolve to one device."""
+    device = jax.config.jax_default_device
+    if device is None:
+        device = jax.devices()[0]
+    elif isinstance(device, str):
+        device = jax.devices(device)[0]
+    return (bool(jax.config.jax_enable_x64), device.platform, device.id)
 
 
 def _program(jitted, specs, key, options=None):
