@@ -151,8 +151,8 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tu
     CHOLMOD is tried first while the pattern has had fewer than :data:`CHOLMOD_FAILURES_MAX`
     indefinite matrices. Its failure shows the matrix not positive definite, so the LU that
     then solves the step returns ``definite=False`` without reading its pivots (reading them,
-    ``lu.U``, copies both SuperLU factors into SciPy matrices: 1.3-2.1 GiB more at 78k
-    unknowns). A failed Cholesky leaks its factor (``_cholesky_solve``), and along a Newton
+    ``lu.U``, copies both SuperLU factors into SciPy matrices: about double the factor's
+    memory, 0.30 GiB more on a 0.33 GiB factor at 24,507 unknowns). A failed Cholesky leaks its factor (``_cholesky_solve``), and along a Newton
     path of a nearly incompressible, pre-stretched membrane the Hessian is indefinite at one
     step out of three (at 16,560 unknowns 0.12-0.24 GB per step, 8 GB and a MemoryError over
     one solve without a bound); so after the pattern's ``CHOLMOD_FAILURES_MAX``-th failure its
