@@ -92,10 +92,13 @@ def test_jacfwd_factorises_once_for_all_tangents_and_agrees_with_grad(sparse_der
     np.testing.assert_allclose(np.asarray(jf), np.asarray(g), rtol=1e-9)
 
 
-def test_cholmod_is_not_retried_on_a_pattern_that_had_an_indefinite_matrix(monkeypatch):
-    """A failed CHOLMOD factorisation leaks its factor (cholespy), so after an indefinite
-    matrix every later matrix of the same pattern goes to the symmetric LU (at most one leak
-    per pattern); another pattern still gets CHOLMOD; every solve is exact."""
+def test_cholmod_is_retried_until_a_pattern_had_the_maximum_of_indefinite_matrices(monkeypatch):
+    """A failed CHOLMOD factorisation leaks its factor (cholespy), so after CHOLMOD_FAILURES_MAX
+    indefinite matrices every later matrix of the same pattern goes to the symmetric LU (at
+    most that many leaks per pattern); before that, a definite matrix after an indefinite one
+    gets CHOLMOD again (a cut lattice's first tangent is indefinite, the later ones are not);
+    the LU's pivots are read only where CHOLMOD did not already show the matrix indefinite;
+    another pattern still gets CHOLMOD; every solve is exact."""
     import scipy.sparse as sps
 
     from difftissue.solvers import sparse
@@ -110,26 +113,30 @@ def test_cholmod_is_not_retried_on_a_pattern_that_had_an_indefinite_matrix(monke
         S += np.eye(pat.n) * (1.0 - np.linalg.eigvalsh(S).min())  # smallest eigenvalue 1
         return pat, S[rows, pat.indices], (S - 2.0 * np.eye(pat.n))[rows, pat.indices]  # definite, indefinite
 
-    calls = []
-    original = sparse._cholesky_solve
+    calls, pivot_reads = [], []
+    original, original_pivots = sparse._cholesky_solve, sparse._lu_is_definite
     monkeypatch.setattr(sparse, "_cholesky_solve", lambda p, d, b: calls.append(p.n) or original(p, d, b))
-    monkeypatch.setattr(sparse, "_INDEFINITE_PATTERNS", set())
+    monkeypatch.setattr(sparse, "_lu_is_definite", lambda lu: pivot_reads.append(lu.shape[0]) or original_pivots(lu))
+    monkeypatch.setattr(sparse, "_CHOLMOD_FAILURES", {})
+    assert sparse.CHOLMOD_FAILURES_MAX == 2
     pat, definite, indefinite = matrices(2)
     other, other_definite, _ = matrices(3)
     b = np.random.default_rng(2).standard_normal(pat.n)
     flags = []
-    for k, (p, data) in enumerate([(pat, definite), (pat, indefinite), (pat, indefinite), (pat, definite), (other, other_definite)]):
+    sequence = [(pat, definite), (pat, indefinite), (pat, definite), (pat, indefinite), (pat, indefinite), (pat, definite), (other, other_definite)]
+    for k, (p, data) in enumerate(sequence):
         rhs = b if p is pat else np.ones(p.n)
         x, is_definite = sparse._factor_solve(p, data, rhs)
         flags.append(is_definite)
         A = sps.csr_matrix((data, p.indices, p.indptr), shape=(p.n, p.n))
         np.testing.assert_allclose(A @ x, rhs, rtol=0, atol=1e-9 * np.abs(rhs).max(), err_msg=f"solve {k}")
-    # Definiteness as the factorisation shows it: CHOLMOD's success, then the LU's pivots
-    # (Sylvester's inertia) for this pattern's definite (4th) and indefinite (2nd, 3rd) matrices.
-    assert flags == [True, False, False, True, True]
-    # CHOLMOD: 1st (definite), 2nd (tried once, fails); LU for the rest of this pattern; the other
-    # pattern's definite matrix: CHOLMOD.
-    assert calls == [pat.n, pat.n, other.n]
+    # Definiteness as the factorisation shows it: CHOLMOD's success or failure, then (after the
+    # second failure) the LU's pivots (Sylvester's inertia) for the 5th and 6th matrices.
+    assert flags == [True, False, True, False, False, True, True]
+    # CHOLMOD: 1st (definite), 2nd (fails), 3rd (definite, tried again), 4th (second failure);
+    # LU for the rest of this pattern; the other pattern's definite matrix: CHOLMOD.
+    assert calls == [pat.n] * 4 + [other.n]
+    assert pivot_reads == [pat.n, pat.n]
 
 
 def test_the_solver_reports_positive_definiteness_per_matrix_under_vmap(monkeypatch):
@@ -140,7 +147,7 @@ def test_the_solver_reports_positive_definiteness_per_matrix_under_vmap(monkeypa
 
     from difftissue.solvers import sparse
 
-    monkeypatch.setattr(sparse, "_INDEFINITE_PATTERNS", set())
+    monkeypatch.setattr(sparse, "_CHOLMOD_FAILURES", {})
     mesh = block((1.0, 1.0, 1.0), (2, 2, 2))
     model = make_model(mesh, "fem_linear")
     pat = sparse_pattern([t.nodes for t in model.terms(Material(1.0, 0.3))], mesh.n_nodes)
@@ -157,7 +164,7 @@ def test_the_solver_reports_positive_definiteness_per_matrix_under_vmap(monkeypa
         return sol.value, sol.stats["positive_definite"]
 
     b = jnp.ones(pat.n)
-    for order in ([base, indefinite], [indefinite, base]):  # CHOLMOD then LU; LU for both after
+    for order in ([base, indefinite], [indefinite, base]):  # CHOLMOD (fails once, then twice: LU and its pivots for the last)
         x, flags = jax.vmap(solve, in_axes=(0, None))(jnp.asarray(np.stack(order)), b)
         assert np.asarray(flags).tolist() == [d is base for d in order]
         for data, xi in zip(order, np.asarray(x)):

@@ -6,7 +6,7 @@ code); the values are scattered inside the compiled solve. The linear solve itse
 ``jax.pure_callback`` to a sparse Cholesky factorisation (CHOLMOD, through cholespy), or
 SciPy's sparse LU (SuperLU with a symmetric-mode ordering) where the matrix is not positive
 definite (and, since a failed CHOLMOD factorisation leaks memory, for every later matrix of a
-pattern that had an indefinite one: ``_factor_solve``), wrapped as a :mod:`lineax` solver so that implicit differentiation (forward and reverse) goes
+pattern that had ``CHOLMOD_FAILURES_MAX`` indefinite ones: ``_factor_solve``), wrapped as a :mod:`lineax` solver so that implicit differentiation (forward and reverse) goes
 through it like through the dense Cholesky. The matrix is symmetric, so the transposed solve
 (reverse mode) is the same solve.
 
@@ -112,10 +112,13 @@ def assemble_csr_data(pattern: SparsePattern, element_hessians, free_dofs):
     return jnp.zeros(pattern.nnz, dtype=v.dtype).at[jnp.asarray(pattern.scatter)].add(v)
 
 
-#: Sparsity patterns (digests) that have had an indefinite matrix: their matrices go to the
-#: symmetric LU from then on (see _factor_solve). Digests are 64 characters: kept for the
-#: process, so that each pattern leaks at most one failed CHOLMOD factor.
-_INDEFINITE_PATTERNS: set[str] = set()
+#: How many failed CHOLMOD factorisations (indefinite matrices) one sparsity pattern may have:
+#: after that many its matrices go to the symmetric LU for good (see _factor_solve).
+CHOLMOD_FAILURES_MAX = 2
+
+#: Failed CHOLMOD factorisations per sparsity pattern (digest: 64 characters), kept for the
+#: process, so that each pattern leaks at most CHOLMOD_FAILURES_MAX failed CHOLMOD factors.
+_CHOLMOD_FAILURES: dict[str, int] = {}
 
 
 def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
@@ -125,7 +128,7 @@ def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
     A failed factorisation is not free: cholespy (2.2) raises from its constructor without
     releasing CHOLMOD's factor, so every indefinite matrix passed here leaks about the size of
     its Cholesky factor (measured: ~175 MB per attempt at 17,500 unknowns). ``_factor_solve``
-    therefore calls it at most once per pattern with an indefinite matrix."""
+    therefore calls it at most ``CHOLMOD_FAILURES_MAX`` times per pattern with an indefinite matrix."""
     import cholespy  # host-side only
 
     try:
@@ -145,23 +148,28 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tu
     succeeded, or the LU's inertia: :func:`_lu_is_definite`), False when it is indefinite,
     singular, not finite or its inertia is not known.
 
-    CHOLMOD is tried only on patterns that have not had an indefinite matrix: a failed
-    Cholesky leaks its factor (``_cholesky_solve``), and along a Newton path of a nearly
-    incompressible, pre-stretched membrane the Hessian is indefinite at one step out of three,
-    which at 16,560 unknowns leaked 0.12-0.24 GB per step (8 GB and a MemoryError over one
-    solve). After the first failure the pattern's matrices go to the symmetric LU, which is
-    exact whether or not the matrix is definite and at that size no slower (3.4 s against
-    CHOLMOD's 4.7-5.2 s CPU per factorisation). Linear-elastic stiffness matrices (condensation,
-    fits of linear models: many right-hand sides, where CHOLMOD wins) are never indefinite and
-    keep CHOLMOD. Which factorisation solved a definite matrix changes the result at round-off
-    level only."""
+    CHOLMOD is tried first while the pattern has had fewer than :data:`CHOLMOD_FAILURES_MAX`
+    indefinite matrices. Its failure shows the matrix not positive definite, so the LU that
+    then solves the step returns ``definite=False`` without reading its pivots (reading them,
+    ``lu.U``, copies both SuperLU factors into SciPy matrices: about double the factor's
+    memory, 0.30 GiB more on a 0.33 GiB factor at 24,507 unknowns). A failed Cholesky leaks its factor (``_cholesky_solve``), and along a Newton
+    path of a nearly incompressible, pre-stretched membrane the Hessian is indefinite at one
+    step out of three (at 16,560 unknowns 0.12-0.24 GB per step, 8 GB and a MemoryError over
+    one solve without a bound); so after the pattern's ``CHOLMOD_FAILURES_MAX``-th failure its
+    matrices go to the symmetric LU for good, whose pivots then say whether each is definite.
+    Where only the first tangent of a solve is indefinite (a cut, pre-stretched lattice), the
+    later, definite tangents keep CHOLMOD: about half the LU's factor memory. Linear-elastic
+    stiffness matrices (condensation, fits of linear models: many right-hand sides, where
+    CHOLMOD wins) are never indefinite and keep CHOLMOD. Which factorisation solved a definite
+    matrix changes the result at round-off level only."""
     if not (np.all(np.isfinite(data)) and np.all(np.isfinite(b))):
         return np.full(b.shape, np.nan), False
-    if pattern.digest not in _INDEFINITE_PATTERNS:
+    failures = _CHOLMOD_FAILURES.get(pattern.digest, 0)
+    if failures < CHOLMOD_FAILURES_MAX:
         x = _cholesky_solve(pattern, data, b)
         if x is not None:
             return x, True
-        _INDEFINITE_PATTERNS.add(pattern.digest)
+        _CHOLMOD_FAILURES[pattern.digest] = failures + 1
     import scipy.sparse as sps  # imported on first use: a fit that never factorises need not load SciPy
     import scipy.sparse.linalg as spla
 
@@ -170,7 +178,9 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tu
         lu = spla.splu(A, permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:  # exactly singular: NaN, the Newton loop falls back / flags it
         return np.full(b.shape, np.nan), False
-    definite = _lu_is_definite(lu)
+    del A
+    # CHOLMOD failed on this very matrix: not positive definite, no need for the pivots.
+    definite = False if failures < CHOLMOD_FAILURES_MAX else _lu_is_definite(lu)
     if b.ndim == 1 or b.shape[1] < 4:
         return lu.solve(b), definite
     return _solve_many(lu, b), definite
