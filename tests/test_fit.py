@@ -378,6 +378,30 @@ def test_a_saturated_transform_falls_back_to_a_fresh_evaluation():
     assert not np.any(np.asarray(ok))
 
 
+@pytest.mark.filterwarnings("ignore::difftissue.errors.IdentifiabilityWarning", "ignore::difftissue.errors.FitQualityWarning")
+def test_a_refit_with_another_method_reuses_the_evaluation_program(monkeypatch):
+    """The evaluation program (values, loss, Jacobian and predictions at the start and the end of
+    an Adam or L-BFGS fit) depends on the problem and ``jac``, not on the method or its options: a
+    refit of the same problem with L-BFGS after Adam traces it no second time, and it evaluates
+    the L-BFGS fit's own points; another ``jac`` is another program."""
+    import difftissue.fit.engine as F
+
+    traced = []
+    original = F.Engine.evaluate
+    monkeypatch.setattr(F.Engine, "evaluate", lambda self, U, data: traced.append((self.method, self.jac)) or original(self, U, data))
+    monkeypatch.setattr(F, "_ENGINE_CACHE", {})
+    scs = [hertz_data(), compression_data()]
+    a = fit(scs, P_E_NU, START, method="adam", learning_rate=0.05, max_steps=3)
+    b = fit(scs, P_E_NU, START, method="lbfgs", max_steps=3)
+    assert traced == [("adam", "fwd")]
+    problem = FitProblem(scs, P_E_NU, START)
+    assert b.loss_history[0, 0] == a.loss_history[0, 0] == pytest.approx(float(problem.loss(jnp.asarray(_start_u(problem, START)))), rel=1e-12)
+    assert not np.allclose(b.unconstrained, a.unconstrained)
+    assert b.loss == pytest.approx(float(problem.loss(jnp.asarray(b.unconstrained))), rel=1e-12)
+    fit(scs, P_E_NU, START, method="lbfgs", max_steps=3, jac="bwd")
+    assert traced == [("adam", "fwd"), ("lbfgs", "bwd")]
+
+
 def test_interrupted_fit_resumes_to_the_same_optimum(tmp_path, joint_fit):
     scs = [hertz_data(), compression_data()]
     ref = joint_fit[0]  # the same problem (3 starts), uninterrupted

@@ -395,16 +395,27 @@ ADAM_MAX_HALVINGS = 12
 #: :meth:`FitProblem.structure_key` (fields, transforms, fixed fields, loss, scenario types and
 #: pytree structures, a hash of the compiled-in scenario leaves; objects that are not arrays by
 #: identity) and the solver options; the measured data are arguments, not part of the key. The
-#: entry keeps its problem alive, so the ids in a key cannot be reused while cached.
+#: entry keeps its problem alive, so the ids in a key cannot be reused while cached. The
+#: evaluation program (:meth:`Engine.make_evaluate`) is shared by the cached engines of one
+#: structure and ``jac`` whatever their method and options (it depends on neither).
 _ENGINE_CACHE: dict = {}
 _ENGINE_CACHE_SIZE = 8
 
 
 def cached_engine(problem: FitProblem, method: str, **options) -> Engine:
-    key = (problem.structure_key(), method, tuple(sorted(options.items())))
+    structure = problem.structure_key()
+    key = (structure, method, tuple(sorted(options.items())))
     engine = _ENGINE_CACHE.pop(key, None)
     if engine is None:
         engine = Engine(problem, method, **options)
+        # The evaluation program depends on the problem's structure and ``jac`` only, not on the
+        # method or its tolerances / learning rate: an engine of the same structure and ``jac``
+        # already cached lends its (possibly compiled) program, so a refit with another method
+        # does not compile the forward model's evaluation again.
+        for (other_structure, _, other_options), other in _ENGINE_CACHE.items():
+            if other_structure == structure and dict(other_options).get("jac") == options.get("jac"):
+                engine._evaluate = other.make_evaluate()
+                break
     _ENGINE_CACHE[key] = engine  # most recent last
     while len(_ENGINE_CACHE) > _ENGINE_CACHE_SIZE:
         _ENGINE_CACHE.pop(next(iter(_ENGINE_CACHE)))
