@@ -832,7 +832,8 @@ class traced_arguments:
 
 
 def _traced_solve(scenario, setup, material_key, method, material, *extra):
-    """``scenario._solve_protocol`` traced inline with ``setup`` (see :class:`traced_arguments`)."""
+    """``getattr(scenario, method)`` (its protocol, or another compiled method) traced inline with
+    ``setup`` (see :class:`traced_arguments`)."""
     if _material_key(material) != material_key:
         raise ConfigError(f"{getattr(scenario, 'name', type(scenario).__name__)}: solved with a material of another structure than the "
                           "solver setup passed to traced_arguments was built for")
