@@ -211,20 +211,27 @@ def test_other_mesh_coordinates_share_the_program_and_get_their_own_predictions(
     those of its own ``predict`` (its own compiled protocol) to 1e-12."""
     thin, thick = _indentation(1.0e-3), _indentation(3.0e-3)
     assert not np.array_equal(np.asarray(thin.model.rest_points), np.asarray(thick.model.rest_points))
-    wt, wk = (SeparatelyCompiled(sc, fields=("youngs_modulus", "poisson_ratio")) for sc in (thin, thick))
-    assert wt.arrays_as_arguments and wk.arrays_as_arguments
-    assert scenario_structure(thin, arrays=True)[0] == scenario_structure(thick, arrays=True)[0]
     assert scenario_structure(thin)[0] != scenario_structure(thick)[0]  # the closed-over key tells them apart
+    _assert_one_program_and_own_numbers(thin, thick, differ_rtol=1e-4)
+
+
+def _assert_one_program_and_own_numbers(first, second, *, differ_rtol):
+    """``first`` and ``second`` (scenarios of one structure, other arrays) through
+    :class:`SeparatelyCompiled`: the second takes the first one's program (no compilation) and
+    each gets its own forces (differing by more than ``differ_rtol``) and Poisson's ratio
+    tangents, those of its own ``predict`` (its own compiled protocol) to 1e-12 / 1e-10."""
+    w1, w2 = (SeparatelyCompiled(sc, fields=("youngs_modulus", "poisson_ratio")) for sc in (first, second))
+    assert w1.arrays_as_arguments and w2.arrays_as_arguments
+    assert scenario_structure(first, arrays=True)[0] == scenario_structure(second, arrays=True)[0]
     m = Material(1.0e4, 0.45)
     with _Compiles() as c1:
-        yt = wt.evaluate(m)
+        y1 = w1.evaluate(m)
     with _Compiles() as c2:
-        yk = wk.evaluate(m)
+        y2 = w2.evaluate(m)
     assert c1.compiled == 1 and c2.compiled == 0 and c2.hits == 1 and c2.backend == 0, (vars(c1), vars(c2))
-    assert not np.allclose(yk, yt, rtol=1e-4)  # other forces: each its own numbers
-    for w, sc, y in ((wt, thin, yt), (wk, thick, yk)):
-        direct = np.asarray(sc.predict(m))
-        np.testing.assert_allclose(y, direct, rtol=1e-12, atol=0)
+    assert not np.allclose(y2, y1, rtol=differ_rtol)  # other forces: each its own numbers
+    for w, sc, y in ((w1, first, y1), (w2, second, y2)):
+        np.testing.assert_allclose(y, np.asarray(sc.predict(m)), rtol=1e-12, atol=0)
         # the Poisson's ratio tangent (an implicit solve per depth) through the shared program
         _, t = jax.jvp(lambda nu: w.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
         _, td = jax.jvp(lambda nu: sc.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
@@ -248,21 +255,7 @@ def test_condensed_indentations_of_other_mesh_coordinates_share_the_program(line
     a, b = (Indentation(m, np.array([20e-6, 40e-6]), np.ones(2), indenter="sphere", radius=1e-3, model="fem_linear", symmetry="quarter",
                         options=opts) for m in (mesh, eqx.tree_at(lambda m: m.points, mesh, p)))
     assert a.condensation is not None and (a.condensation.spectral is not None) == (linear_solver == "spectral")
-    wa, wb = (SeparatelyCompiled(sc, fields=("youngs_modulus", "poisson_ratio")) for sc in (a, b))
-    assert wa.arrays_as_arguments and wb.arrays_as_arguments
-    assert scenario_structure(a, arrays=True)[0] == scenario_structure(b, arrays=True)[0]
-    m = Material(1.0e4, 0.45)
-    with _Compiles() as c1:
-        ya = wa.evaluate(m)
-    with _Compiles() as c2:
-        yb = wb.evaluate(m)
-    assert c1.compiled == 1 and c2.compiled == 0 and c2.hits == 1 and c2.backend == 0, (vars(c1), vars(c2))
-    assert not np.allclose(ya, yb, rtol=1e-3)
-    for w, sc, y in ((wa, a, ya), (wb, b, yb)):
-        np.testing.assert_allclose(y, np.asarray(sc.predict(m)), rtol=1e-12, atol=0)
-        _, t = jax.jvp(lambda nu: w.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
-        _, td = jax.jvp(lambda nu: sc.predict(Material(1.0e4, nu)), (0.45,), (1.0,))
-        np.testing.assert_allclose(np.asarray(t), np.asarray(td), rtol=1e-10, atol=1e-12 * np.max(np.abs(td)))
+    _assert_one_program_and_own_numbers(a, b, differ_rtol=1e-3)
 
 
 def test_the_key_holds_what_is_compiled_in_and_not_the_measured_data(tmp_path):
