@@ -6,6 +6,7 @@ uniaxial stress), difftissue static solves of small blocks (a held pre-stretched
 edge reaction; a uniaxial bar: its end reaction), the linear limit, and central differences.
 """
 
+import functools
 import math
 
 import jax
@@ -136,17 +137,28 @@ def test_surface_tension_overstatement_of_the_linear_formula():
             assert lin / float(surface_tension(kind, m, 1e-3)) - 1.0 == pytest.approx(over, abs=5e-4), kind
 
 
+_LAYER_CELL = (1e-3, 1e-3, 0.75e-3)
+
+
+def _tension_of_a_layer(kind, q):
+    """T [N/m] of a 1.5 mm layer of ``_LAYER_CELL`` cells at ``q = (E / 1e5 Pa, nu, b, lambda0)``."""
+    return surface_tension(kind, Material(q[0] * 1e5, q[1], cubic_coefficient=q[2], pre_stretch=q[3]), 1.5e-3, cell_size=_LAYER_CELL)
+
+
+@functools.lru_cache(maxsize=None)
+def _tension_gradient(kind):
+    """``jax.jit(jax.grad(T))`` of :func:`_tension_of_a_layer`: one compiled program per model,
+    shared by the gradient check and the record's delta-method check."""
+    return jax.jit(jax.grad(functools.partial(_tension_of_a_layer, kind)))
+
+
 @pytest.mark.parametrize("kind", ["springs_volume", "fem_neo_hookean"])
 def test_surface_tension_gradient_matches_central_differences(kind):
     """d T / d(E, nu, b, lambda0) (implicit function theorem through the thickness solve) vs
     central differences, float64, rtol 1e-6; also under jit."""
-    cell = (1e-3, 1e-3, 0.75e-3)
-
-    def T(q):
-        return surface_tension(kind, Material(q[0] * 1e5, q[1], cubic_coefficient=q[2], pre_stretch=q[3]), 1.5e-3, cell_size=cell)
-
+    T = functools.partial(_tension_of_a_layer, kind)
     q0 = jnp.array([2.0, 0.42, 1.5, 1.08])
-    g = np.asarray(jax.jit(jax.grad(T))(q0))
+    g = np.asarray(_tension_gradient(kind)(q0))
     h = 1e-6
     for i in range(4):
         dq = jnp.zeros(4).at[i].set(h)
@@ -175,22 +187,27 @@ def test_pre_stretch_for_a_surface_tension_inverts_the_model():
     1.01963 (springs_volume) against the linear inverse's 1.01833 (fem_linear: 1.01868); the model
     at that lambda0 carries 10 N/m to 1e-12; d lambda0 / d(E, T) vs central differences."""
     m = Material(E, NU, pre_stretch=1.3)  # its pre_stretch is ignored
-    expected = {"stable_neo_hookean": 1.019376, "springs_volume": 1.019635}
-    for kind, lam in expected.items():
-        lam0 = float(pre_stretch_for_surface_tension(kind, m, 10.0, 1.5e-3))
-        assert lam0 == pytest.approx(lam, abs=1e-6)
-        assert float(surface_tension(kind, m.replace(pre_stretch=lam0), 1.5e-3)) == pytest.approx(10.0, rel=1e-12)
 
     def lam(q):
-        return pre_stretch_for_surface_tension("springs_volume", Material(q[0] * 1e5, NU), q[1], 1.5e-3)
+        return pre_stretch_for_surface_tension("springs_volume", Material(q[0] * 1e5, NU, pre_stretch=1.3), q[1], 1.5e-3)
 
+    # One jitted program gives springs_volume's inverse and its gradient; the value at q0 (the
+    # material m, 10 N/m) and the central differences are read from it, so the inverse is not
+    # compiled a second time on its own. (An un-jitted grad of the jitted inverse compiled its
+    # linearisation, the primal and the transposed Newton solves separately: 13 compilations.)
+    value_and_grad = jax.jit(jax.value_and_grad(lam))
     q0 = jnp.array([2.0, 10.0])
-    # one jitted program: an un-jitted grad of the jitted inverse compiles its linearisation, the
-    # primal and the transposed nested Newton solves separately (13 compilations against 2)
-    g = np.asarray(jax.jit(jax.grad(lam))(q0))
+    lam_springs, g = value_and_grad(q0)
+    expected = {"stable_neo_hookean": 1.019376, "springs_volume": 1.019635}
+    for kind, lam_expected in expected.items():
+        lam0 = float(lam_springs) if kind == "springs_volume" else float(pre_stretch_for_surface_tension(kind, m, 10.0, 1.5e-3))
+        assert lam0 == pytest.approx(lam_expected, abs=1e-6)
+        assert float(surface_tension(kind, m.replace(pre_stretch=lam0), 1.5e-3)) == pytest.approx(10.0, rel=1e-12)
+    g = np.asarray(g)
     for i in range(2):
         dq = jnp.zeros(2).at[i].set(1e-6)
-        assert g[i] == pytest.approx((float(lam(q0 + dq)) - float(lam(q0 - dq))) / 2e-6, rel=1e-6)
+        fd = (float(value_and_grad(q0 + dq)[0]) - float(value_and_grad(q0 - dq)[0])) / 2e-6
+        assert g[i] == pytest.approx(fd, rel=1e-6)
     with pytest.raises(MaterialError, match="surface tension"):
         pre_stretch_for_surface_tension("fem_linear", m, -1.0, 1.5e-3)
 
@@ -271,11 +288,21 @@ def test_continuum_cubic_coefficient_gradient_matches_central_differences():
         return continuum_cubic_coefficient("springs_volume", Material(E, q[0], cubic_coefficient=q[1]), strain_range=(-0.2, 0.25))
 
     q0 = jnp.array([0.43, 1.5])
-    g = np.asarray(jax.grad(bc)(q0))
+    g = np.asarray(jax.jit(jax.grad(bc))(q0))  # one program (un-jitted: the solve's JVP and transpose compiled apart)
     h = 1e-6
     for i in range(2):
         dq = jnp.zeros(2).at[i].set(h)
         assert g[i] == pytest.approx((float(bc(q0 + dq)) - float(bc(q0 - dq))) / (2 * h), rel=1e-6)
+
+
+def _traced_uniaxial_stress(kind, material, strain, direction):
+    """:func:`uniaxial_stress` of a traced material: ``jax.vmap`` over a batch of one, so the
+    call reaches the jitted solve (``constitutive._uniaxial_stress``) itself, whose one compiled
+    program serves every direction (the frame is an argument) and, for the strain counts that
+    pad to the same 16 points, every strain; an outer ``jax.jit`` per direction compiled the
+    solve again for each (measured: 11.1 -> 6.1 s CPU for springs_volume's three directions)."""
+    batch = jax.tree.map(lambda a: np.asarray(a)[None], material)
+    return jax.vmap(lambda mm: uniaxial_stress(kind, mm, strain, direction=direction))(batch)[0]
 
 
 @pytest.mark.parametrize("kind", ["springs_volume", "fem_neo_hookean"])
@@ -287,7 +314,7 @@ def test_uniaxial_stress_of_concrete_values_is_the_jitted_solve(kind):
     eps = np.linspace(-0.4, 0.4, 7)
     for d in DIRECTIONS:
         host = np.asarray(uniaxial_stress(kind, m, eps, direction=d))
-        traced = np.asarray(jax.jit(lambda mm, d=d: uniaxial_stress(kind, mm, eps, direction=d))(m))
+        traced = np.asarray(_traced_uniaxial_stress(kind, m, eps, d))
         np.testing.assert_allclose(host, traced, rtol=1e-12, atol=1e-12 * E)
 
 
@@ -297,8 +324,8 @@ def test_uniaxial_stress_refuses_a_state_that_does_not_converge():
     m = Material(E, NU, cubic_coefficient=-5.0)
     with pytest.raises(ModelError, match="did not converge at strain"):
         uniaxial_stress("springs_volume", m, -0.6)
-    with pytest.raises(Exception, match="did not converge"):
-        jax.block_until_ready(jax.jit(lambda mm: uniaxial_stress("springs_volume", mm, -0.6))(m))
+    with pytest.raises(Exception, match="did not converge"):  # the jitted solve of the test above: no compilation of its own
+        jax.block_until_ready(_traced_uniaxial_stress("springs_volume", m, -0.6, "[100]"))
 
 
 def test_uniaxial_input_errors():
@@ -326,7 +353,9 @@ def test_records_are_plain_json_with_the_model_and_range():
     assert rec["linearised_surface_tension"] == pytest.approx(float(surface_tension_from_pre_stretch(m, 1.5e-3)))
     assert rec["linearised_over_model"] > 1.15
     # delta method: T is linear in E, so the E part of the standard error is T / E * se_E
-    dT_dlam = float(jax.grad(lambda l: surface_tension("springs_volume", m.replace(pre_stretch=l), 1.5e-3, cell_size=(1e-3, 1e-3, 0.75e-3)))(1.06))
+    # dT / d lambda0 from the gradient program of the gradient check above (same model, layer
+    # and cells: no compilation of its own)
+    dT_dlam = float(_tension_gradient("springs_volume")(jnp.array([E / 1e5, NU, 2.0, 1.06]))[3])
     assert rec["standard_error"] == pytest.approx(math.sqrt((rec["value"] / E) ** 2 * 1e8 + dT_dlam**2 * 1e-6), rel=1e-8)
     rb = cubic_coefficient_record(m)
     json.dumps(rb, allow_nan=False)
