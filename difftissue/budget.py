@@ -15,12 +15,15 @@ only meaningful for that setting, that mesh resolution and similar loading.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import hashlib
 import math
 import warnings
 from pathlib import Path
 from typing import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -35,6 +38,7 @@ from .mesh import LENGTH_UNITS, signed_volumes
 from .models import MESH_MODELS, ElasticModel, make_model
 from .solvers.static import solve_static
 from .solvers.xpbd import XPBDSettings, xpbd_quasi_static
+from .structure_keys import hash_scenario_leaves
 
 __all__ = ["BudgetCalibration", "calibrate_for_budget", "FITTABLE_FIELDS", "BudgetLoad", "indentation_load", "cell_size",
            "BudgetProposal", "propose_budget", "LoadSetCalibration", "calibrate_for_load_set", "MIN_SENSITIVITY", "SHAPES",
@@ -45,17 +49,24 @@ FITTABLE_FIELDS = ("youngs_modulus", "poisson_ratio", "cubic_coefficient")
 _NU_LO, _NU_HI = 0.0, 0.4999
 
 
-#: The unconstrained variable of each field in the optimiser (a function of the true material,
-#: which sets the scale): log E (scaled by the true E), nu in (0, 0.4999) by a scaled logit, the
-#: cubic coefficient as it is.
+#: The variable of each field in the optimiser and its transform from the unconstrained one: E
+#: as the ratio ``E / E_true`` [-] (so the transform does not depend on the true material, and
+#: calls at other materials share the compiled programs), log-like; nu in (0, 0.4999) by a
+#: scaled logit; the cubic coefficient as it is.
 _TRANSFORMS = {
-    # E within exp(+-reach) of the true value: log-like in between (a logit of E between those
-    # bounds), so a saturated setting (a response insensitive to E) ends at a bound instead of
-    # drifting to 1e34 x E.
-    "youngs_modulus": lambda m, reach: ScaledLogit(float(m.youngs_modulus) * math.exp(-reach), float(m.youngs_modulus) * math.exp(reach)),
-    "poisson_ratio": lambda m, reach: ScaledLogit(_NU_LO, _NU_HI),
-    "cubic_coefficient": lambda m, reach: Identity(),
+    # E within exp(+-reach) of the true value: log-like in between (a logit of E / E_true between
+    # those bounds), so a saturated setting (a response insensitive to E) ends at a bound instead
+    # of drifting to 1e34 x E.
+    "youngs_modulus": lambda reach: ScaledLogit(math.exp(-reach), math.exp(reach)),
+    "poisson_ratio": lambda reach: ScaledLogit(_NU_LO, _NU_HI),
+    "cubic_coefficient": lambda reach: Identity(),
 }
+
+
+def _field_scales(material: Material, fields) -> np.ndarray:
+    """``(p,)`` unit of each optimiser variable in its field's SI unit: the true E for
+    ``youngs_modulus`` (the variable is ``E / E_true``), 1 for the others."""
+    return np.array([float(material.youngs_modulus) if f == "youngs_modulus" else 1.0 for f in fields])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,20 +150,99 @@ def _reaction_weights(bc: BoundaryConditions) -> np.ndarray:
     return w
 
 
-def _reaction_observable(bc: BoundaryConditions):
-    """Total reaction force on the nodes with a non-zero prescribed displacement, projected on
-    the direction of their summed prescribed displacement (a scalar, N; with the solvers'
-    reaction convention -- internal elastic force on the prescribed components -- it is
-    positive when the tissue resists the prescribed motion)."""
-    idx, mask, direction = _moved_nodes(bc)
-    direction = jnp.asarray(direction)
-    mask = jnp.asarray(mask)
+def _reaction_observable(idx, mask, direction, reaction):
+    """Total reaction force on the nodes ``idx`` with a non-zero prescribed displacement
+    (:func:`_moved_nodes`), projected on the direction of their summed prescribed displacement
+    (a ``(1,)`` array, N; with the solvers' reaction convention -- internal elastic force on the
+    prescribed components -- it is positive when the tissue resists the prescribed motion)."""
+    total = jnp.sum(jnp.where(mask, reaction[idx], 0.0), axis=0)
+    return jnp.atleast_1d(jnp.dot(total, direction))
 
-    def obs(displacement, reaction):
-        total = jnp.sum(jnp.where(mask, reaction[idx], 0.0), axis=0)
-        return jnp.atleast_1d(jnp.dot(total, direction))
 
-    return obs
+class _BudgetProgram:
+    """The budgeted observable of one structure of :func:`calibrate_for_budget`, traced once and
+    shared by every call of that structure (:func:`_budget_program`).
+
+    Compiled in: the XPBD model (the mesh), which displacement components are prescribed, the
+    settings' static configuration (substeps, iterations, method, ...), the observable (the
+    reaction's nodes and direction, or the user's function) and the calibrated fields.
+    Arguments (``args``): ``material`` (every field an array, SI), ``settings`` (the settings'
+    arrays: dt [s], relaxation, damping [1/s]), the prescribed ``displacement`` [m] and
+    ``force`` [N], ``tol`` [-], ``max_frames``, ``scale`` (:func:`_field_scales`) and, for the
+    residuals, ``reference`` (the observable's unit) and ``norm`` (``|reference| rtol``)."""
+
+    def __init__(self, key, model, bc: BoundaryConditions, settings: XPBDSettings, observable, fit_fields):
+        self.key = key
+        self.model = model
+        self.bc = bc  # its prescribed components; its displacement and force are arguments
+        self.settings = eqx.partition(settings, eqx.is_array)[1]
+        self.observable = observable
+        self.fit_fields = fit_fields
+        self.observe = jax.jit(self._observe)
+
+    def _observe(self, v, args):
+        """Budgeted observable at the optimiser's variables ``v`` (``(p,)``, the fields' values
+        over ``args["scale"]``) and whether XPBD came to rest."""
+        m = _with_values(args["material"], self.fit_fields, v * args["scale"])
+        settings = eqx.combine(args["settings"], self.settings)
+        bc = eqx.tree_at(lambda b: (b.displacement, b.force), self.bc, (args["displacement"], args["force"]))
+        sol = xpbd_quasi_static(self.model, m, bc, settings=settings, tol=args["tol"], max_steps=args["max_frames"], throw=False)
+        if callable(self.observable):
+            y = jnp.atleast_1d(jnp.asarray(self.observable(sol.displacement)))
+        else:
+            y = _reaction_observable(*self.observable[1:], sol.reaction)
+        return y, sol.converged
+
+    def residual_fn(self, v, data):
+        """(y - y_ref) / (|y_ref| rtol): the relative mismatch in units of the target, so that
+        the Jacobian dominates Levenberg--Marquardt's initial damping (unit in u) and the first
+        steps are nearly Gauss--Newton steps (the minimiser and the covariance do not depend on
+        this scale). A frame limit reached gives NaN, which the optimiser rejects."""
+        y, ok = self._observe(v, data)
+        r = (y - data["reference"]) / data["norm"]
+        return jnp.where(ok, r, jnp.nan), y
+
+    def arguments(self, material: Material, bc: BoundaryConditions, settings: XPBDSettings, tol, max_frames, scale) -> dict:
+        """The ``args`` of a call (see the class docstring; no ``reference`` / ``norm``)."""
+        return {
+            "material": jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material),
+            "settings": eqx.partition(settings, eqx.is_array)[0],
+            "displacement": jnp.asarray(bc.displacement, dtype=float),
+            "force": jnp.asarray(bc.force, dtype=float),
+            "tol": jnp.asarray(tol, dtype=float),
+            "max_frames": np.asarray(max_frames, dtype=np.int32),
+            "scale": jnp.asarray(scale, dtype=float),
+        }
+
+
+#: Budgeted-observable programs of :func:`calibrate_for_budget` by structure key, most recently
+#: used last (the fit engine keeps its own compiled steps, keyed by the same key).
+_BUDGET_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
+_BUDGET_PROGRAMS_SIZE = 8
+
+
+def _budget_program(model, bc: BoundaryConditions, settings: XPBDSettings, observable, fit_fields) -> _BudgetProgram:
+    """The :class:`_BudgetProgram` of this structure: a cached one when the key matches
+    (the model type and pytree structure, its arrays by content, the prescribed components, the
+    settings' static configuration, the observable's nodes and direction by content or the
+    user's function by identity, the calibrated fields: :func:`hash_scenario_leaves`), else a
+    new one (also when the static configuration cannot be hashed; then nothing is shared)."""
+    leaves, treedef = jax.tree_util.tree_flatten((model, np.asarray(bc.fixed), observable))
+    settings_def = jax.tree_util.tree_structure(eqx.partition(settings, eqx.is_array)[0])
+    try:
+        hash((treedef, settings_def))
+    except TypeError:  # a static field that cannot be hashed
+        return _BudgetProgram(None, model, bc, settings, observable, fit_fields)
+    h = hashlib.sha256()
+    objects = hash_scenario_leaves(h, leaves, ())  # the user's observable: by identity, kept alive by the program
+    key = ("calibrate_for_budget", type(model), treedef, settings_def, h.hexdigest(), tuple(objects), tuple(fit_fields))
+    program = _BUDGET_PROGRAMS.pop(key, None)
+    if program is None:
+        program = _BudgetProgram(key, model, bc, settings, observable, fit_fields)
+    _BUDGET_PROGRAMS[key] = program  # most recent last
+    while len(_BUDGET_PROGRAMS) > _BUDGET_PROGRAMS_SIZE:
+        _BUDGET_PROGRAMS.popitem(last=False)
+    return program
 
 
 def calibrate_for_budget(
@@ -245,8 +335,12 @@ def calibrate_for_budget(
     model = make_model(mesh, model_kind)
     ref_model, ref_kind = _reference_model(mesh, model, model_kind, reference)
 
-    if observable == "reaction":
-        obs = _reaction_observable(bc)
+    if isinstance(observable, str) and observable == "reaction":
+        observable = ("reaction", *_moved_nodes(bc))
+
+        def obs(displacement, reaction):
+            return _reaction_observable(*observable[1:], reaction)
+
     elif callable(observable):
         user: Callable = observable
 
@@ -266,25 +360,16 @@ def calibrate_for_budget(
         raise ConfigError("the reference observable is zero or not finite: nothing to calibrate against")
 
     # ------------------------------------------------------------------ budgeted XPBD
-    def observe(values):
-        """Budgeted observable at the fitted fields' ``values`` and whether XPBD came to rest."""
-        m = _with_values(material, fit_fields, values)
-        sol = xpbd_quasi_static(model, m, bc, settings=settings, tol=tol, max_steps=max_frames, throw=False)
-        return obs(sol.displacement, sol.reaction), sol.converged
+    # One program per structure (model, prescribed components, static settings, observable,
+    # fields); the numbers -- material, dt, prescribed displacements, reference -- are its
+    # arguments, so calls that differ only in them compile nothing again.
+    program = _budget_program(model, bc, settings, observable, fit_fields)
+    scale = _field_scales(material, fit_fields)
+    args = program.arguments(material, bc, settings, tol, max_frames, scale)
 
-    def residual_fn(values, data):
-        # (y - y_ref) / (|y_ref| rtol): the relative mismatch in units of the target, so that the
-        # Jacobian dominates Levenberg--Marquardt's initial damping (unit in u) and the first
-        # steps are nearly Gauss--Newton steps (the minimiser and the covariance do not depend
-        # on this scale). A frame limit reached gives NaN, which the optimiser rejects.
-        y, ok = observe(values)
-        r = (y - data["reference"]) / data["norm"]
-        return jnp.where(ok, r, jnp.nan), y
-
-    observe_jit = jax.jit(observe)
-
-    def evaluate(values):
-        y, ok = observe_jit(jnp.asarray(values))
+    def evaluate(v):
+        """Observable and relative error at the optimiser's variables ``v`` (values / scale)."""
+        y, ok = program.observe(jnp.asarray(v, dtype=float), args)
         if not bool(ok):
             raise ConvergenceError(
                 f"the budgeted XPBD solve did not come to rest within {max_frames} frames "
@@ -293,19 +378,20 @@ def calibrate_for_budget(
             )
         return y, float(jnp.linalg.norm((y - y_ref) / ref_norm))
 
-    start = np.array([float(getattr(material, f)) for f in fit_fields])
+    start = np.array([float(getattr(material, f)) for f in fit_fields]) / scale
     y_naive, naive_err = evaluate(start)
     reach = max_log_step * max(int(max_steps), 1)
-    problem = ResidualProblem(residual_fn, fit_fields, [_TRANSFORMS[f](material, reach) for f in fit_fields], int(y_ref.shape[0]),
-                              data={"reference": np.asarray(y_ref), "norm": np.asarray(ref_norm * rtol)})
+    problem = ResidualProblem(program.residual_fn, fit_fields, [_TRANSFORMS[f](reach) for f in fit_fields], int(y_ref.shape[0]),
+                              data={**args, "reference": np.asarray(y_ref), "norm": np.asarray(ref_norm * rtol)}, key=program.key)
     # The engine's first step evaluates the start (residual and Jacobian); max_steps optimiser
     # steps follow, until the relative error reaches rtol (the loss is (err / rtol)^2 / 2). With
     # max_steps = 0 or a naive error within rtol, the result holds the start's statistics.
     fit = least_squares(problem, start, method="levenberg_marquardt", max_steps=max_steps + 1,
                         stop=lambda loss: math.sqrt(2.0 * loss) <= 1.0)
-    values = np.array([fit.values[f] for f in fit_fields])
+    v = np.array([fit.values[f] for f in fit_fields])
+    values = v * scale
     steps = max(fit.steps - 1, 0)
-    y, err = evaluate(values)
+    y, err = evaluate(v)
 
     if err > rtol:
         warnings.warn(
@@ -334,9 +420,9 @@ def calibrate_for_budget(
         calibrated_error=err,
         steps=steps,
         converged=err <= rtol,
-        jacobian=np.asarray(fit.jacobian) * rtol,
-        covariance=np.asarray(fit.covariance),
-        standard_errors=dict(fit.standard_errors),
+        jacobian=np.asarray(fit.jacobian) / scale[None, :] * rtol,
+        covariance=np.asarray(fit.covariance) * np.outer(scale, scale),
+        standard_errors={f: float(fit.standard_errors[f] * scale[i]) for i, f in enumerate(fit_fields)},
         dof=fit.dof,
     )
 
