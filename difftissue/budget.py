@@ -215,30 +215,34 @@ class _BudgetProgram:
         }
 
 
-#: Budgeted-observable programs of :func:`calibrate_for_budget` by structure key, most recently
+#: Programs of :func:`calibrate_for_budget` (:class:`_BudgetProgram`) and
+#: :func:`calibrate_for_load_set` (:class:`_LoadSetProgram`) by structure key, most recently
 #: used last (the fit engine keeps its own compiled steps, keyed by the same key).
 _BUDGET_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 _BUDGET_PROGRAMS_SIZE = 8
 
 
-def _budget_program(model, bc: BoundaryConditions, settings: XPBDSettings, observable, fit_fields) -> _BudgetProgram:
-    """The :class:`_BudgetProgram` of this structure: a cached one when the key matches
-    (the model type and pytree structure, its arrays by content, the prescribed components, the
-    settings' static configuration, the observable's nodes and direction by content or the
-    user's function by identity, the calibrated fields: :func:`hash_scenario_leaves`), else a
-    new one (also when the static configuration cannot be hashed; then nothing is shared)."""
-    leaves, treedef = jax.tree_util.tree_flatten((model, np.asarray(bc.fixed), observable))
+def _shared_program(build, compiled_in, settings: XPBDSettings, *tags):
+    """``build(key)``, or the program already built for an equal key (most recently used kept).
+
+    The key is what the program compiles in: ``tags`` (hashable: which calibration, the
+    fields, ...), the settings' static configuration (substeps, iterations, method, ...) and the
+    pytree ``compiled_in`` (the model, the prescribed components, the observable): its structure,
+    its arrays by content, other objects (a user's function) by identity
+    (:func:`hash_scenario_leaves`; the program keeps them alive). A static configuration that
+    cannot be hashed gives ``build(None)``, shared with nothing."""
+    leaves, treedef = jax.tree_util.tree_flatten(compiled_in)
     settings_def = jax.tree_util.tree_structure(eqx.partition(settings, eqx.is_array)[0])
     try:
-        hash((treedef, settings_def))
+        hash((treedef, settings_def, tags))
     except TypeError:  # a static field that cannot be hashed
-        return _BudgetProgram(None, model, bc, settings, observable, fit_fields)
+        return build(None)
     h = hashlib.sha256()
-    objects = hash_scenario_leaves(h, leaves, ())  # the user's observable: by identity, kept alive by the program
-    key = ("calibrate_for_budget", type(model), treedef, settings_def, h.hexdigest(), tuple(objects), tuple(fit_fields))
+    objects = hash_scenario_leaves(h, leaves, ())
+    key = (tags, treedef, settings_def, h.hexdigest(), tuple(objects))
     program = _BUDGET_PROGRAMS.pop(key, None)
     if program is None:
-        program = _BudgetProgram(key, model, bc, settings, observable, fit_fields)
+        program = build(key)
     _BUDGET_PROGRAMS[key] = program  # most recent last
     while len(_BUDGET_PROGRAMS) > _BUDGET_PROGRAMS_SIZE:
         _BUDGET_PROGRAMS.popitem(last=False)
@@ -363,7 +367,8 @@ def calibrate_for_budget(
     # One program per structure (model, prescribed components, static settings, observable,
     # fields); the numbers -- material, dt, prescribed displacements, reference -- are its
     # arguments, so calls that differ only in them compile nothing again.
-    program = _budget_program(model, bc, settings, observable, fit_fields)
+    program = _shared_program(lambda key: _BudgetProgram(key, model, bc, settings, observable, fit_fields),
+                              (model, np.asarray(bc.fixed), observable), settings, "calibrate_for_budget", type(model), fit_fields)
     scale = _field_scales(material, fit_fields)
     args = program.arguments(material, bc, settings, tol, max_frames, scale)
 
@@ -620,15 +625,29 @@ class _LoadSet:
         """Budgeted reaction observable [N] of every load at moduli ``youngs`` (n,) [Pa] (and
         ``poisson_ratio``, default the material's), and whether each came to rest (traceable;
         forward-mode differentiable)."""
-        bc, weights = self.bc, jnp.asarray(self.weights)
         nu = self.material.poisson_ratio if poisson_ratio is None else poisson_ratio
+        return _set_forces(self.model, self.material, self.bc, jnp.asarray(self.weights), settings, self.tol, self.max_frames, youngs, nu)
 
-        def one(E, b, w):
-            m = _with_values(self.material, ("youngs_modulus", "poisson_ratio"), [E, nu])
-            sol = xpbd_quasi_static(self.model, m, b, settings=settings, tol=self.tol, max_steps=self.max_frames, throw=False)
-            return jnp.sum(w * sol.reaction), sol.converged
-
-        return jax.vmap(one)(jnp.asarray(youngs), bc, weights)
+    def arguments(self, settings: XPBDSettings, reference, rtol: float) -> dict:
+        """The arguments of the set's :class:`_LoadSetProgram`: the material (every field an
+        array, SI), the loads' true moduli ``youngs`` [Pa], their logs and the logs of the
+        distinct moduli ``log_nodes``, the stacked prescribed ``displacement`` [m] and ``force``
+        [N], the reaction ``weights``, the settings' arrays, ``tol``, ``max_frames``, the
+        ``reference`` forces [N] and ``norm`` (``|reference| rtol``)."""
+        return {
+            "material": jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), self.material),
+            "youngs": jnp.asarray(self.youngs),
+            "log_youngs": jnp.log(jnp.asarray(self.youngs)),
+            "log_nodes": jnp.log(jnp.asarray(np.unique(self.youngs))),
+            "displacement": self.bc.displacement,
+            "force": self.bc.force,
+            "weights": jnp.asarray(self.weights),
+            "settings": eqx.partition(settings, eqx.is_array)[0],
+            "tol": jnp.asarray(self.tol, dtype=float),
+            "max_frames": np.asarray(self.max_frames, dtype=np.int32),
+            "reference": np.asarray(reference),
+            "norm": np.abs(reference) * rtol,
+        }
 
     def response(self, youngs, settings, poisson_ratio=None):
         """``(F (n,) [N], d log F / d log E (n,), came to rest (n,))`` at moduli ``youngs``."""
@@ -640,6 +659,51 @@ class _LoadSet:
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(ok & (F != 0), dF / F, np.nan)
         return F, s, ok
+
+
+def _set_forces(model, material: Material, bc: BoundaryConditions, weights, settings: XPBDSettings, tol, max_frames, youngs, nu):
+    """Budgeted reaction observable ``sum(weights * reaction)`` [N] of every load of a stacked
+    set (``bc`` and ``weights`` stacked on a leading load axis) at moduli ``youngs`` (n,) [Pa] and
+    Poisson ratio ``nu``, and whether each came to rest (traceable; forward-mode differentiable)."""
+
+    def one(E, b, w):
+        m = _with_values(material, ("youngs_modulus", "poisson_ratio"), [E, nu])
+        sol = xpbd_quasi_static(model, m, b, settings=settings, tol=tol, max_steps=max_frames, throw=False)
+        return jnp.sum(w * sol.reaction), sol.converged
+
+    return jax.vmap(one)(jnp.asarray(youngs), bc, weights)
+
+
+class _LoadSetProgram:
+    """The residuals of :func:`calibrate_for_load_set`'s joint fit for one structure, shared by
+    every call of that structure (:func:`_shared_program`: the fit engine compiles its step once
+    per key). Compiled in: the XPBD model, the loads' prescribed components, the settings'
+    static configuration, the number of stiffness nodes and whether a Poisson ratio is fitted;
+    the numbers are arguments (:meth:`_LoadSet.arguments`)."""
+
+    def __init__(self, key, model, bc: BoundaryConditions, settings: XPBDSettings, n_nodes: int, effective_poisson: bool):
+        self.key = key
+        self.model = model
+        self.bc = bc  # stacked; its prescribed components (displacement and force are arguments)
+        self.settings = eqx.partition(settings, eqx.is_array)[1]
+        self.n_nodes = int(n_nodes)
+        self.effective_poisson = bool(effective_poisson)
+
+    def card(self, v, args):
+        """The card's moduli of the loads [Pa] and Poisson ratio at the fit's variables ``v``
+        (one factor per stiffness node, then nu when fitted)."""
+        n_f = self.n_nodes
+        E = args["youngs"] * _nodal_factor(args["log_nodes"], jnp.log(v[:n_f]), args["log_youngs"])
+        return E, (v[n_f] if self.effective_poisson else args["material"].poisson_ratio)
+
+    def residual_fn(self, v, data):
+        """Per-load relative force error in units of ``rtol``; NaN where XPBD did not come to rest."""
+        E, nu = self.card(v, data)
+        settings = eqx.combine(data["settings"], self.settings)
+        bc = eqx.tree_at(lambda b: (b.displacement, b.force), self.bc, (data["displacement"], data["force"]))
+        y, ok = _set_forces(self.model, data["material"], bc, data["weights"], settings, data["tol"], data["max_frames"], E, nu)
+        r = (y - data["reference"]) / data["norm"]
+        return jnp.where(ok, r, jnp.nan), y
 
 
 def _reference_model(mesh, model, model_kind: str, reference):
@@ -1013,36 +1077,29 @@ def calibrate_for_load_set(
 
     # ------------------------------------------------------------------ the joint fit
     nodes = np.unique(ls.youngs)
-    fields = ("factor",) if nodes.size == 1 else tuple(f"factor at E = {E:.6g} Pa" for E in nodes)
+    labels = ("factor",) if nodes.size == 1 else tuple(f"factor at E = {E:.6g} Pa" for E in nodes)
     reach = max_log_step * max(int(max_steps), 1)
-    transforms = [ScaledLogit(math.exp(-reach), math.exp(reach)) for _ in fields]
+    transforms = [ScaledLogit(math.exp(-reach), math.exp(reach)) for _ in labels]
     if effective_poisson:
         if not (_NU_LO < float(material.poisson_ratio) < _NU_HI):
             raise ConfigError(f"poisson_ratio must lie in ({_NU_LO}, {_NU_HI}) to be calibrated")
-        fields += ("poisson_ratio",)
+        labels += ("poisson_ratio",)
         transforms.append(ScaledLogit(_NU_LO, _NU_HI))
     n_f = nodes.size
-    log_nodes, logE = jnp.log(jnp.asarray(nodes)), jnp.log(jnp.asarray(ls.youngs))
-
-    def card(values):
-        E = jnp.asarray(ls.youngs) * _nodal_factor(log_nodes, jnp.log(values[:n_f]), logE)
-        return E, (values[n_f] if effective_poisson else None)
-
-    def residual_fn(values, data):
-        E, nu = card(values)
-        y, ok = ls.forces(E, settings, nu)
-        r = (y - data["reference"]) / data["norm"]
-        return jnp.where(ok, r, jnp.nan), y
-
-    problem = ResidualProblem(residual_fn, fields, transforms, n,
-                              data={"reference": np.asarray(F_ref), "norm": np.abs(F_ref) * rtol})
+    # The fit's fields by position (the labels name the moduli, which are arguments): sets of
+    # one structure at other moduli share the compiled step.
+    fields = tuple(f"factor {i}" for i in range(n_f)) + (("poisson_ratio",) if effective_poisson else ())
+    program = _shared_program(lambda key: _LoadSetProgram(key, model, ls.bc, settings, n_f, effective_poisson),
+                              (model, ls.bc.fixed), settings, "calibrate_for_load_set", type(model), n_f, bool(effective_poisson))
+    data = ls.arguments(settings, F_ref, rtol)
+    problem = ResidualProblem(program.residual_fn, fields, transforms, n, data=data, key=program.key)
     start = np.array([1.0] * n_f + ([float(material.poisson_ratio)] if effective_poisson else []))
     fit = least_squares(problem, start, method="levenberg_marquardt", max_steps=max_steps + 1,
                         stop=lambda loss: math.sqrt(2.0 * loss) <= 1.0)
     values = np.array([fit.values[f] for f in fields])
-    E_card, nu_card = card(jnp.asarray(values))
+    E_card, nu_card = program.card(jnp.asarray(values), data)
     E_card = np.asarray(E_card)
-    nu_card = float(material.poisson_ratio) if nu_card is None else float(nu_card)
+    nu_card = float(nu_card)
     F_cal, s_cal, ok = ls.response(E_card, settings, nu_card if effective_poisson else None)
     if not all(ok):
         raise ConvergenceError("the budgeted XPBD solve at the card's moduli did not come to rest on "
@@ -1063,8 +1120,8 @@ def calibrate_for_load_set(
         model_kind=model_kind, reference_kind=ref_kind,
         mesh={"n_nodes": int(np.shape(mesh.points)[0]), "n_tets": int(np.shape(mesh.tets)[0]), "cell_size": cell_size(mesh)},
         loads=rows, max_error=float(np.max(np.abs(err))), threshold=float(threshold), steps=max(fit.steps - 1, 0),
-        jacobian=np.asarray(fit.jacobian) * rtol, covariance=np.asarray(fit.covariance), standard_errors=dict(fit.standard_errors),
-        dof=fit.dof,
+        jacobian=np.asarray(fit.jacobian) * rtol, covariance=np.asarray(fit.covariance),
+        standard_errors={label: fit.standard_errors[f] for label, f in zip(labels, fields)}, dof=fit.dof,
     )
 
 
