@@ -15,12 +15,15 @@ only meaningful for that setting, that mesh resolution and similar loading.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import hashlib
 import math
 import warnings
 from pathlib import Path
 from typing import Callable
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -35,6 +38,7 @@ from .mesh import LENGTH_UNITS, signed_volumes
 from .models import MESH_MODELS, ElasticModel, make_model
 from .solvers.static import solve_static
 from .solvers.xpbd import XPBDSettings, xpbd_quasi_static
+from .structure_keys import hash_scenario_leaves
 
 __all__ = ["BudgetCalibration", "calibrate_for_budget", "FITTABLE_FIELDS", "BudgetLoad", "indentation_load", "cell_size",
            "BudgetProposal", "propose_budget", "LoadSetCalibration", "calibrate_for_load_set", "MIN_SENSITIVITY", "SHAPES",
@@ -45,17 +49,24 @@ FITTABLE_FIELDS = ("youngs_modulus", "poisson_ratio", "cubic_coefficient")
 _NU_LO, _NU_HI = 0.0, 0.4999
 
 
-#: The unconstrained variable of each field in the optimiser (a function of the true material,
-#: which sets the scale): log E (scaled by the true E), nu in (0, 0.4999) by a scaled logit, the
-#: cubic coefficient as it is.
+#: The variable of each field in the optimiser and its transform from the unconstrained one: E
+#: as the ratio ``E / E_true`` [-] (so the transform does not depend on the true material, and
+#: calls at other materials share the compiled programs), log-like; nu in (0, 0.4999) by a
+#: scaled logit; the cubic coefficient as it is.
 _TRANSFORMS = {
-    # E within exp(+-reach) of the true value: log-like in between (a logit of E between those
-    # bounds), so a saturated setting (a response insensitive to E) ends at a bound instead of
-    # drifting to 1e34 x E.
-    "youngs_modulus": lambda m, reach: ScaledLogit(float(m.youngs_modulus) * math.exp(-reach), float(m.youngs_modulus) * math.exp(reach)),
-    "poisson_ratio": lambda m, reach: ScaledLogit(_NU_LO, _NU_HI),
-    "cubic_coefficient": lambda m, reach: Identity(),
+    # E within exp(+-reach) of the true value: log-like in between (a logit of E / E_true between
+    # those bounds), so a saturated setting (a response insensitive to E) ends at a bound instead
+    # of drifting to 1e34 x E.
+    "youngs_modulus": lambda reach: ScaledLogit(math.exp(-reach), math.exp(reach)),
+    "poisson_ratio": lambda reach: ScaledLogit(_NU_LO, _NU_HI),
+    "cubic_coefficient": lambda reach: Identity(),
 }
+
+
+def _field_scales(material: Material, fields) -> np.ndarray:
+    """``(p,)`` unit of each optimiser variable in its field's SI unit: the true E for
+    ``youngs_modulus`` (the variable is ``E / E_true``), 1 for the others."""
+    return np.array([float(material.youngs_modulus) if f == "youngs_modulus" else 1.0 for f in fields])
 
 
 @dataclasses.dataclass(frozen=True)
@@ -139,20 +150,103 @@ def _reaction_weights(bc: BoundaryConditions) -> np.ndarray:
     return w
 
 
-def _reaction_observable(bc: BoundaryConditions):
-    """Total reaction force on the nodes with a non-zero prescribed displacement, projected on
-    the direction of their summed prescribed displacement (a scalar, N; with the solvers'
-    reaction convention -- internal elastic force on the prescribed components -- it is
-    positive when the tissue resists the prescribed motion)."""
-    idx, mask, direction = _moved_nodes(bc)
-    direction = jnp.asarray(direction)
-    mask = jnp.asarray(mask)
+def _reaction_observable(idx, mask, direction, reaction):
+    """Total reaction force on the nodes ``idx`` with a non-zero prescribed displacement
+    (:func:`_moved_nodes`), projected on the direction of their summed prescribed displacement
+    (a ``(1,)`` array, N; with the solvers' reaction convention -- internal elastic force on the
+    prescribed components -- it is positive when the tissue resists the prescribed motion)."""
+    total = jnp.sum(jnp.where(mask, reaction[idx], 0.0), axis=0)
+    return jnp.atleast_1d(jnp.dot(total, direction))
 
-    def obs(displacement, reaction):
-        total = jnp.sum(jnp.where(mask, reaction[idx], 0.0), axis=0)
-        return jnp.atleast_1d(jnp.dot(total, direction))
 
-    return obs
+class _BudgetProgram:
+    """The budgeted observable of one structure of :func:`calibrate_for_budget`, traced once and
+    shared by every call of that structure (:func:`_budget_program`).
+
+    Compiled in: the XPBD model (the mesh), which displacement components are prescribed, the
+    settings' static configuration (substeps, iterations, method, ...), the observable (the
+    reaction's nodes and direction, or the user's function) and the calibrated fields.
+    Arguments (``args``): ``material`` (every field an array, SI), ``settings`` (the settings'
+    arrays: dt [s], relaxation, damping [1/s]), the prescribed ``displacement`` [m] and
+    ``force`` [N], ``tol`` [-], ``max_frames``, ``scale`` (:func:`_field_scales`) and, for the
+    residuals, ``reference`` (the observable's unit) and ``norm`` (``|reference| rtol``)."""
+
+    def __init__(self, key, model, bc: BoundaryConditions, settings: XPBDSettings, observable, fit_fields):
+        self.key = key
+        self.model = model
+        self.bc = bc  # its prescribed components; its displacement and force are arguments
+        self.settings = eqx.partition(settings, eqx.is_array)[1]
+        self.observable = observable
+        self.fit_fields = fit_fields
+        self.observe = jax.jit(self._observe)
+
+    def _observe(self, v, args):
+        """Budgeted observable at the optimiser's variables ``v`` (``(p,)``, the fields' values
+        over ``args["scale"]``) and whether XPBD came to rest."""
+        m = _with_values(args["material"], self.fit_fields, v * args["scale"])
+        settings = eqx.combine(args["settings"], self.settings)
+        bc = eqx.tree_at(lambda b: (b.displacement, b.force), self.bc, (args["displacement"], args["force"]))
+        sol = xpbd_quasi_static(self.model, m, bc, settings=settings, tol=args["tol"], max_steps=args["max_frames"], throw=False)
+        if callable(self.observable):
+            y = jnp.atleast_1d(jnp.asarray(self.observable(sol.displacement)))
+        else:
+            y = _reaction_observable(*self.observable[1:], sol.reaction)
+        return y, sol.converged
+
+    def residual_fn(self, v, data):
+        """(y - y_ref) / (|y_ref| rtol): the relative mismatch in units of the target, so that
+        the Jacobian dominates Levenberg--Marquardt's initial damping (unit in u) and the first
+        steps are nearly Gauss--Newton steps (the minimiser and the covariance do not depend on
+        this scale). A frame limit reached gives NaN, which the optimiser rejects."""
+        y, ok = self._observe(v, data)
+        r = (y - data["reference"]) / data["norm"]
+        return jnp.where(ok, r, jnp.nan), y
+
+    def arguments(self, material: Material, bc: BoundaryConditions, settings: XPBDSettings, tol, max_frames, scale) -> dict:
+        """The ``args`` of a call (see the class docstring; no ``reference`` / ``norm``)."""
+        return {
+            "material": jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material),
+            "settings": eqx.partition(settings, eqx.is_array)[0],
+            "displacement": jnp.asarray(bc.displacement, dtype=float),
+            "force": jnp.asarray(bc.force, dtype=float),
+            "tol": jnp.asarray(tol, dtype=float),
+            "max_frames": np.asarray(max_frames, dtype=np.int32),
+            "scale": jnp.asarray(scale, dtype=float),
+        }
+
+
+#: Programs of :func:`calibrate_for_budget` (:class:`_BudgetProgram`) and
+#: :func:`calibrate_for_load_set` (:class:`_LoadSetProgram`) by structure key, most recently
+#: used last (the fit engine keeps its own compiled steps, keyed by the same key).
+_BUDGET_PROGRAMS: collections.OrderedDict = collections.OrderedDict()
+_BUDGET_PROGRAMS_SIZE = 8
+
+
+def _shared_program(build, compiled_in, settings: XPBDSettings, *tags):
+    """``build(key)``, or the program already built for an equal key (most recently used kept).
+
+    The key is what the program compiles in: ``tags`` (hashable: which calibration, the
+    fields, ...), the settings' static configuration (substeps, iterations, method, ...) and the
+    pytree ``compiled_in`` (the model, the prescribed components, the observable): its structure,
+    its arrays by content, other objects (a user's function) by identity
+    (:func:`hash_scenario_leaves`; the program keeps them alive). A static configuration that
+    cannot be hashed gives ``build(None)``, shared with nothing."""
+    leaves, treedef = jax.tree_util.tree_flatten(compiled_in)
+    settings_def = jax.tree_util.tree_structure(eqx.partition(settings, eqx.is_array)[0])
+    try:
+        hash((treedef, settings_def, tags))
+    except TypeError:  # a static field that cannot be hashed
+        return build(None)
+    h = hashlib.sha256()
+    objects = hash_scenario_leaves(h, leaves, ())
+    key = (tags, treedef, settings_def, h.hexdigest(), tuple(objects))
+    program = _BUDGET_PROGRAMS.pop(key, None)
+    if program is None:
+        program = build(key)
+    _BUDGET_PROGRAMS[key] = program  # most recent last
+    while len(_BUDGET_PROGRAMS) > _BUDGET_PROGRAMS_SIZE:
+        _BUDGET_PROGRAMS.popitem(last=False)
+    return program
 
 
 def calibrate_for_budget(
@@ -245,8 +339,12 @@ def calibrate_for_budget(
     model = make_model(mesh, model_kind)
     ref_model, ref_kind = _reference_model(mesh, model, model_kind, reference)
 
-    if observable == "reaction":
-        obs = _reaction_observable(bc)
+    if isinstance(observable, str) and observable == "reaction":
+        observable = ("reaction", *_moved_nodes(bc))
+
+        def obs(displacement, reaction):
+            return _reaction_observable(*observable[1:], reaction)
+
     elif callable(observable):
         user: Callable = observable
 
@@ -266,25 +364,17 @@ def calibrate_for_budget(
         raise ConfigError("the reference observable is zero or not finite: nothing to calibrate against")
 
     # ------------------------------------------------------------------ budgeted XPBD
-    def observe(values):
-        """Budgeted observable at the fitted fields' ``values`` and whether XPBD came to rest."""
-        m = _with_values(material, fit_fields, values)
-        sol = xpbd_quasi_static(model, m, bc, settings=settings, tol=tol, max_steps=max_frames, throw=False)
-        return obs(sol.displacement, sol.reaction), sol.converged
+    # One program per structure (model, prescribed components, static settings, observable,
+    # fields); the numbers -- material, dt, prescribed displacements, reference -- are its
+    # arguments, so calls that differ only in them compile nothing again.
+    program = _shared_program(lambda key: _BudgetProgram(key, model, bc, settings, observable, fit_fields),
+                              (model, np.asarray(bc.fixed), observable), settings, "calibrate_for_budget", type(model), fit_fields)
+    scale = _field_scales(material, fit_fields)
+    args = program.arguments(material, bc, settings, tol, max_frames, scale)
 
-    def residual_fn(values, data):
-        # (y - y_ref) / (|y_ref| rtol): the relative mismatch in units of the target, so that the
-        # Jacobian dominates Levenberg--Marquardt's initial damping (unit in u) and the first
-        # steps are nearly Gauss--Newton steps (the minimiser and the covariance do not depend
-        # on this scale). A frame limit reached gives NaN, which the optimiser rejects.
-        y, ok = observe(values)
-        r = (y - data["reference"]) / data["norm"]
-        return jnp.where(ok, r, jnp.nan), y
-
-    observe_jit = jax.jit(observe)
-
-    def evaluate(values):
-        y, ok = observe_jit(jnp.asarray(values))
+    def evaluate(v):
+        """Observable and relative error at the optimiser's variables ``v`` (values / scale)."""
+        y, ok = program.observe(jnp.asarray(v, dtype=float), args)
         if not bool(ok):
             raise ConvergenceError(
                 f"the budgeted XPBD solve did not come to rest within {max_frames} frames "
@@ -293,19 +383,20 @@ def calibrate_for_budget(
             )
         return y, float(jnp.linalg.norm((y - y_ref) / ref_norm))
 
-    start = np.array([float(getattr(material, f)) for f in fit_fields])
+    start = np.array([float(getattr(material, f)) for f in fit_fields]) / scale
     y_naive, naive_err = evaluate(start)
     reach = max_log_step * max(int(max_steps), 1)
-    problem = ResidualProblem(residual_fn, fit_fields, [_TRANSFORMS[f](material, reach) for f in fit_fields], int(y_ref.shape[0]),
-                              data={"reference": np.asarray(y_ref), "norm": np.asarray(ref_norm * rtol)})
+    problem = ResidualProblem(program.residual_fn, fit_fields, [_TRANSFORMS[f](reach) for f in fit_fields], int(y_ref.shape[0]),
+                              data={**args, "reference": np.asarray(y_ref), "norm": np.asarray(ref_norm * rtol)}, key=program.key)
     # The engine's first step evaluates the start (residual and Jacobian); max_steps optimiser
     # steps follow, until the relative error reaches rtol (the loss is (err / rtol)^2 / 2). With
     # max_steps = 0 or a naive error within rtol, the result holds the start's statistics.
     fit = least_squares(problem, start, method="levenberg_marquardt", max_steps=max_steps + 1,
                         stop=lambda loss: math.sqrt(2.0 * loss) <= 1.0)
-    values = np.array([fit.values[f] for f in fit_fields])
+    v = np.array([fit.values[f] for f in fit_fields])
+    values = v * scale
     steps = max(fit.steps - 1, 0)
-    y, err = evaluate(values)
+    y, err = evaluate(v)
 
     if err > rtol:
         warnings.warn(
@@ -334,9 +425,9 @@ def calibrate_for_budget(
         calibrated_error=err,
         steps=steps,
         converged=err <= rtol,
-        jacobian=np.asarray(fit.jacobian) * rtol,
-        covariance=np.asarray(fit.covariance),
-        standard_errors=dict(fit.standard_errors),
+        jacobian=np.asarray(fit.jacobian) / scale[None, :] * rtol,
+        covariance=np.asarray(fit.covariance) * np.outer(scale, scale),
+        standard_errors={f: float(fit.standard_errors[f] * scale[i]) for i, f in enumerate(fit_fields)},
         dof=fit.dof,
     )
 
@@ -534,15 +625,29 @@ class _LoadSet:
         """Budgeted reaction observable [N] of every load at moduli ``youngs`` (n,) [Pa] (and
         ``poisson_ratio``, default the material's), and whether each came to rest (traceable;
         forward-mode differentiable)."""
-        bc, weights = self.bc, jnp.asarray(self.weights)
         nu = self.material.poisson_ratio if poisson_ratio is None else poisson_ratio
+        return _set_forces(self.model, self.material, self.bc, jnp.asarray(self.weights), settings, self.tol, self.max_frames, youngs, nu)
 
-        def one(E, b, w):
-            m = _with_values(self.material, ("youngs_modulus", "poisson_ratio"), [E, nu])
-            sol = xpbd_quasi_static(self.model, m, b, settings=settings, tol=self.tol, max_steps=self.max_frames, throw=False)
-            return jnp.sum(w * sol.reaction), sol.converged
-
-        return jax.vmap(one)(jnp.asarray(youngs), bc, weights)
+    def arguments(self, settings: XPBDSettings, reference, rtol: float) -> dict:
+        """The arguments of the set's :class:`_LoadSetProgram`: the material (every field an
+        array, SI), the loads' true moduli ``youngs`` [Pa], their logs and the logs of the
+        distinct moduli ``log_nodes``, the stacked prescribed ``displacement`` [m] and ``force``
+        [N], the reaction ``weights``, the settings' arrays, ``tol``, ``max_frames``, the
+        ``reference`` forces [N] and ``norm`` (``|reference| rtol``)."""
+        return {
+            "material": jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), self.material),
+            "youngs": jnp.asarray(self.youngs),
+            "log_youngs": jnp.log(jnp.asarray(self.youngs)),
+            "log_nodes": jnp.log(jnp.asarray(np.unique(self.youngs))),
+            "displacement": self.bc.displacement,
+            "force": self.bc.force,
+            "weights": jnp.asarray(self.weights),
+            "settings": eqx.partition(settings, eqx.is_array)[0],
+            "tol": jnp.asarray(self.tol, dtype=float),
+            "max_frames": np.asarray(self.max_frames, dtype=np.int32),
+            "reference": np.asarray(reference),
+            "norm": np.abs(reference) * rtol,
+        }
 
     def response(self, youngs, settings, poisson_ratio=None):
         """``(F (n,) [N], d log F / d log E (n,), came to rest (n,))`` at moduli ``youngs``."""
@@ -554,6 +659,51 @@ class _LoadSet:
         with np.errstate(divide="ignore", invalid="ignore"):
             s = np.where(ok & (F != 0), dF / F, np.nan)
         return F, s, ok
+
+
+def _set_forces(model, material: Material, bc: BoundaryConditions, weights, settings: XPBDSettings, tol, max_frames, youngs, nu):
+    """Budgeted reaction observable ``sum(weights * reaction)`` [N] of every load of a stacked
+    set (``bc`` and ``weights`` stacked on a leading load axis) at moduli ``youngs`` (n,) [Pa] and
+    Poisson ratio ``nu``, and whether each came to rest (traceable; forward-mode differentiable)."""
+
+    def one(E, b, w):
+        m = _with_values(material, ("youngs_modulus", "poisson_ratio"), [E, nu])
+        sol = xpbd_quasi_static(model, m, b, settings=settings, tol=tol, max_steps=max_frames, throw=False)
+        return jnp.sum(w * sol.reaction), sol.converged
+
+    return jax.vmap(one)(jnp.asarray(youngs), bc, weights)
+
+
+class _LoadSetProgram:
+    """The residuals of :func:`calibrate_for_load_set`'s joint fit for one structure, shared by
+    every call of that structure (:func:`_shared_program`: the fit engine compiles its step once
+    per key). Compiled in: the XPBD model, the loads' prescribed components, the settings'
+    static configuration, the number of stiffness nodes and whether a Poisson ratio is fitted;
+    the numbers are arguments (:meth:`_LoadSet.arguments`)."""
+
+    def __init__(self, key, model, bc: BoundaryConditions, settings: XPBDSettings, n_nodes: int, effective_poisson: bool):
+        self.key = key
+        self.model = model
+        self.bc = bc  # stacked; its prescribed components (displacement and force are arguments)
+        self.settings = eqx.partition(settings, eqx.is_array)[1]
+        self.n_nodes = int(n_nodes)
+        self.effective_poisson = bool(effective_poisson)
+
+    def card(self, v, args):
+        """The card's moduli of the loads [Pa] and Poisson ratio at the fit's variables ``v``
+        (one factor per stiffness node, then nu when fitted)."""
+        n_f = self.n_nodes
+        E = args["youngs"] * _nodal_factor(args["log_nodes"], jnp.log(v[:n_f]), args["log_youngs"])
+        return E, (v[n_f] if self.effective_poisson else args["material"].poisson_ratio)
+
+    def residual_fn(self, v, data):
+        """Per-load relative force error in units of ``rtol``; NaN where XPBD did not come to rest."""
+        E, nu = self.card(v, data)
+        settings = eqx.combine(data["settings"], self.settings)
+        bc = eqx.tree_at(lambda b: (b.displacement, b.force), self.bc, (data["displacement"], data["force"]))
+        y, ok = _set_forces(self.model, data["material"], bc, data["weights"], settings, data["tol"], data["max_frames"], E, nu)
+        r = (y - data["reference"]) / data["norm"]
+        return jnp.where(ok, r, jnp.nan), y
 
 
 def _reference_model(mesh, model, model_kind: str, reference):
@@ -927,36 +1077,29 @@ def calibrate_for_load_set(
 
     # ------------------------------------------------------------------ the joint fit
     nodes = np.unique(ls.youngs)
-    fields = ("factor",) if nodes.size == 1 else tuple(f"factor at E = {E:.6g} Pa" for E in nodes)
+    labels = ("factor",) if nodes.size == 1 else tuple(f"factor at E = {E:.6g} Pa" for E in nodes)
     reach = max_log_step * max(int(max_steps), 1)
-    transforms = [ScaledLogit(math.exp(-reach), math.exp(reach)) for _ in fields]
+    transforms = [ScaledLogit(math.exp(-reach), math.exp(reach)) for _ in labels]
     if effective_poisson:
         if not (_NU_LO < float(material.poisson_ratio) < _NU_HI):
             raise ConfigError(f"poisson_ratio must lie in ({_NU_LO}, {_NU_HI}) to be calibrated")
-        fields += ("poisson_ratio",)
+        labels += ("poisson_ratio",)
         transforms.append(ScaledLogit(_NU_LO, _NU_HI))
     n_f = nodes.size
-    log_nodes, logE = jnp.log(jnp.asarray(nodes)), jnp.log(jnp.asarray(ls.youngs))
-
-    def card(values):
-        E = jnp.asarray(ls.youngs) * _nodal_factor(log_nodes, jnp.log(values[:n_f]), logE)
-        return E, (values[n_f] if effective_poisson else None)
-
-    def residual_fn(values, data):
-        E, nu = card(values)
-        y, ok = ls.forces(E, settings, nu)
-        r = (y - data["reference"]) / data["norm"]
-        return jnp.where(ok, r, jnp.nan), y
-
-    problem = ResidualProblem(residual_fn, fields, transforms, n,
-                              data={"reference": np.asarray(F_ref), "norm": np.abs(F_ref) * rtol})
+    # The fit's fields by position (the labels name the moduli, which are arguments): sets of
+    # one structure at other moduli share the compiled step.
+    fields = tuple(f"factor {i}" for i in range(n_f)) + (("poisson_ratio",) if effective_poisson else ())
+    program = _shared_program(lambda key: _LoadSetProgram(key, model, ls.bc, settings, n_f, effective_poisson),
+                              (model, ls.bc.fixed), settings, "calibrate_for_load_set", type(model), n_f, bool(effective_poisson))
+    data = ls.arguments(settings, F_ref, rtol)
+    problem = ResidualProblem(program.residual_fn, fields, transforms, n, data=data, key=program.key)
     start = np.array([1.0] * n_f + ([float(material.poisson_ratio)] if effective_poisson else []))
     fit = least_squares(problem, start, method="levenberg_marquardt", max_steps=max_steps + 1,
                         stop=lambda loss: math.sqrt(2.0 * loss) <= 1.0)
     values = np.array([fit.values[f] for f in fields])
-    E_card, nu_card = card(jnp.asarray(values))
+    E_card, nu_card = program.card(jnp.asarray(values), data)
     E_card = np.asarray(E_card)
-    nu_card = float(material.poisson_ratio) if nu_card is None else float(nu_card)
+    nu_card = float(nu_card)
     F_cal, s_cal, ok = ls.response(E_card, settings, nu_card if effective_poisson else None)
     if not all(ok):
         raise ConvergenceError("the budgeted XPBD solve at the card's moduli did not come to rest on "
@@ -977,8 +1120,8 @@ def calibrate_for_load_set(
         model_kind=model_kind, reference_kind=ref_kind,
         mesh={"n_nodes": int(np.shape(mesh.points)[0]), "n_tets": int(np.shape(mesh.tets)[0]), "cell_size": cell_size(mesh)},
         loads=rows, max_error=float(np.max(np.abs(err))), threshold=float(threshold), steps=max(fit.steps - 1, 0),
-        jacobian=np.asarray(fit.jacobian) * rtol, covariance=np.asarray(fit.covariance), standard_errors=dict(fit.standard_errors),
-        dof=fit.dof,
+        jacobian=np.asarray(fit.jacobian) * rtol, covariance=np.asarray(fit.covariance),
+        standard_errors={label: fit.standard_errors[f] for label, f in zip(labels, fields)}, dof=fit.dof,
     )
 
 

@@ -293,9 +293,12 @@ class Incision(eqx.Module):
             raise ConfigError(f"options must be IncisionOptions, got {type(options).__name__}")
         self.name = str(name)
         # The cut without its quality report (mesh-value metadata, a static field that would
-        # split the compiled programs of meshes of one structure; it stays on ``cut``).
+        # split the compiled programs of meshes of one structure; it stays on ``cut``), its
+        # layer materials as arrays (Python floats would be compiled in by value: a specimen
+        # with other layer materials would compile again).
         self.cut = eqx.tree_at(lambda c: c.pairs, cut, np.asarray(cut.pairs))
         object.__setattr__(self.cut, "quality", None)
+        object.__setattr__(self.cut, "materials", _material_arrays(cut.materials))
         self.kind = str(model)
         self.options = options
         self.quantity = quantity
@@ -564,6 +567,13 @@ class Incision(eqx.Module):
 
 def _as_arrays(material):
     return jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+
+
+def _material_arrays(materials):
+    """``materials`` (a material, a sequence of them or None) with every field a float64 NumPy
+    array (0-d for a scalar) [the field's SI unit]: array leaves, not Python scalars, so that
+    specimens with other layer materials share the compiled programs."""
+    return jax.tree_util.tree_map(lambda v: np.asarray(v, dtype=float), materials)
 
 
 def _region_material(material: Material, fitted_regions, base: Material | None) -> Material:

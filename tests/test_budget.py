@@ -1,6 +1,8 @@
 """Budget-aware calibration (difftissue.budget): effective E for a budgeted XPBD setting."""
 
 import math
+
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -48,6 +50,43 @@ def test_calibration_removes_budget_bias(problem):
     # one observable, one field: an exact match, no residual scatter for a covariance
     assert cal.dof == 0 and np.isnan(cal.standard_errors["youngs_modulus"]) and cal.jacobian.shape == (1, 1)
     assert cal.jacobian[0, 0] > 0  # a stiffer material resists more
+
+
+#: Programs obtained in this process: compiled (``jax.monitoring``'s public compile events) or
+#: loaded from the persistent compilation cache (its public cache-hit events).
+_PROGRAMS = {"compiled": 0, "loaded": 0}
+
+
+def _count_compiled(event, duration, **kw):
+    if event == "/jax/core/compile/backend_compile_duration":
+        _PROGRAMS["compiled"] += 1
+
+
+def _count_loaded(event, **kw):
+    if event == "/jax/compilation_cache/cache_hits":
+        _PROGRAMS["loaded"] += 1
+
+
+jax.monitoring.register_event_duration_secs_listener(_count_compiled)
+jax.monitoring.register_event_listener(_count_loaded)
+
+
+def test_a_call_with_other_numbers_compiles_nothing(problem):
+    """calibrate_for_budget's programs (the budgeted observable, the Levenberg--Marquardt step,
+    the final evaluation) are compiled once per structure: a call at another material, dt and
+    indentation depth on the same mesh, loading pattern and budget obtains no program (none
+    compiled, none loaded from the persistent cache) and gives its own answer."""
+    mesh, bc = problem
+    first = calibrate_for_budget(mesh, "springs_volume", MATERIAL, bc, SETTINGS)
+    deeper = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"}).fix(mesh, {"face": "z-max"}, "xyz", (0.0, 0.0, -3e-4))
+    material = MATERIAL.replace(youngs_modulus=12e3, poisson_ratio=0.4)
+    settings = XPBDSettings(dt=2.5e-3, substeps=1, iterations=10, method="gauss_seidel", warm_start=False)
+    n0 = dict(_PROGRAMS)
+    cal = calibrate_for_budget(mesh, "springs_volume", material, deeper, settings)
+    assert _PROGRAMS == n0, (n0, _PROGRAMS)
+    assert cal.setting["dt"] == 2.5e-3 and float(cal.true_material.youngs_modulus) == 12e3
+    assert cal.reference[0] > 1.5 * first.reference[0]  # deeper and stiffer: its own reference
+    assert cal.converged and cal.ratio() > 1.0 and cal.ratio() != first.ratio()
 
 
 def test_calibration_against_fem_linear_and_user_observable(problem):

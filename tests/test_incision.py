@@ -328,3 +328,16 @@ def test_an_incision_of_other_node_coordinates_shares_the_program(cut, incision)
         np.testing.assert_allclose(np.asarray(t), np.asarray(tc), rtol=1e-12, atol=1e-12 * np.abs(np.asarray(tc)).max())
         ys.append(np.asarray(y))
     assert not np.allclose(ys[0], ys[1], rtol=1e-4)  # each its own widths
+
+
+def test_an_incision_of_other_layer_materials_shares_the_program(incision):
+    """The layer materials of the specimen that was cut are arrays of the incision (not Python
+    floats compiled in by value): the same cut in a skin with another fat layer (and another
+    dermis) takes the first one's program, with its own fixed materials as arguments."""
+    fat, dermis = Material(3e3, 0.4), Material(1.5e5, 0.42)
+    spec = layered_skin([("dermis", T_DERMIS, dermis, 1), ("fat", 2 * MM, fat, 2)], size=(8 * MM, 8 * MM), resolution=(8, 8))
+    other_cut = cut_specimen(spec, ScalpelPath([(2 * MM, 4 * MM), (6 * MM, 4 * MM)], depth=T_DERMIS))
+    other = Incision(other_cut, model="stable_neo_hookean", fitted_regions=("dermis",), options=OPTS)
+    assert _jitted_solve(other).program is _jitted_solve(incision).program
+    np.testing.assert_array_equal(np.asarray(other.base_materials.youngs_modulus), [1.5e5, 3e3])
+    assert float(other.cut.materials[1].poisson_ratio) == 0.4 and other_cut.materials[1] is fat  # the caller's cut is untouched

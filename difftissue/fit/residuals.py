@@ -90,7 +90,7 @@ class ResidualProblem:
         return jnp.asarray(0.0)
 
     def structure_key(self) -> tuple:
-        shapes = tuple((np.shape(a), np.result_type(a).str) for a in jax.tree_util.tree_leaves(self._data))
+        shapes = tuple((np.shape(a), np.dtype(a.dtype if hasattr(a, "dtype") else np.result_type(a)).str) for a in jax.tree_util.tree_leaves(self._data))
         own = ("key", self.key) if self.key is not None else ("function", id(self.residual_fn))
         return ("ResidualProblem", own, self.fields, self.transforms, self.n_residuals, jax.tree_util.tree_structure(self._data), shapes)
 
