@@ -92,35 +92,42 @@ def test_jacfwd_factorises_once_for_all_tangents_and_agrees_with_grad(sparse_der
     np.testing.assert_allclose(np.asarray(jf), np.asarray(g), rtol=1e-9)
 
 
+def _definite_and_indefinite(n_cells):
+    """A linear-elastic block's sparsity pattern with the CSR data of a random symmetric
+    matrix on it that is positive definite (smallest eigenvalue 1) and of that matrix minus 2 I
+    (indefinite)."""
+    import scipy.sparse as sps
+
+    mesh = block((1.0, 1.0, 1.0), (n_cells, 2, 2))
+    model = make_model(mesh, "fem_linear")
+    pat = sparse_pattern([t.nodes for t in model.terms(Material(1.0, 0.3))], mesh.n_nodes)
+    rows = np.repeat(np.arange(pat.n), np.diff(pat.indptr))
+    R = sps.csr_matrix((np.random.default_rng(1).standard_normal(pat.nnz), pat.indices, pat.indptr), shape=(pat.n, pat.n))
+    S = (R + R.T).toarray()
+    S += np.eye(pat.n) * (1.0 - np.linalg.eigvalsh(S).min())  # smallest eigenvalue 1
+    return pat, S[rows, pat.indices], (S - 2.0 * np.eye(pat.n))[rows, pat.indices]
+
+
 def test_cholmod_is_retried_until_a_pattern_had_the_maximum_of_indefinite_matrices(monkeypatch):
     """A failed CHOLMOD factorisation leaks its factor (cholespy), so after CHOLMOD_FAILURES_MAX
     indefinite matrices every later matrix of the same pattern goes to the symmetric LU (at
     most that many leaks per pattern); before that, a definite matrix after an indefinite one
     gets CHOLMOD again (a cut lattice's first tangent is indefinite, the later ones are not);
     the LU's pivots are read only where CHOLMOD did not already show the matrix indefinite;
-    another pattern still gets CHOLMOD; every solve is exact."""
+    another pattern still gets CHOLMOD; every solve is exact. (Without scikit-sparse: cholespy.)"""
     import scipy.sparse as sps
 
     from difftissue.solvers import sparse
 
-    def matrices(n_cells):
-        mesh = block((1.0, 1.0, 1.0), (n_cells, 2, 2))
-        model = make_model(mesh, "fem_linear")
-        pat = sparse_pattern([t.nodes for t in model.terms(Material(1.0, 0.3))], mesh.n_nodes)
-        rows = np.repeat(np.arange(pat.n), np.diff(pat.indptr))
-        R = sps.csr_matrix((np.random.default_rng(1).standard_normal(pat.nnz), pat.indices, pat.indptr), shape=(pat.n, pat.n))
-        S = (R + R.T).toarray()
-        S += np.eye(pat.n) * (1.0 - np.linalg.eigvalsh(S).min())  # smallest eigenvalue 1
-        return pat, S[rows, pat.indices], (S - 2.0 * np.eye(pat.n))[rows, pat.indices]  # definite, indefinite
-
     calls, pivot_reads = [], []
+    monkeypatch.setattr(sparse, "_suitesparse_cholmod", lambda: None)  # the path without scikit-sparse
     original, original_pivots = sparse._cholesky_solve, sparse._lu_is_definite
     monkeypatch.setattr(sparse, "_cholesky_solve", lambda p, d, b: calls.append(p.n) or original(p, d, b))
     monkeypatch.setattr(sparse, "_lu_is_definite", lambda lu: pivot_reads.append(lu.shape[0]) or original_pivots(lu))
     monkeypatch.setattr(sparse, "_CHOLMOD_FAILURES", {})
     assert sparse.CHOLMOD_FAILURES_MAX == 2
-    pat, definite, indefinite = matrices(2)
-    other, other_definite, _ = matrices(3)
+    pat, definite, indefinite = _definite_and_indefinite(2)
+    other, other_definite, _ = _definite_and_indefinite(3)
     b = np.random.default_rng(2).standard_normal(pat.n)
     flags = []
     sequence = [(pat, definite), (pat, indefinite), (pat, definite), (pat, indefinite), (pat, indefinite), (pat, definite), (other, other_definite)]
@@ -139,14 +146,20 @@ def test_cholmod_is_retried_until_a_pattern_had_the_maximum_of_indefinite_matric
     assert pivot_reads == [pat.n, pat.n]
 
 
-def test_the_solver_reports_positive_definiteness_per_matrix_under_vmap(monkeypatch):
+@pytest.mark.parametrize("scikit_sparse", [True, False], ids=["scikit-sparse", "cholespy"])
+def test_the_solver_reports_positive_definiteness_per_matrix_under_vmap(monkeypatch, scikit_sparse):
     """``SparseLU`` passes out of its host callback whether each matrix was positive definite
     (the static solve accepts a round-off-sized Newton step only then): one flag per batch
-    member, from CHOLMOD's success or, on a pattern that went to the LU, from its pivots."""
+    member, from CHOLMOD's success, its LDLᵀ pivots or, on a pattern that went to the LU (the
+    path without scikit-sparse), from the LU's pivots."""
     import lineax as lx
 
     from difftissue.solvers import sparse
 
+    if scikit_sparse:
+        pytest.importorskip("sksparse.cholmod")
+    else:
+        monkeypatch.setattr(sparse, "_suitesparse_cholmod", lambda: None)
     monkeypatch.setattr(sparse, "_CHOLMOD_FAILURES", {})
     mesh = block((1.0, 1.0, 1.0), (2, 2, 2))
     model = make_model(mesh, "fem_linear")
@@ -177,3 +190,52 @@ def sps_dense(pat, data):
     import scipy.sparse as sps
 
     return sps.csr_matrix((data, pat.indices, pat.indptr), shape=(pat.n, pat.n)).toarray()
+
+
+def test_scikit_sparse_gives_the_inertia_of_indefinite_matrices_without_superlu_or_cholespy(monkeypatch):
+    """With scikit-sparse, every matrix is factorised by CHOLMOD there: a Cholesky where it is
+    positive definite, else an LDLᵀ whose pivots show it indefinite (Sylvester's inertia), so
+    no matrix goes to SuperLU (no pivot copy), none to cholespy (no leaked factor) and no
+    pattern is moved off CHOLMOD however many indefinite matrices it has; every solve exact."""
+    pytest.importorskip("sksparse.cholmod")
+    import scipy.sparse as sps
+
+    from difftissue.solvers import sparse
+
+    other_paths = []
+    monkeypatch.setattr(sparse, "_cholesky_solve", lambda *a: other_paths.append("cholespy"))
+    monkeypatch.setattr(sparse, "_superlu_solve", lambda *a, **k: other_paths.append("superlu"))
+    monkeypatch.setattr(sparse, "_CHOLMOD_FAILURES", {})
+    pat, definite, indefinite = _definite_and_indefinite(2)
+    b = np.random.default_rng(2).standard_normal(pat.n)
+    flags = []
+    for data in [indefinite, definite, indefinite, indefinite, indefinite, definite]:
+        for rhs in (b, np.stack([b, 2.0 * b, -b, b + 1.0, b - 1.0], axis=1)):  # one and many right-hand sides
+            x, is_definite = sparse._factor_solve(pat, data, rhs)
+            A = sps.csr_matrix((data, pat.indices, pat.indptr), shape=(pat.n, pat.n))
+            np.testing.assert_allclose(A @ x, rhs, rtol=0, atol=1e-9 * np.abs(rhs).max())
+            flags.append(bool(is_definite))
+    assert flags == [False, False, True, True] + [False] * 6 + [True, True]
+    assert other_paths == [] and sparse._CHOLMOD_FAILURES == {}
+
+
+def test_a_zero_ldlt_pivot_goes_to_superlu_with_its_pivots_read(monkeypatch):
+    """A nonsingular symmetric matrix whose LDLᵀ without pivoting meets an exactly zero pivot
+    (here 3x3 blocks [[0, 1, 0], [1, 0, 0], [0, 0, 1]] on every node: eigenvalues +-1) is
+    solved by SuperLU, which pivots off the diagonal there and so reports it not definite."""
+    pytest.importorskip("sksparse.cholmod")
+    from difftissue.solvers import sparse
+
+    mesh = block((1.0, 1.0, 1.0), (2, 2, 2))
+    model = make_model(mesh, "fem_linear")
+    pat = sparse_pattern([t.nodes for t in model.terms(Material(1.0, 0.3))], mesh.n_nodes)
+    rows = np.repeat(np.arange(pat.n), np.diff(pat.indptr))
+    swap = (rows // 3 == pat.indices // 3) & (rows % 3 < 2) & (pat.indices % 3 < 2) & (rows != pat.indices)
+    data = np.where(swap | ((rows == pat.indices) & (rows % 3 == 2)), 1.0, 0.0)
+    calls = []
+    original = sparse._superlu_solve
+    monkeypatch.setattr(sparse, "_superlu_solve", lambda *a, **k: calls.append(k) or original(*a, **k))
+    b = np.arange(pat.n, dtype=float)
+    x, is_definite = sparse._factor_solve(pat, data, b)
+    np.testing.assert_allclose(sps_dense(pat, data) @ x, b, atol=1e-12)
+    assert not is_definite and calls == [{"read_pivots": True}]

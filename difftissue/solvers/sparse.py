@@ -3,12 +3,18 @@
 The element Hessians of an :class:`~difftissue.models.ElasticModel` are assembled into a
 CSR matrix whose sparsity pattern is computed once per mesh (in NumPy, outside the traced
 code); the values are scattered inside the compiled solve. The linear solve itself is a
-``jax.pure_callback`` to a sparse Cholesky factorisation (CHOLMOD, through cholespy), or
-SciPy's sparse LU (SuperLU with a symmetric-mode ordering) where the matrix is not positive
-definite (and, since a failed CHOLMOD factorisation leaks memory, for every later matrix of a
-pattern that had ``CHOLMOD_FAILURES_MAX`` indefinite ones: ``_factor_solve``), wrapped as a :mod:`lineax` solver so that implicit differentiation (forward and reverse) goes
-through it like through the dense Cholesky. The matrix is symmetric, so the transposed solve
-(reverse mode) is the same solve.
+``jax.pure_callback`` to a sparse factorisation, wrapped as a :mod:`lineax` solver so that
+implicit differentiation (forward and reverse) goes through it like through the dense
+Cholesky. The matrix is symmetric, so the transposed solve (reverse mode) is the same solve.
+
+Which factorisation (:func:`_factor_solve`): where scikit-sparse is installed, CHOLMOD's
+supernodal Cholesky, and where that finds the matrix not positive definite (a Newton step at
+an indefinite point), CHOLMOD's simplicial LDLᵀ, whose pivots ``D`` give the inertia without
+a copy of the factor (:func:`_suitesparse_solve`); a failed factorisation is freed there.
+Without scikit-sparse: CHOLMOD through cholespy, or SciPy's sparse LU (SuperLU with a
+symmetric-mode ordering) where the matrix is not positive definite (and, since cholespy's
+failed factorisation leaks memory, for every later matrix of a pattern that had
+``CHOLMOD_FAILURES_MAX`` indefinite ones).
 
 For the stiffness matrices here a sparse factorisation costs about ``O(n^1.5..2)`` instead
 of the dense ``O(n^3)``, and unlike Jacobi-preconditioned CG it does not slow down on
@@ -121,6 +127,55 @@ CHOLMOD_FAILURES_MAX = 2
 _CHOLMOD_FAILURES: dict[str, int] = {}
 
 
+def _suitesparse_cholmod():
+    """scikit-sparse's CHOLMOD module (``sksparse.cholmod``), or None where scikit-sparse is
+    not installed (then :func:`_factor_solve` uses cholespy and SuperLU)."""
+    try:
+        from sksparse import cholmod  # host-side only; optional (needs SuiteSparse's headers to build)
+    except ImportError:
+        return None
+    return cholmod
+
+
+def _ldlt_pivots_definite(pivots: np.ndarray) -> bool | None:
+    """Whether a symmetric matrix ``P A P^T = L D L^T`` (unit lower ``L``) with the pivots
+    ``D`` (``(n,)``) is positive definite: by Sylvester's law of inertia ``A`` has as many
+    negative eigenvalues as ``D`` has negative entries, so it is definite exactly when every
+    pivot is positive. None where a pivot is zero or not finite (the factorisation is singular
+    or broke down: its solve is not usable)."""
+    if not np.all(np.isfinite(pivots)) or np.any(pivots == 0.0):
+        return None
+    return bool(np.all(pivots > 0.0))
+
+
+def _suitesparse_solve(cholmod, pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
+    """``(x, definite)`` from CHOLMOD through scikit-sparse (``cholmod``: the module), or None
+    where the matrix is singular (a zero LDLᵀ pivot: SuperLU then decides).
+
+    First CHOLMOD's supernodal Cholesky ``L L^T`` (its default fill-reducing ordering, METIS
+    where CHOLMOD was built with it); where that finds the matrix not positive definite, the
+    simplicial ``L D L^T`` without pivoting, whose pivots give the inertia
+    (:func:`_ldlt_pivots_definite`; ``Factor.D()`` reads them from CHOLMOD's factor without
+    copying it). A failed factorisation is freed with its Python object: no leak, so unlike
+    cholespy's path no pattern is ever moved off CHOLMOD."""
+    import scipy.sparse as sps
+
+    A = sps.csc_matrix((data, pattern.indices, pattern.indptr), shape=(pattern.n, pattern.n))  # CSR of a symmetric matrix read as CSC: the same matrix
+    try:
+        factor = cholmod.cholesky(A, mode="supernodal")
+        return factor(b), True
+    except cholmod.CholmodNotPositiveDefiniteError:
+        pass
+    try:
+        factor = cholmod.cholesky(A, mode="simplicial")  # LDL^T (CHOLMOD keeps a simplicial factor as LDL^T)
+    except cholmod.CholmodError:  # a zero pivot
+        return None
+    definite = _ldlt_pivots_definite(factor.D())
+    if definite is None:
+        return None
+    return factor(b), definite
+
+
 def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
     """Sparse Cholesky (CHOLMOD through cholespy) of the symmetric CSR matrix, or None when it
     is not positive definite (then the LU below decides).
@@ -141,18 +196,22 @@ def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
 
 
 def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Solve with one factorisation for ``b`` of shape ``(n,)`` or ``(n, k)``: sparse
-    Cholesky where the matrix is positive definite, SuperLU otherwise (a Newton step at an
-    indefinite point: the Newton loop then checks the direction). Returns ``(x, definite)``:
-    ``definite`` is True when the factorisation shows the matrix positive definite (CHOLMOD
-    succeeded, or the LU's inertia: :func:`_lu_is_definite`), False when it is indefinite,
-    singular, not finite or its inertia is not known.
+    """Solve with one factorisation for ``b`` of shape ``(n,)`` or ``(n, k)``. Returns
+    ``(x, definite)``: ``definite`` is True when the factorisation shows the matrix positive
+    definite (a Cholesky succeeded, or the pivots of an LDLᵀ or symmetric LU are all
+    positive), False when it is indefinite, singular, not finite or its inertia is not known.
+    (A Newton step at an indefinite point: the Newton loop then checks the direction.)
 
-    CHOLMOD is tried first while the pattern has had fewer than :data:`CHOLMOD_FAILURES_MAX`
-    indefinite matrices. Its failure shows the matrix not positive definite, so the LU that
-    then solves the step returns ``definite=False`` without reading its pivots (reading them,
-    ``lu.U``, copies both SuperLU factors into SciPy matrices: about double the factor's
-    memory, 0.30 GiB more on a 0.33 GiB factor at 24,507 unknowns). A failed Cholesky leaks its factor (``_cholesky_solve``), and along a Newton
+    Where scikit-sparse is installed: CHOLMOD's supernodal Cholesky, else its LDLᵀ with the
+    inertia from the pivots (:func:`_suitesparse_solve`; no failed factor is kept), and
+    SuperLU with its pivots read only where that LDLᵀ meets a zero pivot.
+
+    Without it (cholespy and SuperLU): CHOLMOD is tried first while the pattern has had fewer
+    than :data:`CHOLMOD_FAILURES_MAX` indefinite matrices. Its failure shows the matrix not
+    positive definite, so the LU that then solves the step returns ``definite=False`` without
+    reading its pivots (reading them, ``lu.U``, copies both SuperLU factors into SciPy
+    matrices: about double the factor's memory, 0.30 GiB more on a 0.33 GiB factor at 24,507
+    unknowns). A failed Cholesky leaks its factor (``_cholesky_solve``), and along a Newton
     path of a nearly incompressible, pre-stretched membrane the Hessian is indefinite at one
     step out of three (at 16,560 unknowns 0.12-0.24 GB per step, 8 GB and a MemoryError over
     one solve without a bound); so after the pattern's ``CHOLMOD_FAILURES_MAX``-th failure its
@@ -164,12 +223,24 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tu
     matrix changes the result at round-off level only."""
     if not (np.all(np.isfinite(data)) and np.all(np.isfinite(b))):
         return np.full(b.shape, np.nan), False
+    cholmod = _suitesparse_cholmod()
+    if cholmod is not None:
+        solved = _suitesparse_solve(cholmod, pattern, data, b)
+        return solved if solved is not None else _superlu_solve(pattern, data, b, read_pivots=True)
     failures = _CHOLMOD_FAILURES.get(pattern.digest, 0)
     if failures < CHOLMOD_FAILURES_MAX:
         x = _cholesky_solve(pattern, data, b)
         if x is not None:
             return x, True
         _CHOLMOD_FAILURES[pattern.digest] = failures + 1
+    # CHOLMOD failed on this very matrix: not positive definite, no need for the pivots.
+    return _superlu_solve(pattern, data, b, read_pivots=failures >= CHOLMOD_FAILURES_MAX)
+
+
+def _superlu_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray, read_pivots: bool) -> tuple[np.ndarray, bool]:
+    """``(x, definite)`` from SciPy's SuperLU in symmetric mode (diagonal pivots): NaN where
+    the matrix is exactly singular; ``definite`` from the pivots (:func:`_lu_is_definite`)
+    where ``read_pivots``, else False (the caller knows the matrix is not positive definite)."""
     import scipy.sparse as sps  # imported on first use: a fit that never factorises need not load SciPy
     import scipy.sparse.linalg as spla
 
@@ -179,8 +250,7 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tu
     except RuntimeError:  # exactly singular: NaN, the Newton loop falls back / flags it
         return np.full(b.shape, np.nan), False
     del A
-    # CHOLMOD failed on this very matrix: not positive definite, no need for the pivots.
-    definite = False if failures < CHOLMOD_FAILURES_MAX else _lu_is_definite(lu)
+    definite = _lu_is_definite(lu) if read_pivots else False
     if b.ndim == 1 or b.shape[1] < 4:
         return lu.solve(b), definite
     return _solve_many(lu, b), definite
@@ -190,13 +260,11 @@ def _lu_is_definite(lu) -> bool:
     """Whether the symmetric matrix ``A`` factorised by SuperLU as ``Pr A Pc = L U`` is
     positive definite. With a symmetric permutation (``perm_r == perm_c``, which the
     symmetric mode with diagonal pivoting keeps unless a diagonal pivot is exactly zero)
-    ``U = D L^T`` with ``Pc^T A Pc = L D L^T``, and by Sylvester's law of inertia ``A`` is
-    positive definite exactly when every pivot ``U_ii`` is positive. Any other permutation:
-    False (not known to be definite)."""
+    ``U = D L^T`` with ``Pc^T A Pc = L D L^T``, so the pivots ``U_ii`` decide
+    (:func:`_ldlt_pivots_definite`). Any other permutation: False (not known to be definite)."""
     if not np.array_equal(lu.perm_r, lu.perm_c):
         return False
-    pivots = lu.U.diagonal()
-    return bool(np.all(np.isfinite(pivots)) and np.all(pivots > 0))
+    return _ldlt_pivots_definite(lu.U.diagonal()) is True
 
 
 def _solve_many(lu, b: np.ndarray) -> np.ndarray:
@@ -241,13 +309,13 @@ def _host_solve(pattern: SparsePattern, data, b):
 
 
 class SparseLU(lx.AbstractLinearSolver):
-    """:mod:`lineax` solver: sparse Cholesky (LU where not positive definite) of the CSR
-    matrix passed as ``options["csr_data"]``.
+    """:mod:`lineax` solver: sparse Cholesky (LDLᵀ or LU where not positive definite:
+    :func:`_factor_solve`) of the CSR matrix passed as ``options["csr_data"]``.
 
     The matrix must be symmetric (transposed solves reuse it). Runs on the host through
     ``jax.pure_callback``; under ``vmap`` one matrix with many right-hand sides (``jacfwd``
-    tangents) is factorised once. Stats: ``positive_definite`` (bool: CHOLMOD succeeded, or
-    the LU's pivots show the matrix positive definite).
+    tangents) is factorised once. Stats: ``positive_definite`` (bool: a Cholesky succeeded, or
+    the LDLᵀ's or LU's pivots show the matrix positive definite).
     """
 
     pattern: SparsePattern = eqx.field(static=True)
