@@ -226,6 +226,10 @@ class Incision(eqx.Module):
     - ``"pair_width"``: the width of every duplicated pair [m] (``abscissa`` = pair depth).
     """
 
+    #: the XLA option set of this scenario's compiled programs (a program kind of
+    #: :data:`difftissue.xla_options.PROGRAMS`: static solves)
+    xla_program = "static"
+
     name: str = eqx.field(static=True)
     abscissa: np.ndarray
     observed: np.ndarray

@@ -62,6 +62,7 @@ from .solvers.spectral import SpectralDecomposition, spectral_decomposition, spe
 from .solvers.host import HOST_MAX_NODES, HostStaticSolver
 from .solvers.static import prediction_rtol, solve_static
 from .structure_keys import data_leaf_indices, hash_scenario_leaves
+from .xla_options import ProgramJit
 
 __all__ = [
     "AnalyticIndentation",
@@ -649,7 +650,7 @@ class _SharedSolve:
     def __init__(self, method: str = "_solve_protocol"):
         self._users: list = []
         self.method = method
-        self.fn = jax.jit(self._trace)
+        self.fn = ProgramJit(self._trace, "static")
 
     def _trace(self, material, *extra):
         token = _SOLVE_SETUP.set(None)  # the solves build their own setup (closed-over mesh)
@@ -716,7 +717,7 @@ class _ArgumentSolve:
     def __init__(self, static, method: str = "_solve_protocol"):
         self.static = static
         self.method = method
-        self.fn = jax.jit(self._trace)
+        self.fn = ProgramJit(self._trace, "static")
 
     def _trace(self, dynamic, setup, material, *extra):
         token = _SOLVE_SETUP.set(setup)
@@ -1089,6 +1090,10 @@ class Indentation(eqx.Module):
     ``lax.scan``: one compilation for the whole protocol); the gradient with respect to the
     material is implicit at every depth.
     """
+
+    #: the XLA option set of this scenario's compiled programs (a program kind of
+    #: :data:`difftissue.xla_options.PROGRAMS`: static solves)
+    xla_program = "static"
 
     name: str = eqx.field(static=True)
     abscissa: np.ndarray
@@ -1607,6 +1612,10 @@ class AxisymmetricIndentation(eqx.Module):
     stable neo-Hookean element have no axisymmetric form: use :class:`Indentation`).
     """
 
+    #: the XLA option set of this scenario's compiled programs (a program kind of
+    #: :data:`difftissue.xla_options.PROGRAMS`: static solves)
+    xla_program = "static"
+
     name: str = eqx.field(static=True)
     abscissa: np.ndarray
     observed: np.ndarray
@@ -1781,6 +1790,10 @@ class Compression(eqx.Module):
     small block gives the exact answer for any specimen shape; bonded platens (barrelling)
     need the real shape (:func:`cylinder`).
     """
+
+    #: the XLA option set of this scenario's compiled programs (a program kind of
+    #: :data:`difftissue.xla_options.PROGRAMS`: static solves)
+    xla_program = "static"
 
     name: str = eqx.field(static=True)
     abscissa: np.ndarray
@@ -2036,6 +2049,10 @@ class FEMField(eqx.Module):
     ``displacement_sigma`` [m] for the displacements and ``force_sigma`` [N] for the force
     (defaults: 1e-3 of the largest value of each, i.e. equal relative precision).
     """
+
+    #: the XLA option set of this scenario's compiled programs (a program kind of
+    #: :data:`difftissue.xla_options.PROGRAMS`: static solves)
+    xla_program = "static"
 
     name: str = eqx.field(static=True)
     abscissa: np.ndarray

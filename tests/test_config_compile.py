@@ -388,16 +388,18 @@ def test_the_compile_cache_and_the_fit_engine_key_scenarios_by_one_formula(tmp_p
 # ------------------------------------------------------------ compiler options of small models
 def test_small_models_are_compiled_at_low_optimisation_with_the_same_numbers(first, tmp_path, monkeypatch):
     """A model of at most SMALL_MODEL_NODES nodes (the one cube: 8) gets
-    SMALL_MODEL_COMPILER_OPTIONS (compiles faster); its prediction and Jacobian agree with the
-    program compiled at XLA's defaults to 1e-12 (measured ~1e-15); a larger specimen (125
-    nodes) keeps the defaults. The options are part of the program's key."""
+    SMALL_MODEL_COMPILER_OPTIONS (compiles faster) with the static programs' options; its
+    prediction and Jacobian agree with the program compiled at XLA's defaults to 1e-12
+    (measured ~1e-15); a larger specimen (125 nodes) gets the static programs' options only.
+    The options are part of the program's key."""
+    from difftissue import xla_options
     from difftissue.config import compile as cc
 
     sc, (y, jac) = first
     assert sc.inner.model.n_nodes == 8
-    assert cc._compiler_options(sc.inner) == cc.SMALL_MODEL_COMPILER_OPTIONS
+    assert cc._compiler_options(sc.inner) == {**xla_options.compiler_options("static"), **cc.SMALL_MODEL_COMPILER_OPTIONS}
     monkeypatch.setattr(cc, "SMALL_MODEL_NODES", 0)
-    assert cc._compiler_options(sc.inner) is None
+    assert cc._compiler_options(sc.inner) == xla_options.compiler_options("static")
     # XLA's default level (3) stated for this program, so that a lower level in the
     # environment's XLA_FLAGS cannot make both programs the same
     monkeypatch.setattr(cc, "_compiler_options", lambda scenario: {"xla_backend_optimization_level": 3})
@@ -415,4 +417,4 @@ def test_small_models_are_compiled_at_low_optimisation_with_the_same_numbers(fir
     assert not (np.array_equal(y, y0) and np.array_equal(jac, jac0)), "level 0 and level 3 gave bit-identical numbers: the compiler options did not reach XLA"
     monkeypatch.undo()
     big = _wrapped(_config(tmp_path, cells=4)).inner
-    assert big.model.n_nodes == 125 and cc._compiler_options(big) is None
+    assert big.model.n_nodes == 125 and cc._compiler_options(big) == xla_options.compiler_options("static")

@@ -28,6 +28,7 @@ from ..errors import ConfigError
 from ..fit.problem import data_leaf_indices, hash_scenario_leaves
 from ..materials import Material
 from ..scenarios import argument_setup, compiles_with_arguments, traced_arguments
+from ..xla_options import LOW_OPTIMISATION, compiler_options
 
 __all__ = ["SeparatelyCompiled", "compile_cache_info", "clear_compile_cache", "COMPILE_CACHE_SIZE", "HOST_SOLVES"]
 
@@ -39,16 +40,18 @@ COMPILE_CACHE_SIZE = 16
 #: ``{key: compiled executable}``, most recently used last (see :func:`_program`).
 _PROGRAMS: collections.OrderedDict = collections.OrderedDict()
 
-#: A scenario whose model has at most this many nodes has its programs compiled with
-#: :data:`SMALL_MODEL_COMPILER_OPTIONS`. Such a program runs in milliseconds and a fit calls it
+#: A static scenario whose model has at most this many nodes has its programs compiled with
+#: the ``"small_static"`` options of :mod:`difftissue.xla_options` (adding
+#: :data:`SMALL_MODEL_COMPILER_OPTIONS`). Such a program runs in milliseconds and a fit calls it
 #: tens of times, while compiling it takes seconds (the one-cube compression protocol with its
 #: Newton solves and Jacobian tangents: 4.0 s CPU at XLA's default optimisation, 2.8 s at level
 #: 0, which runs it in about twice the time, 3 -> 6 ms).
 SMALL_MODEL_NODES = 64
 
-#: XLA options of the programs of small scenarios (``jax.jit``'s public ``compiler_options``,
-#: these programs only). Results agree with the default options to ~1e-12 relative.
-SMALL_MODEL_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0}
+#: XLA options added for the programs of small scenarios
+#: (:data:`difftissue.xla_options.LOW_OPTIMISATION`). Results agree with the default options
+#: to ~1e-12 relative.
+SMALL_MODEL_COMPILER_OPTIONS = LOW_OPTIMISATION
 _STATS = {"hits": 0, "compilations": 0, "unshared": 0}
 
 
@@ -165,12 +168,16 @@ def _compiled_per_shape(fn, key=None, data=(), options=None):
 
 
 def _compiler_options(scenario) -> dict | None:
-    """:data:`SMALL_MODEL_COMPILER_OPTIONS` for a scenario whose model (``scenario.model``) has
-    at most :data:`SMALL_MODEL_NODES` nodes; None (XLA's defaults) otherwise."""
+    """The XLA options of a scenario's programs (:func:`difftissue.xla_options.compiler_options`,
+    on a CPU only): for a static scenario (``scenario.xla_program == "static"``: the simulated
+    indentations, compression, FEM field, incision) the ``"static"`` set, ``"small_static"``
+    when its model (``scenario.model``) has at most :data:`SMALL_MODEL_NODES` nodes; None
+    (XLA's defaults) for other scenarios."""
+    if getattr(scenario, "xla_program", None) != "static":
+        return None
     n = getattr(getattr(scenario, "model", None), "n_nodes", None)
-    if isinstance(n, (int, np.integer)) and n <= SMALL_MODEL_NODES:
-        return dict(SMALL_MODEL_COMPILER_OPTIONS)
-    return None
+    small = isinstance(n, (int, np.integer)) and n <= SMALL_MODEL_NODES
+    return compiler_options("small_static" if small else "static")
 
 
 #: Forward-mode scenarios that can solve on the host (``scenario.solves_on_host``: a small

@@ -39,6 +39,7 @@ import numpy as np
 
 from ..errors import DifftissueError, FitError
 from ..materials import Material, MaterialParameterization
+from ..xla_options import LOW_OPTIMISATION, OLDER_FUSION, PROGRAMS
 from .driver import build_result, initial_starts
 from .engine import METHODS, LoopState, cached_engine, final_evaluation, progress_bar, run_steps, strong, tolerances
 from .problem import FitProblem
@@ -56,21 +57,26 @@ AXIS = "specimen"
 SPECTRAL_MIN_SPECIMENS = 2
 
 #: XLA options the batched programs are compiled with on a CPU (``jax.jit``'s public
-#: ``compiler_options``, for these programs only: nothing global, no ``XLA_FLAGS`` edit). XLA's
+#: ``compiler_options``, for these programs only: nothing global, no ``XLA_FLAGS`` edit):
+#: :data:`difftissue.xla_options.SERIAL_SCHEDULER`, the ``"batch"`` program kind. XLA's
 #: concurrency-optimised CPU scheduler (the default of jaxlib 0.10) deadlocked batched
 #: Levenberg--Marquardt steps of simulated compressions in earlier versions
-#: (docs/dev/scale-investigation.md); with it off they ran.
-CPU_COMPILER_OPTIONS = {"xla_cpu_enable_concurrency_optimized_scheduler": False}
+#: (docs/dev/scale-investigation.md); with it off they ran. Passed as they are (an option this
+#: jaxlib does not know fails the compilation).
+CPU_COMPILER_OPTIONS = PROGRAMS["batch"]
 
-#: XLA options added on a CPU for batches whose scenarios use the spectral solver: a batched
-#: step of such a batch runs in milliseconds (0.07 s CPU for 16 specimens of 2,187 unknowns)
-#: while compiling it takes seconds; XLA's backend optimisation level 0 compiles it in 4.0 s
-#: CPU instead of 6.3 s and runs it in 0.087 s instead of 0.074 s (break-even after about 180
-#: steps), and XLA's older element-wise fusion (``xla_cpu_use_fusion_emitters`` off) compiles
-#: it in about 1.6 s instead of 3.6 s CPU at the same run time, bit-identical. Results agree
-#: with the default level to round-off (1e-12 relative in the fits of ``benchmarks/batch.py``).
-#: Batches that factorise per specimen keep XLA's defaults.
-SPECTRAL_COMPILER_OPTIONS = {"xla_backend_optimization_level": 0, "xla_cpu_use_fusion_emitters": False}
+#: XLA options added on a CPU for batches whose scenarios use the spectral solver
+#: (:data:`difftissue.xla_options.LOW_OPTIMISATION` and
+#: :data:`~difftissue.xla_options.OLDER_FUSION`; with :data:`CPU_COMPILER_OPTIONS` the
+#: ``"batch_spectral"`` program kind): a batched step of such a batch runs in milliseconds
+#: (0.07 s CPU for 16 specimens of 2,187 unknowns) while compiling it takes seconds; XLA's
+#: backend optimisation level 0 compiles it in 4.0 s CPU instead of 6.3 s and runs it in
+#: 0.087 s instead of 0.074 s (break-even after about 180 steps), and XLA's older element-wise
+#: fusion then compiles it in about 1.6 s instead of 3.6 s CPU at the same run time,
+#: bit-identical. Results agree with the default level to round-off (1e-12 relative in the
+#: fits of ``benchmarks/batch.py``). Batches that factorise per specimen keep XLA's default
+#: level and fusion.
+SPECTRAL_COMPILER_OPTIONS = {**LOW_OPTIMISATION, **OLDER_FUSION}
 
 
 # ============================================================================ result

@@ -33,6 +33,7 @@ import numpy as np
 from ..errors import ModelError
 from ..materials import Material
 from ..models import CheckedMaterial, ElasticModel
+from ..xla_options import PROGRAMS, known_options
 from .static import _MESSAGES, ENERGY_ROUNDOFF, StaticResult, _dense_hessian
 
 __all__ = ["HOST_MAX_NODES", "HOST_BATCH", "HOST_COMPILER_OPTIONS", "HostStaticSolver", "HostSolution", "ModelDerivatives", "model_derivatives"]
@@ -74,26 +75,17 @@ def _derivatives(dynamic, static, material, x):
     return jax.vmap(one)(x)
 
 
-#: XLA options the derivative program is compiled with on a CPU (``jax``'s public
-#: ``compiler_options``, this program only: nothing global). XLA's older element-wise fusion
-#: emitters compile the program of an 8-node ``springs_volume`` model in ~0.9 s CPU instead of
-#: ~1.6 s with the newer fusion emitters (jaxlib 0.10), and run it as fast (0.36 ms a call of
-#: 16 positions instead of 0.33-0.42 ms); its results differ from the default compilation in
-#: the last bits (~1e-16 relative). A jaxlib that does not know an option compiles with its
-#: defaults.
-HOST_COMPILER_OPTIONS = {"xla_cpu_use_fusion_emitters": False}
+#: XLA options the derivative program is compiled with on a CPU (this program only: nothing
+#: global): :data:`difftissue.xla_options.OLDER_FUSION`, the set of the ``"host_derivatives"``
+#: program kind (the module :mod:`difftissue.xla_options` says what it trades).
+HOST_COMPILER_OPTIONS = PROGRAMS["host_derivatives"]
 
 
 def _compile(lowered):
-    """``lowered.compile()`` with :data:`HOST_COMPILER_OPTIONS` on a CPU backend."""
-    if not HOST_COMPILER_OPTIONS or jax.default_backend() != "cpu":
-        return lowered.compile()
-    try:
-        return lowered.compile(compiler_options=dict(HOST_COMPILER_OPTIONS))
-    except RuntimeError as err:  # jax.errors.JaxRuntimeError: an option this jaxlib does not have
-        if "No such compile option" not in str(err):
-            raise
-        return lowered.compile()
+    """``lowered.compile()`` with :data:`HOST_COMPILER_OPTIONS` on a CPU backend (less the
+    options this jaxlib does not know)."""
+    options = known_options(HOST_COMPILER_OPTIONS) if HOST_COMPILER_OPTIONS and jax.default_backend() == "cpu" else None
+    return lowered.compile(compiler_options=options) if options else lowered.compile()
 
 
 #: Positions per call of the compiled derivatives (:class:`ModelDerivatives`): every call is

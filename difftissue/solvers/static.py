@@ -33,6 +33,7 @@ from ..boundary import BoundaryConditions, _validate_values, check_rigid_modes
 from ..errors import ConvergenceError, LinearSolverError, ModelError
 from ..materials import Material
 from ..models import ElasticModel
+from ..xla_options import ProgramJit
 from .multigrid import BlockEllMatrix, JacobiPreconditioner, MultigridPreconditioner, PreconditionedCG, multigrid_cached, multigrid_setup, sparse_layout
 from .sparse import SparseLU, assemble_csr_data, cache_key, sparse_pattern
 
@@ -645,8 +646,7 @@ def _equilibrium_jvp(primals, tangents, *, free, u_init, options):
 
 
 # --------------------------------------------------------------------------- entry
-@eqx.filter_jit
-def _solve(model, material, bc, u_init, options: _Options):
+def _solve_program(model, material, bc, u_init, options: _Options):
     # One range check of the material here instead of one in every energy evaluation.
     material = model.checked(material)
     free = jnp.asarray(bc.free_mask)
@@ -666,6 +666,57 @@ def _solve(model, material, bc, u_init, options: _Options):
         linear_steps=info[3].astype(jnp.int32),
         linear_residual=info[4],
     )
+
+
+class _StaticPart:
+    """The non-array part of ``_solve``'s arguments (``eqx.partition``'s second half), hashable
+    as ``eqx.filter_jit`` holds it: by its pytree structure and static leaves, so that a
+    static argument of ``jax.jit`` compiles one program per configuration."""
+
+    def __init__(self, tree):
+        self.tree = tree
+        leaves, treedef = jax.tree_util.tree_flatten(tree)
+        self._key = (treedef, tuple(leaves))
+        self._hash = hash(self._key)
+
+    def __hash__(self):
+        return self._hash
+
+    def __eq__(self, other):
+        return isinstance(other, _StaticPart) and self._key == other._key
+
+
+def _solve_combined(dynamic, static: _StaticPart):
+    return _solve_program(*eqx.combine(dynamic, static.tree))
+
+
+#: ``_solve_combined`` compiled with the XLA options of the ``"static"`` program kind on its own
+#: (:class:`difftissue.xla_options.ProgramJit`), inlined into an outer program.
+_SOLVE_JIT = ProgramJit(_solve_combined, "static", static_argnums=1)
+
+#: What ``equinox`` puts before the message of an ``eqx.error_if`` raised inside a program.
+_EQX_ERROR_TAG = "_EquinoxRuntimeError: "
+
+
+def _solve(model, material, bc, u_init, options: _Options):
+    """One static solve compiled as its own program (one per model structure, shapes and
+    solver configuration: ``eqx.filter_jit``'s rule, array leaves traced, the rest static) with
+    the XLA options of the ``"static"`` program kind on a CPU
+    (:mod:`difftissue.xla_options`: ``eqx.filter_jit`` takes no compiler options). Inside an
+    outer ``jit`` it is inlined there, with the outer program's options. A failed
+    ``eqx.error_if`` (a traced material out of range) raises ``equinox.EquinoxRuntimeError``,
+    as under ``eqx.filter_jit``."""
+    dynamic, static = eqx.partition((model, material, bc, u_init, options), eqx.is_array)
+    try:
+        sol = _SOLVE_JIT(dynamic, _StaticPart(static))
+        if isinstance(sol.result, jax.Array) and not isinstance(sol.result, jax.core.Tracer):
+            sol.result.block_until_ready()  # a runtime error raised here, as eqx.filter_jit does
+        return sol
+    except jax.errors.JaxRuntimeError as err:
+        text = str(err)
+        if _EQX_ERROR_TAG not in text:
+            raise
+        raise eqx.EquinoxRuntimeError(text.split(_EQX_ERROR_TAG, 1)[1].split("\n", 1)[0]) from None
 
 
 def solve_static(
