@@ -279,7 +279,12 @@ def test_absolute_sigma_drops_s2(stress_strain_fit):
 
 
 @pytest.mark.parametrize("method", ["adam", "lbfgs"])
-def test_optax_methods_reach_the_least_squares_optimum(method, stress_strain_fit):
+def test_optax_methods_reach_the_least_squares_optimum(method, stress_strain_fit, monkeypatch):
+    import difftissue.fit.engine as F
+
+    # a fresh engine cache (the module's restored afterwards): the toy curves share programs
+    # across tests, and "one compilation" is the claim of a fit that compiles its own
+    monkeypatch.setattr(F, "_ENGINE_CACHE", {})
     sc = stress_strain_data()
     ref = stress_strain_fit
     kw = {"max_steps": 1500, "learning_rate": 0.05} if method == "adam" else {"max_steps": 200}
@@ -322,7 +327,10 @@ def test_strongly_correlated_parameters_are_named():
 
 
 # ------------------------------------------------------------------ multi-start
-def test_multistart_picks_the_best_start_and_draws_deterministically():
+def test_multistart_picks_the_best_start_and_draws_deterministically(monkeypatch):
+    import difftissue.fit.engine as F
+
+    monkeypatch.setattr(F, "_ENGINE_CACHE", {})  # "one compilation": whatever ran before
     t = np.linspace(0, 3, 40)
     sc = Oscillation("osc", t, np.sin(3.0 * t), np.full(40, 0.05))
     param = MaterialParameterization(("cubic_coefficient",))
