@@ -32,6 +32,23 @@ RADIUS = 1e-3
 
 
 # ------------------------------------------------------------------ toy scenarios
+# The toy scenarios are pytrees (their arrays leaves, their labels and constants static): the fit
+# engine then keys a problem by the CONTENT of the compiled-in leaves (the abscissa) and passes
+# ``observed`` and ``sigma`` as arguments, so every test that builds the same toy curve again
+# (``stress_strain_data()`` with other noise or outliers, ``hertz_data(seed=1)``) reuses the
+# step and evaluation programs compiled for it by an earlier test instead of compiling its own
+# (a plain dataclass is a single leaf, keyed by identity: one compilation per object).
+_ARRAYS = ["abscissa", "observed", "sigma"]
+
+
+def _toy_pytree(cls):
+    """Register the frozen dataclass ``cls`` as a pytree: ``_ARRAYS`` are its leaves, every
+    other field (name, labels, radius) is static."""
+    meta = [f for f in cls.__dataclass_fields__ if f not in _ARRAYS]
+    return jax.tree_util.register_dataclass(cls, data_fields=_ARRAYS, meta_fields=meta)
+
+
+@_toy_pytree
 @dataclass(frozen=True, eq=False)
 class HertzCurve:
     """Spherical indentation force F = 4/3 E/(1-nu^2) sqrt(R) d^1.5 [N] vs depth [m]."""
@@ -48,6 +65,7 @@ class HertzCurve:
         return hertz_force(self.abscissa, material.youngs_modulus, material.poisson_ratio, self.radius)
 
 
+@_toy_pytree
 @dataclass(frozen=True, eq=False)
 class StressStrain:
     """Uniaxial stress sigma = E (eps + b eps^3) [Pa] vs strain [1]."""
@@ -64,6 +82,7 @@ class StressStrain:
         return material.youngs_modulus * (eps + material.cubic_coefficient * eps**3)
 
 
+@_toy_pytree
 @dataclass(frozen=True, eq=False)
 class CompressionToy:
     """Two outputs of one compression test: axial stress E eps [Pa] and lateral strain -nu eps [1],
@@ -82,6 +101,7 @@ class CompressionToy:
         return jnp.concatenate([material.youngs_modulus * eps[:half], -material.poisson_ratio * eps[half:]])
 
 
+@_toy_pytree
 @dataclass(frozen=True, eq=False)
 class Oscillation:
     """sin(b t) with many local minima in b (for multi-start)."""
@@ -259,7 +279,12 @@ def test_absolute_sigma_drops_s2(stress_strain_fit):
 
 
 @pytest.mark.parametrize("method", ["adam", "lbfgs"])
-def test_optax_methods_reach_the_least_squares_optimum(method, stress_strain_fit):
+def test_optax_methods_reach_the_least_squares_optimum(method, stress_strain_fit, monkeypatch):
+    import difftissue.fit.engine as F
+
+    # a fresh engine cache (the module's restored afterwards): the toy curves share programs
+    # across tests, and "one compilation" is the claim of a fit that compiles its own
+    monkeypatch.setattr(F, "_ENGINE_CACHE", {})
     sc = stress_strain_data()
     ref = stress_strain_fit
     kw = {"max_steps": 1500, "learning_rate": 0.05} if method == "adam" else {"max_steps": 200}
@@ -302,7 +327,10 @@ def test_strongly_correlated_parameters_are_named():
 
 
 # ------------------------------------------------------------------ multi-start
-def test_multistart_picks_the_best_start_and_draws_deterministically():
+def test_multistart_picks_the_best_start_and_draws_deterministically(monkeypatch):
+    import difftissue.fit.engine as F
+
+    monkeypatch.setattr(F, "_ENGINE_CACHE", {})  # "one compilation": whatever ran before
     t = np.linspace(0, 3, 40)
     sc = Oscillation("osc", t, np.sin(3.0 * t), np.full(40, 0.05))
     param = MaterialParameterization(("cubic_coefficient",))
@@ -341,7 +369,7 @@ def test_the_final_evaluation_from_the_solver_state_equals_a_fresh_one(method, l
     calls = []
     original = F.Engine.evaluate
     monkeypatch.setattr(F.Engine, "evaluate", lambda self, U, data: calls.append(1) or original(self, U, data))
-    F._ENGINE_CACHE.clear()
+    monkeypatch.setattr(F, "_ENGINE_CACHE", {})  # a fresh engine (the module's cached ones kept for the other tests)
     res = fit(scs, P_E_NU, START, method=method, loss=loss, starts=2)
     assert res.converged
     assert not calls  # the evaluation program was never traced
