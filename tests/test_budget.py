@@ -2,7 +2,6 @@
 
 import math
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -13,6 +12,7 @@ from difftissue.errors import ConfigError, DifftissueWarning, ModelError
 from difftissue.materials import Material
 from difftissue.mesh import block
 from difftissue.solvers.xpbd import XPBDSettings
+from program_events import ObtainedPrograms
 
 MATERIAL = Material(youngs_modulus=10e3, poisson_ratio=0.45)
 # dt = 3 ms (a haptic-rate step): 10 Gauss-Seidel iterations leave the frame's solve
@@ -52,25 +52,6 @@ def test_calibration_removes_budget_bias(problem):
     assert cal.jacobian[0, 0] > 0  # a stiffer material resists more
 
 
-#: Programs obtained in this process: compiled (``jax.monitoring``'s public compile events) or
-#: loaded from the persistent compilation cache (its public cache-hit events).
-_PROGRAMS = {"compiled": 0, "loaded": 0}
-
-
-def _count_compiled(event, duration, **kw):
-    if event == "/jax/core/compile/backend_compile_duration":
-        _PROGRAMS["compiled"] += 1
-
-
-def _count_loaded(event, **kw):
-    if event == "/jax/compilation_cache/cache_hits":
-        _PROGRAMS["loaded"] += 1
-
-
-jax.monitoring.register_event_duration_secs_listener(_count_compiled)
-jax.monitoring.register_event_listener(_count_loaded)
-
-
 def test_a_call_with_other_numbers_compiles_nothing(problem):
     """calibrate_for_budget's programs (the budgeted observable, the Levenberg--Marquardt step,
     the final evaluation) are compiled once per structure: a call at another material, dt and
@@ -81,9 +62,9 @@ def test_a_call_with_other_numbers_compiles_nothing(problem):
     deeper = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"}).fix(mesh, {"face": "z-max"}, "xyz", (0.0, 0.0, -3e-4))
     material = MATERIAL.replace(youngs_modulus=12e3, poisson_ratio=0.4)
     settings = XPBDSettings(dt=2.5e-3, substeps=1, iterations=10, method="gauss_seidel", warm_start=False)
-    n0 = dict(_PROGRAMS)
-    cal = calibrate_for_budget(mesh, "springs_volume", material, deeper, settings)
-    assert _PROGRAMS == n0, (n0, _PROGRAMS)
+    with ObtainedPrograms() as got:
+        cal = calibrate_for_budget(mesh, "springs_volume", material, deeper, settings)
+    assert got.count == {"compiled": 0, "loaded": 0}, got.count
     assert cal.setting["dt"] == 2.5e-3 and float(cal.true_material.youngs_modulus) == 12e3
     assert cal.reference[0] > 1.5 * first.reference[0]  # deeper and stiffer: its own reference
     assert cal.converged and cal.ratio() > 1.0 and cal.ratio() != first.ratio()

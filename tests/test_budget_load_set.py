@@ -4,7 +4,6 @@ with a measured budget proposal (docs/budget.md, docs/dev/budget-calibration.md)
 
 import warnings
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -16,6 +15,7 @@ from difftissue.mesh import block
 from difftissue.models import make_model
 from difftissue.solvers.static import solve_static
 from difftissue.solvers.xpbd import XPBDSettings, xpbd_quasi_static
+from program_events import ObtainedPrograms
 
 MATERIAL = Material(youngs_modulus=10e3, poisson_ratio=0.45)
 TUNED = XPBDSettings(dt=3e-3, substeps=1, iterations=10, method="gauss_seidel", warm_start=False)  # the tuned case
@@ -165,25 +165,6 @@ def test_one_load_set_is_the_single_load_calibration(mesh):
     assert cal.effective_material(shape="flat_punch", depth=1e-4).youngs_modulus == pytest.approx(float(single.material.youngs_modulus))
 
 
-#: Programs obtained in this process: compiled (``jax.monitoring``'s public compile events) or
-#: loaded from the persistent compilation cache (its public cache-hit events).
-_PROGRAMS = {"compiled": 0, "loaded": 0}
-
-
-def _count_compiled(event, duration, **kw):
-    if event == "/jax/core/compile/backend_compile_duration":
-        _PROGRAMS["compiled"] += 1
-
-
-def _count_loaded(event, **kw):
-    if event == "/jax/compilation_cache/cache_hits":
-        _PROGRAMS["loaded"] += 1
-
-
-jax.monitoring.register_event_duration_secs_listener(_count_compiled)
-jax.monitoring.register_event_listener(_count_loaded)
-
-
 def test_a_load_set_of_other_numbers_compiles_nothing(mesh):
     """The joint fit is compiled once per structure (mesh, loading pattern, budget, number of
     stiffness nodes): a set at another depth, material and dt obtains no program (none compiled,
@@ -193,9 +174,9 @@ def test_a_load_set_of_other_numbers_compiles_nothing(mesh):
     material = MATERIAL.replace(youngs_modulus=12e3, poisson_ratio=0.4)
     settings = XPBDSettings(dt=2.5e-3, substeps=1, iterations=10, method="gauss_seidel", warm_start=False)
     load = indentation_load(mesh, "flat_punch", 1.5e-4, radius=3e-3)
-    n0 = dict(_PROGRAMS)
-    cal = calibrate_for_load_set(mesh, "springs_volume", material, [load], settings, max_steps=10)
-    assert _PROGRAMS == n0, (n0, _PROGRAMS)
+    with ObtainedPrograms() as got:
+        cal = calibrate_for_load_set(mesh, "springs_volume", material, [load], settings, max_steps=10)
+    assert got.count == {"compiled": 0, "loaded": 0}, got.count
     assert cal.stiffness_nodes == (12e3,) and cal.setting["dt"] == 2.5e-3 and cal.poisson_ratio == 0.4
     assert cal.loads[0]["reference"] > 1.5 * first.loads[0]["reference"]  # deeper and stiffer: its own reference
     assert abs(cal.loads[0]["error"]) < 1e-3 and cal.factor != first.factor
