@@ -18,11 +18,16 @@ Parts (each writes its JSON into experiments/results/ and can be run alone):
                    y-symmetry plane), graded tensor-product tet mesh with N cells per unit of
                    the coarse grid, linear limit and neo-Hookean (fem_neo_hookean's energy) at
                    lambda0 = 1.05, 1.10, 1.15 by Newton continuation.
-                   -> cut_convergence_p2.json
+                   -> cut_convergence_p2.json. Other meshes, each into its own file
+                   (`p2_file`): ``--grading front+corner`` (also graded towards the max-width
+                   corner x = 0, z = 6; _corner), ``--q Q`` (grading exponent; _q{Q}),
+                   ``--p2-out NAME`` (e.g. cut_convergence_p2_fine.json: levels 7, 8).
 --rotation CELL... the finite-square effect on the 25 deg cut: P2 (scikit-fem) in the linear
                    limit on the whole square, the library's snapped cut mesh (0 and 25 deg)
                    promoted to P2; the ratio 25/0 deg.  -> cut_convergence_rotation.json
---table            the convergence table (markdown) from the JSON files present.
+--table            the convergence table (markdown) from the JSON files present; ``--p2-fine``
+                   adds cut_convergence_p2_fine.json's levels to the reference,
+                   ``--rotation-cell MM`` picks the rotation ratio (default: finest cell).
 """
 from __future__ import annotations
 
@@ -88,6 +93,15 @@ def springs_cell(cell, lams=LAMS, angles=(0.0, 25.0), size=SIZE, model="springs_
             print(json.dumps(row), flush=True)
     return out
 
+
+
+def _suitesparse_cholmod():
+    """``sksparse.cholmod`` where scikit-sparse is installed, else None (cholespy is used)."""
+    try:
+        from sksparse import cholmod
+    except ImportError:
+        return None
+    return cholmod
 
 
 # --------------------------------------------------------------------------------------------
@@ -200,14 +214,27 @@ class P2Problem:
     def _factorise(K):
         """Cholesky of K, or of K + tau diag(K) with the smallest tau in 1e-8 * 10^k that is
         positive definite (a descent direction away from the solution, where the tangent of the
-        cut flaps can be indefinite). Returns the solve ``b -> x`` and tau."""
-        import cholespy
+        cut flaps can be indefinite). Returns the solve ``b -> x`` and tau. CHOLMOD's supernodal
+        factorisation through scikit-sparse where it is installed, else cholespy's simplicial one
+        (same factor up to rounding; the supernodal one is several times faster at level 6)."""
         import scipy.sparse as sps
 
+        cholmod = _suitesparse_cholmod()
         diag = K.diagonal()
         tau = 0.0
         while True:
             A = K if tau == 0.0 else (K + sps.diags(tau * diag)).tocsr()
+            if cholmod is not None:  # supernodal, CHOLMOD's own fill-reducing ordering
+                try:
+                    factor = cholmod.cholesky(A.tocsc(), mode="supernodal")
+                except cholmod.CholmodNotPositiveDefiniteError:
+                    tau = 1e-8 if tau == 0.0 else 10.0 * tau
+                    if tau > 1e3:
+                        raise RuntimeError("no positive definite shift of the tangent") from None
+                    continue
+                return factor, tau
+            import cholespy
+
             try:
                 fac = cholespy.CholeskySolverD(A.shape[0], A.indptr.astype(np.int32), A.indices.astype(np.int32), np.array(A.data), cholespy.MatrixType.CSR)
             except ValueError:
@@ -297,16 +324,35 @@ def graded(a, b, n, toward, q):
     return np.sort(x)
 
 
-def quarter_mesh(n, q=1.5, flip_x=False):
+def graded_both(a, b, n, q):
+    """n cells on [a, b] graded with exponent q towards both ends: ``t = s^q / (s^q + (1-s)^q)``.
+    The end cells tend to `graded`'s fine end, ``(b - a) / n^q``, for large n, but are coarser
+    at the levels used (``1 / (1 + (n - 1)^q)`` against ``n^-q``: 1.29x at n = 4, 1.16x at
+    n = 8); the middle ones are coarser still."""
+    s = np.linspace(0.0, 1.0, n + 1)
+    return a + (b - a) * s**q / (s**q + (1.0 - s) ** q)
+
+
+#: the quarter mesh's gradings: "front" grades x towards the cut end x = 3, y towards the cut
+#: plane, z towards the cut bottom z = 4; "front+corner" in addition grades x in [0, 3] towards
+#: the mirror plane x = 0 and z in [4, 6] towards the top z = 6, i.e. also towards the corner
+#: x = 0, y = 0, z = 6 where the max surface width sits (same node counts per level)
+GRADINGS = ("front", "front+corner")
+
+
+def quarter_mesh(n, q=1.5, flip_x=False, grading="front"):
     """Graded tensor-product tet mesh of the quarter model [mm]: x in [0, 6] (x = 0 the mirror
     plane through the middle of the cut, the cut end at x = 3), y in [0, 6] (y = 0 the cut plane),
     z in [0, 6] (base z = 0, dermis 4..6). n cells on each graded segment (x: 0-3, 3-6;
-    y: 0-6 with 2n; z: 0-4, 4-6)."""
+    y: 0-6 with 2n; z: 0-4, 4-6); ``grading`` one of `GRADINGS`."""
     import skfem
 
-    x = np.unique(np.concatenate([graded(0, 3, n, 3, q), graded(3, 6, n, 3, q)]))
+    if grading not in GRADINGS:
+        raise ValueError(f"grading {grading!r} not in {GRADINGS}")
+    corner = grading == "front+corner"
+    x = np.unique(np.concatenate([graded_both(0, 3, n, q) if corner else graded(0, 3, n, 3, q), graded(3, 6, n, 3, q)]))
     y = graded(0, 6, 2 * n, 0, q)
-    z = np.unique(np.concatenate([graded(0, 4, n, 4, q), graded(4, 6, n, 4, q)]))
+    z = np.unique(np.concatenate([graded(0, 4, n, 4, q), graded_both(4, 6, n, q) if corner else graded(4, 6, n, 4, q)]))
     if not flip_x:
         m = skfem.MeshTet.init_tensor(x, y, z)
         return m.p.T, m.t.T
@@ -316,8 +362,8 @@ def quarter_mesh(n, q=1.5, flip_x=False):
     return p, m.t.T
 
 
-def quarter_problem(n, q=1.5, flip_x=False):
-    p, t = quarter_mesh(n, q, flip_x)
+def quarter_problem(n, q=1.5, flip_x=False, grading="front"):
+    p, t = quarter_mesh(n, q, flip_x, grading)
     zc = p[t].mean(axis=1)[:, 2]
     derm = zc > 4.0
     eps = 1e-9
@@ -348,15 +394,16 @@ def quarter_widths(prob, u):
     return float(w.max()), float(mean)
 
 
-def p2_reference(levels, lams=LAMS, q=1.5, on_row=None):
+def p2_reference(levels, lams=LAMS, q=1.5, on_row=None, grading="front"):
     """P2 quarter-model rows (max / mean surface width [mm], Newton iterations, tangent
     factorisations, CPU seconds) per level n and lambda0 (continuation through ``lams`` in
-    order). ``on_row(out)`` is called after each row (the script writes the JSON there, so that
-    an interrupted level keeps the lambda0 it finished)."""
-    out = {"q": q, "rows": []}
+    order), on the mesh graded as ``grading`` (`GRADINGS`). ``on_row(out)`` is called after each
+    row (the script writes the JSON there, so that an interrupted level keeps the lambda0 it
+    finished)."""
+    out = {"q": q, "grading": grading, "rows": []}
     for n in levels:
         t0 = time.process_time()
-        prob = quarter_problem(n, q)
+        prob = quarter_problem(n, q, grading=grading)
         u, prev = None, 1.0
         for lam in lams:
             t1, f1 = time.process_time(), prob.factorisations
@@ -374,16 +421,25 @@ def p2_reference(levels, lams=LAMS, q=1.5, on_row=None):
     return out
 
 
-def _merge_p2(new, name="cut_convergence_p2.json"):
-    """Write ``new``'s rows into the P2 JSON: a (level, lambda0) given again is replaced, the
-    other rows kept."""
+def p2_file(grading="front", q=1.5):
+    """The P2 JSON of a grading and exponent: cut_convergence_p2.json (the "front" grading with
+    q = 1.5, no ``grading`` key), else with ``_corner`` ("front+corner") and ``_q{q}`` (q other
+    than 1.5) appended."""
+    return "cut_convergence_p2" + ("_corner" if grading == "front+corner" else "") + ("" if q == 1.5 else f"_q{q:g}") + ".json"
+
+
+def _merge_p2(new, name=None):
+    """Write ``new``'s rows into ``name`` (default: its grading's P2 JSON, `p2_file`): a
+    (level, lambda0) given again is replaced, the other rows kept."""
+    grading = new.get("grading", "front")
+    name = name or p2_file(grading, new["q"])
     old = _load(name)
     rows = list(new["rows"])
-    if old is not None and old.get("q") == new["q"]:
+    if old is not None and old.get("q") == new["q"] and old.get("grading", "front") == grading:
         keys = {(r["n"], round(r["pre_stretch"], 9)) for r in rows}
         rows = [r for r in old["rows"] if (r["n"], round(r["pre_stretch"], 9)) not in keys] + rows
     rows.sort(key=lambda r: (r["n"], r["pre_stretch"]))
-    _write(name, {"q": new["q"], "rows": rows})
+    _write(name, {"q": new["q"], "rows": rows} | ({} if grading == "front" else {"grading": grading}))
 
 
 def _open_edges(cut, X, angle):
@@ -490,12 +546,20 @@ def _load(name):
     return json.loads(p.read_text()) if p.exists() else None
 
 
+#: P2 files the reference reads (`reference`): cut_convergence_p2.json (levels 2-6), and with
+#: ``--table --p2-fine`` also cut_convergence_p2_fine.json (levels 7, 8 of the same grading,
+#: kept apart so that the level-6 tables stay reproducible)
+P2_FILES = ("cut_convergence_p2.json",)
+P2_FINE = "cut_convergence_p2_fine.json"
+
+
 def reference():
-    """Converged P2 max / mean surface width per lambda0 [mm] (aligned cut): Richardson value of
+    """Converged P2 max / mean surface width per lambda0 [mm] (aligned cut) from the rows of
+    `P2_FILES`: Richardson value of
     the three finest quarter-model levels, its observed order, and the error estimate
     max(|Richardson - finest|, |Richardson - first-order extrapolation of the two finest|) (with the Richardson value of the three coarsest levels alongside
     where there are more than three)."""
-    d = _load("cut_convergence_p2.json")
+    d = {"rows": [r for name in P2_FILES for r in (_load(name) or {"rows": []})["rows"]]}
     out = {}
     for lam in LAMS:
         rows = sorted((r for r in d["rows"] if r["pre_stretch"] == lam), key=lambda r: r["n"])
@@ -528,6 +592,21 @@ def rotation_ratio():
     return out
 
 
+#: cell size [m] of the whole-square rotation ratio that turns the 0 deg reference into the
+#: 25 deg one in the tables; None: the finest in cut_convergence_rotation.json (``--table
+#: --rotation-cell 1`` gives the tables as they were before the 0.5 mm run)
+ROTATION_CELL = None
+
+
+def rotation_factor(quantity="max_width_mm"):
+    """(cell [m], 25/0 deg ratio) of the linear-limit rotation ratio used for the 25 deg
+    reference (`ROTATION_CELL`), or (nan, nan) where there is none."""
+    ratios = rotation_ratio().get((LINEAR, quantity), [])
+    if ROTATION_CELL is not None:
+        ratios = [(c, x) for c, x in ratios if abs(c - ROTATION_CELL) < 1e-12]
+    return ratios[-1] if ratios else (float("nan"), float("nan"))
+
+
 def _springs_runs(model="springs_volume"):
     return sorted((json.loads(p.read_text()) for p in RESULTS.glob(f"cut_convergence_{_tag(model)}_cell*mm.json")), key=lambda d: -d["cell"])
 
@@ -540,7 +619,6 @@ def springs_table(quantity="max_width", model="springs_volume"):
     """Markdown rows: springs_volume (staircase) at each cell size against the reference."""
     runs = _springs_runs(model)
     ref = reference()
-    rot = rotation_ratio()
     q = quantity + "_mm"
     lines = []
     for angle in (0.0, 25.0):
@@ -549,8 +627,7 @@ def springs_table(quantity="max_width", model="springs_volume"):
             r = ref[(lam, q)]
             target = r["value"]
             if angle == 25.0:
-                ratios = rot.get((LINEAR, q), [])
-                target *= ratios[-1][1] if ratios else float("nan")
+                target *= rotation_factor(q)[1]
             hs, vals = [], []
             for d in runs:
                 hit = [x for x in d["rows"] if x["angle"] == angle and abs(x["pre_stretch"] - lam) < 1e-9]
@@ -588,6 +665,7 @@ def markdown(models=("springs_volume", "springs_volume_mesh_lattice")):
         lab = "linear limit" if lam == LINEAR else f"{lam:.2f}"
         lines.append(f"| {lab} | {vals} | {o} | {r['value'] * sc:.4f} ± {r['error'] * sc:.4f} ({100 * r['error'] / r['value']:.1f} %) | {ratio} |")
     print("\n".join(lines) + "\n")
+    print(f"25° references: the 0° ones times the linear-limit ratio at h = {rotation_factor()[0] * 1e3:.3g} mm\n")
     for model in models:
         if _springs_runs(model):
             print(f"\n{model}\n")
@@ -631,6 +709,7 @@ def table():
     print("\nrotation ratio 25/0 deg (whole-square P2 on snapped meshes)\n")
     for k, v in rotation_ratio().items():
         print(k, ", ".join(f"h={c * 1e3:.3g} mm: {x:.4f}" for c, x in v))
+    print(f"25 deg references: the 0 deg ones times the linear-limit ratio at h = {rotation_factor()[0] * 1e3:.3g} mm")
     for quantity in ("max_width", "mean_width"):
         print(f"\nsprings_volume, staircase cut: {quantity}\n")
         for ln in springs_table(quantity):
@@ -676,11 +755,20 @@ if __name__ == "__main__":
     ap.add_argument("--p2", type=int, nargs="*", default=[], help="quarter-model levels n (e.g. 3 4 6 8)")
     ap.add_argument("--p2-lams", type=float, nargs="*", default=None, help="lambda0 values of --p2 (default all; the continuation "
                     "passes through the ones between)")
+    ap.add_argument("--grading", choices=GRADINGS, default="front", help="--p2: the quarter mesh's grading (front: "
+                    "cut_convergence_p2.json; front+corner: also towards the max-width corner, cut_convergence_p2_corner.json)")
+    ap.add_argument("--q", type=float, default=1.5, help="--p2: the grading exponent (1.5: the files above; else "
+                    "_q{q} appended to the name)")
+    ap.add_argument("--p2-out", default=None, help="--p2: write into this file of experiments/results/ instead of "
+                    "the grading's (diagnostic levels that must not change the reference)")
     ap.add_argument("--full-newton", action="store_true", help="--p2: factorise the tangent at every Newton iteration "
                     "(default: frozen tangent while the residual falls fast)")
     ap.add_argument("--rotation", type=float, nargs="*", default=[], help="cell sizes [mm] of the whole-square P2 (linear limit)")
     ap.add_argument("--rotation-lams", type=float, nargs="*", default=[LINEAR], help="lambda0 values of --rotation")
     ap.add_argument("--table", action="store_true")
+    ap.add_argument("--p2-fine", action="store_true", help="--table: the reference also from " + P2_FINE)
+    ap.add_argument("--rotation-cell", type=float, default=None, help="--table: cell size [mm] of the rotation ratio for "
+                    "the 25 deg reference (default the finest run)")
     ap.add_argument("--plot", action="store_true", help="docs/img/cut_convergence.png")
     a = ap.parse_args()
     P2Problem.log_iterations = a.newton_log
@@ -700,7 +788,7 @@ if __name__ == "__main__":
         _write(name, res)
     if a.p2:  # merged into the rows already there, after each lambda0 (a level and lambda0 given again is replaced)
         P2Problem.frozen_tangent = not a.full_newton
-        p2_reference(a.p2, lams=tuple(a.p2_lams or LAMS), on_row=_merge_p2)
+        p2_reference(a.p2, lams=tuple(a.p2_lams or LAMS), q=a.q, on_row=lambda out: _merge_p2(out, a.p2_out), grading=a.grading)
     if a.rotation:
         old = _load("cut_convergence_rotation.json") or []
         for c in a.rotation:
@@ -709,6 +797,10 @@ if __name__ == "__main__":
             old = [r for r in old if abs(r["cell"] - c * 1e-3) > 1e-12] + [res]
         _write("cut_convergence_rotation.json", sorted(old, key=lambda r: -r["cell"]))
     if a.table:
+        ROTATION_CELL = None if a.rotation_cell is None else a.rotation_cell * 1e-3
+        P2_FILES = P2_FILES + ((P2_FINE,) if a.p2_fine else ())
+        print(f"P2 reference from {', '.join(P2_FILES)}; 25 deg by the rotation ratio at "
+              f"{'the finest cell' if ROTATION_CELL is None else f'h = {a.rotation_cell:g} mm'}\n")
         table()
         markdown()
     if a.plot:

@@ -126,3 +126,56 @@ def test_frozen_tangent_newton_reaches_the_full_newton_answer():
     np.testing.assert_allclose(w_frozen, w_full, rtol=1e-8, atol=0)
     assert fac_full == its_full
     assert fac_frozen < 0.7 * fac_full
+
+
+def test_corner_grading_refines_the_max_width_corner_with_the_same_nodes():
+    """The "front+corner" grading keeps the node count and the grid of the segments away from
+    the corner (x in [3, 6], y, z in [0, 4]); on x in [0, 3] and z in [4, 6] its cells at the
+    corner end are as fine as at the front end, and less than half the front grading's there."""
+    n = 4
+    front, _ = cc.quarter_mesh(n)
+    corner, _ = cc.quarter_mesh(n, grading="front+corner")
+    assert front.shape == corner.shape
+    xf, xc = np.unique(front[:, 0]), np.unique(corner[:, 0])
+    zf, zc = np.unique(front[:, 2]), np.unique(corner[:, 2])
+    np.testing.assert_allclose(xc[xc >= 3.0], xf[xf >= 3.0], atol=1e-12)
+    np.testing.assert_allclose(np.unique(corner[:, 1]), np.unique(front[:, 1]), atol=1e-12)
+    np.testing.assert_allclose(zc[zc <= 4.0], zf[zf <= 4.0], atol=1e-12)
+    np.testing.assert_allclose(xc[1] - xc[0], xc[n] - xc[n - 1], rtol=1e-12)  # x = 0 and x = 3 ends
+    np.testing.assert_allclose(zc[-1] - zc[-2], zc[n + 1] - zc[n], rtol=1e-12)  # z = 6 and z = 4 ends
+    assert xc[1] - xc[0] < 0.5 * (xf[1] - xf[0])
+    assert zc[-1] - zc[-2] < 0.5 * (zf[-1] - zf[-2])
+    with pytest.raises(ValueError, match="grading"):
+        cc.quarter_mesh(n, grading="corner")
+
+
+def test_p2_files_keep_the_reference_apart_from_other_gradings():
+    assert cc.p2_file() == "cut_convergence_p2.json"
+    assert cc.p2_file("front+corner") == "cut_convergence_p2_corner.json"
+    assert cc.p2_file("front", 2.5) == "cut_convergence_p2_q2.5.json"
+
+
+def test_rotation_factor_takes_the_finest_ratio_unless_a_cell_is_named(monkeypatch):
+    ratios = {(cc.LINEAR, "max_width_mm"): [(1e-3, 0.98), (5e-4, 0.99)]}
+    monkeypatch.setattr(cc, "rotation_ratio", lambda: ratios)
+    assert cc.rotation_factor() == (5e-4, 0.99)
+    monkeypatch.setattr(cc, "ROTATION_CELL", 1e-3)
+    assert cc.rotation_factor() == (1e-3, 0.98)
+
+
+def test_supernodal_and_cholespy_factorisations_give_the_same_widths(monkeypatch):
+    """`P2Problem._factorise` through scikit-sparse's supernodal CHOLMOD and through cholespy:
+    the same linear-limit and lambda0 = 1.05 widths to the Newton tolerance."""
+    pytest.importorskip("sksparse")
+    widths = []
+    for backend in ("sksparse", "cholespy"):
+        if backend == "cholespy":
+            monkeypatch.setattr(cc, "_suitesparse_cholmod", lambda: None)
+        prob = cc.quarter_problem(2)
+        u, w = None, []
+        for start, stop in ((1.0, cc.LINEAR), (cc.LINEAR, 1.05)):
+            u, _ = prob.continuation(start, stop, u)
+            w.append(cc.quarter_widths(prob, u))
+        widths.append(np.array(w))
+    assert widths[0][1, 0] > 0.5  # mm
+    np.testing.assert_allclose(widths[0], widths[1], rtol=1e-8, atol=0)
