@@ -158,6 +158,7 @@ def test_p2_files_keep_the_reference_apart_from_other_gradings():
 def test_rotation_factor_takes_the_finest_ratio_unless_a_cell_is_named(monkeypatch):
     ratios = {(cc.LINEAR, "max_width_mm"): [(1e-3, 0.98), (5e-4, 0.99)]}
     monkeypatch.setattr(cc, "rotation_ratio", lambda: ratios)
+    monkeypatch.setattr(cc, "ROTATION_CELL", None)
     assert cc.rotation_factor() == (5e-4, 0.99)
     monkeypatch.setattr(cc, "ROTATION_CELL", 1e-3)
     assert cc.rotation_factor() == (1e-3, 0.98)
