@@ -457,3 +457,21 @@ def test_a_second_fit_of_the_same_config_with_another_modulus_compiles_no_progra
     assert got.count == {"compiled": 0, "loaded": 0}, got.count
     assert first.values["youngs_modulus"] == pytest.approx(1e3, rel=0.02)
     assert second.values["youngs_modulus"] == pytest.approx(1e5, rel=0.02)
+
+
+def test_a_fit_of_another_curve_at_other_depths_compiles_no_program(tmp_path):
+    """The depths of a closed-form indentation are arguments of the fit's programs too
+    (``AnalyticIndentation.fit_arguments``): a curve of another modulus at other depths, as
+    many points, obtains no program and fits its own modulus; one with another number of
+    points compiles its own."""
+    first = _hertz_config(tmp_path, 2e3, np.linspace(5e-6, 100e-6, 31)).run()
+    other = _hertz_config(tmp_path, 3e4, np.linspace(8e-6, 70e-6, 31))
+    with ObtainedPrograms() as got:
+        second = other.run()
+    assert got.count == {"compiled": 0, "loaded": 0}, got.count
+    assert first.values["youngs_modulus"] == pytest.approx(2e3, rel=0.02)
+    assert second.values["youngs_modulus"] == pytest.approx(3e4, rel=0.02)
+    with ObtainedPrograms() as got:
+        longer = _hertz_config(tmp_path, 3e4, np.linspace(8e-6, 70e-6, 32)).run()
+    assert got.count["compiled"] + got.count["loaded"] > 0
+    assert longer.values["youngs_modulus"] == pytest.approx(3e4, rel=0.02)

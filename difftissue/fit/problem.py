@@ -144,15 +144,16 @@ class FitProblem:
         self.n_residuals = int(sum(self.sizes))
         self.n_parameters = len(self.fields)
         # Each scenario as a pytree: its measured-data leaves (``observed``, ``sigma`` of an
-        # equinox-Module scenario) are passed to the compiled functions as ARGUMENTS, with the
-        # problem's observed and sigma, so that one compilation serves every specimen of the
-        # same structure (see :meth:`data`, :meth:`with_data`, :meth:`structure_key`).
+        # equinox-Module scenario, and the attributes its class names in ``fit_arguments``,
+        # e.g. the depths of a closed-form indentation) are passed to the compiled functions as
+        # ARGUMENTS, with the problem's observed and sigma, so that one compilation serves every
+        # specimen of the same structure (see :meth:`data`, :meth:`with_data`, :meth:`structure_key`).
         self._treedefs, self._leaves, dynamic = [], [], []
         for sc in scenarios:
             leaves, treedef = jax.tree_util.tree_flatten(sc)
             self._treedefs.append(treedef)
             self._leaves.append(leaves)
-            dynamic.append(data_leaf_indices(sc, leaves))
+            dynamic.append(data_leaf_indices(sc, leaves, DATA_ATTRIBUTES + tuple(getattr(type(sc), "fit_arguments", ()))))
         self._dynamic = tuple(dynamic)
         # The transforms' numbers (a ``Log``'s ``scale``: the start value of a data-driven
         # start; bounds) are arguments too, not compiled in: a fit of the same structure from
