@@ -747,7 +747,9 @@ class _ScenarioSolve:
         # Evaluated now, also when the first call is inside an outer jit (whose trace would
         # otherwise stage these operations and leave its tracers in this cached object).
         with jax.ensure_compile_time_eval():
-            self._dynamic = jax.tree_util.tree_map(jnp.asarray, dynamic)  # converted once, not per call
+            # converted once, not per call; jax.device_put, not jnp.asarray, which compiles a
+            # small program per new shape of a NumPy array (same dtypes, weak types, placement)
+            self._dynamic = jax.tree_util.tree_map(jax.device_put, dynamic)
             model = scenario.model
             # the reference state of a contact model: the indenter at depth 0 (the depth is traced in the protocol)
             self._model = model.with_depth(0.0) if isinstance(model, ContactModel) else model
