@@ -36,7 +36,7 @@ import hashlib
 import math
 import warnings
 import weakref
-from typing import Any, Sequence
+from typing import Any, ClassVar, Sequence
 
 import equinox as eqx
 import jax
@@ -140,6 +140,12 @@ class AnalyticIndentation(eqx.Module):
     x_label: str = eqx.field(static=True, default="depth [m]")
     y_label: str = eqx.field(static=True, default="force [N]")
 
+    #: Attributes a fit passes to its compiled programs as arguments besides the measured
+    #: forces and sigma (:meth:`difftissue.fit.FitProblem.data`): the depths [m], which
+    #: :meth:`predict` reads through JAX operations only, so that a fit of another curve with
+    #: as many points compiles nothing (their checks are made here, on the concrete values).
+    fit_arguments: ClassVar[tuple[str, ...]] = ("abscissa",)
+
     def __init__(self, depths, forces, *, indenter="sphere", radius=None, half_angle=None, thickness=None, solution="half_space", base="bonded", sigma=None, name="indentation"):
         self.name = str(name)
         self.abscissa = _as_1d("depths", depths)
@@ -168,6 +174,8 @@ class AnalyticIndentation(eqx.Module):
             raise ConfigError(f"base must be 'bonded' or 'lubricated', got {base!r}")
         self.indenter, self.size, self.solution, self.base = indenter, size, solution, base
         self.thickness = None if thickness is None else float(thickness)
+        if indenter == "sphere" and solution == "exact_layer":  # the layer solution's range, checked on the depths here (traced in a fit)
+            analytic._check_chi(np.sqrt(size * self.abscissa) / self.thickness)
         self.x_label, self.y_label = "depth [m]", "force [N]"
 
     def predict(self, material: Material):
@@ -739,7 +747,9 @@ class _ScenarioSolve:
         # Evaluated now, also when the first call is inside an outer jit (whose trace would
         # otherwise stage these operations and leave its tracers in this cached object).
         with jax.ensure_compile_time_eval():
-            self._dynamic = jax.tree_util.tree_map(jnp.asarray, dynamic)  # converted once, not per call
+            # converted once, not per call; jax.device_put, not jnp.asarray, which compiles a
+            # small program per new shape of a NumPy array (same dtypes, weak types, placement)
+            self._dynamic = jax.tree_util.tree_map(jax.device_put, dynamic)
             model = scenario.model
             # the reference state of a contact model: the indenter at depth 0 (the depth is traced in the protocol)
             self._model = model.with_depth(0.0) if isinstance(model, ContactModel) else model

@@ -17,10 +17,11 @@ __all__ = ["DATA_ATTRIBUTES", "data_leaf_indices", "hash_scenario_leaves"]
 DATA_ATTRIBUTES = ("observed", "sigma")
 
 
-def data_leaf_indices(scenario, leaves) -> tuple[int, ...]:
+def data_leaf_indices(scenario, leaves, attributes: tuple[str, ...] = DATA_ATTRIBUTES) -> tuple[int, ...]:
     """Indices of the leaves (``leaves``: ``jax.tree_util.tree_flatten(scenario)[0]``) that ARE
-    the scenario's measured data: the arrays of :data:`DATA_ATTRIBUTES`, matched by identity."""
-    attrs = [getattr(scenario, a, None) for a in DATA_ATTRIBUTES]
+    the scenario's measured data: the arrays of ``attributes`` (default :data:`DATA_ATTRIBUTES`),
+    matched by identity."""
+    attrs = [getattr(scenario, a, None) for a in attributes]
     return tuple(i for i, leaf in enumerate(leaves) if eqx.is_array(leaf) and any(leaf is a for a in attrs))
 
 

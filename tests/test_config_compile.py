@@ -24,6 +24,7 @@ from difftissue.config.compile import scenario_structure
 from difftissue.fit import FitProblem
 from difftissue.fit.problem import hash_scenario_leaves
 from difftissue.materials import MaterialParameterization
+from program_events import ObtainedPrograms
 
 jax.config.update("jax_enable_x64", True)
 
@@ -418,3 +419,59 @@ def test_small_models_are_compiled_at_low_optimisation_with_the_same_numbers(fir
     monkeypatch.undo()
     big = _wrapped(_config(tmp_path, cells=4)).inner
     assert big.model.n_nodes == 125 and cc._compiler_options(big) == xla_options.compiler_options("static")
+
+
+def _hertz_config(tmp_path, modulus, depths):
+    """An analytic-indentation (Hertz, 1 mm sphere, nu = 0) config of a synthetic curve of
+    ``modulus`` [Pa] at ``depths`` [m] with 1 % noise; the fit starts from the data (the
+    default ``fit.start = "data"``: the transforms are scaled at the data's Hertz modulus)."""
+    d = np.asarray(depths, dtype=float)
+    f = 4.0 / 3.0 * modulus * np.sqrt(1e-3) * d**1.5
+    f = f + 0.01 * f.max() * np.random.default_rng(1).normal(size=d.size)
+    csv = tmp_path / f"hertz_{modulus:g}_{d[0]:g}.csv"
+    csv.write_text("depth,force\n" + "".join(f"{a:.17g},{b:.17g}\n" for a, b in zip(d, f)))
+    raw = {
+        "material": {"youngs_modulus": 100.0, "poisson_ratio": 0.0},
+        "fit": {"parameters": ["youngs_modulus"], "method": "levenberg_marquardt"},
+        "experiment": [{
+            "name": "afm", "scenario": "analytic_indentation", "points": "all", "sigma": {"relative": 0.01},
+            "data": {"format": "table", "path": csv.name,
+                     "columns": {"depth": {"name": "depth", "unit": "m"}, "force": {"name": "force", "unit": "N"}}},
+            "indenter": {"shape": "sphere", "radius": 1e-3},
+        }],
+    }
+    return parse_config(raw, base_dir=tmp_path)
+
+
+def test_a_second_fit_of_the_same_config_with_another_modulus_compiles_no_program(tmp_path):
+    """The fit engine's programs (the batched start, the step, the final evaluation) take the
+    measured data and the transforms' numbers (a ``Log`` scaled at the data-driven start) as
+    arguments: a second fit of the same config with a curve 100 x stiffer (so a start 100 x
+    higher) obtains no program and fits its own modulus."""
+    depths = np.linspace(5e-6, 100e-6, 37)
+    soft, stiff = _hertz_config(tmp_path, 1e3, depths), _hertz_config(tmp_path, 1e5, depths)
+    assert stiff.start["youngs_modulus"]["value"] == pytest.approx(1e5, rel=0.02)
+    first = soft.run()
+    with ObtainedPrograms() as got:
+        second = stiff.run()
+    assert got.count == {"compiled": 0, "loaded": 0}, got.count
+    assert first.values["youngs_modulus"] == pytest.approx(1e3, rel=0.02)
+    assert second.values["youngs_modulus"] == pytest.approx(1e5, rel=0.02)
+
+
+def test_a_fit_of_another_curve_at_other_depths_compiles_no_program(tmp_path):
+    """The depths of a closed-form indentation are arguments of the fit's programs too
+    (``AnalyticIndentation.fit_arguments``): a curve of another modulus at other depths, as
+    many points, obtains no program and fits its own modulus; one with another number of
+    points compiles its own."""
+    first = _hertz_config(tmp_path, 2e3, np.linspace(5e-6, 100e-6, 31)).run()
+    other = _hertz_config(tmp_path, 3e4, np.linspace(8e-6, 70e-6, 31))
+    with ObtainedPrograms() as got:
+        second = other.run()
+    assert got.count == {"compiled": 0, "loaded": 0}, got.count
+    assert first.values["youngs_modulus"] == pytest.approx(2e3, rel=0.02)
+    assert second.values["youngs_modulus"] == pytest.approx(3e4, rel=0.02)
+    with ObtainedPrograms() as got:
+        longer = _hertz_config(tmp_path, 3e4, np.linspace(8e-6, 70e-6, 32)).run()
+    assert got.count["compiled"] + got.count["loaded"] > 0
+    assert longer.values["youngs_modulus"] == pytest.approx(3e4, rel=0.02)

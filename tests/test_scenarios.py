@@ -99,6 +99,10 @@ def test_analytic_indentation_is_the_closed_forms():
         AnalyticIndentation(d, F, indenter="sphere", radius=1e-4, solution="exact_layer")
     with pytest.raises(errors.DataError, match="NaN"):
         AnalyticIndentation(d, F * np.nan, indenter="sphere", radius=1e-4)
+    # the exact layer solution's range (chi = sqrt(R d)/h <= 4) is checked on the depths when
+    # the scenario is built: a fit passes them to its compiled programs as arguments
+    with pytest.raises(errors.DifftissueError, match="chi = .* must lie in"):
+        AnalyticIndentation(d * 1e4, F, indenter="sphere", radius=1e-4, thickness=1e-5, solution="exact_layer")
 
 
 # ---------------------------------------------------------------- indentation

@@ -151,7 +151,8 @@ def _compiled_per_shape(fn, key=None, data=(), options=None):
 
     def arguments():
         if "data" not in state:
-            d = jax.tree_util.tree_map(jnp.asarray, data() if callable(data) else data)
+            # jax.device_put, not jnp.asarray (a small compiled program per new NumPy shape)
+            d = jax.tree_util.tree_map(jax.device_put, data() if callable(data) else data)
             state["data"] = d
             state["specs"] = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), d)
         return state["data"], state["specs"]

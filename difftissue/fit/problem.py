@@ -144,26 +144,36 @@ class FitProblem:
         self.n_residuals = int(sum(self.sizes))
         self.n_parameters = len(self.fields)
         # Each scenario as a pytree: its measured-data leaves (``observed``, ``sigma`` of an
-        # equinox-Module scenario) are passed to the compiled functions as ARGUMENTS, with the
-        # problem's observed and sigma, so that one compilation serves every specimen of the
-        # same structure (see :meth:`data`, :meth:`with_data`, :meth:`structure_key`).
+        # equinox-Module scenario, and the attributes its class names in ``fit_arguments``,
+        # e.g. the depths of a closed-form indentation) are passed to the compiled functions as
+        # ARGUMENTS, with the problem's observed and sigma, so that one compilation serves every
+        # specimen of the same structure (see :meth:`data`, :meth:`with_data`, :meth:`structure_key`).
         self._treedefs, self._leaves, dynamic = [], [], []
         for sc in scenarios:
             leaves, treedef = jax.tree_util.tree_flatten(sc)
             self._treedefs.append(treedef)
             self._leaves.append(leaves)
-            dynamic.append(data_leaf_indices(sc, leaves))
+            dynamic.append(data_leaf_indices(sc, leaves, DATA_ATTRIBUTES + tuple(getattr(type(sc), "fit_arguments", ()))))
         self._dynamic = tuple(dynamic)
+        # The transforms' numbers (a ``Log``'s ``scale``: the start value of a data-driven
+        # start; bounds) are arguments too, not compiled in: a fit of the same structure from
+        # another start compiles nothing (the transform types stay in the key).
+        transform_leaves, self._transform_treedef = jax.tree_util.tree_flatten(parameterization.transforms)
+        self._transform_leaves = tuple(transform_leaves)
 
     # -------------------------------------------------------------- data as arguments
     def data(self) -> dict:
         """The problem's measured data as a pytree of arrays: ``observed`` and ``sigma`` per
-        scenario (SI) and each scenario's dynamic leaves. The compiled step and evaluation take
-        it as an argument (:meth:`with_data` rebuilds the problem from it inside the trace)."""
+        scenario (SI), each scenario's dynamic leaves and the numbers of the parameterization's
+        transforms (``transforms``: e.g. a ``Log``'s ``lower`` and ``scale``, unit of the
+        parameter). The compiled step and evaluation take it as an argument (:meth:`with_data`
+        rebuilds the problem from it inside the trace)."""
+        dtype = jax.dtypes.canonicalize_dtype(float)
         return {
             "observed": tuple(np.asarray(o) for o in self._observed),
             "sigma": tuple(np.asarray(s) for s in self._sigma),
             "leaves": tuple(tuple(np.asarray(leaves[i]) for i in dyn) for leaves, dyn in zip(self._leaves, self._dynamic)),
+            "transforms": tuple(np.asarray(t, dtype=dtype) for t in self._transform_leaves),
         }
 
     def with_data(self, data) -> "FitProblem":
@@ -183,6 +193,8 @@ class FitProblem:
                 leaves[i] = v
             scenarios.append(jax.tree_util.tree_unflatten(treedef, leaves))
         new.scenarios = tuple(scenarios)
+        transforms = jax.tree_util.tree_unflatten(self._transform_treedef, data["transforms"])
+        new.parameterization = eqx.tree_at(lambda p: p.transforms, self.parameterization, transforms)
         return new
 
     def _with_dynamic(self, dynamic) -> "FitProblem":
@@ -194,13 +206,15 @@ class FitProblem:
         return new
 
     def structure_key(self) -> tuple:
-        """What the compiled step depends on besides :meth:`data`: fields, transforms, fixed
-        material fields, loss, scenario names, types and pytree structures, data shapes, and a
-        hash of every scenario leaf that is compiled in (arrays by content; other objects, e.g.
-        a scenario that is not a pytree, by identity: :func:`hash_scenario_leaves`). Two problems
-        with equal keys can share one compiled step with their own data."""
+        """What the compiled step depends on besides :meth:`data`: fields, the transforms'
+        types (their numbers are data), fixed material fields, loss, scenario names, types and
+        pytree structures, data shapes, and a hash of every scenario leaf that is compiled in
+        (arrays by content; other objects, e.g. a scenario that is not a pytree, by identity:
+        :func:`hash_scenario_leaves`). Two problems with equal keys can share one compiled step
+        with their own data."""
         digest, comps = self.fingerprint("", 0)
-        parts = [comps[k] for k in ("fields", "transforms", "fixed material fields", "scenarios", "loss")]
+        parts = [comps[k] for k in ("fields", "fixed material fields", "scenarios", "loss")]
+        parts.append(self._transform_treedef)
         parts.append(self.sizes)
         h = hashlib.sha256()
         objects = []
