@@ -11,8 +11,9 @@ from difftissue import errors
 from difftissue.boundary import BoundaryConditions
 from difftissue.materials import Material, lattice_spring_constants
 from difftissue.mesh import TetMesh, block
-from difftissue.models import make_model
+from difftissue.models import CheckedMaterial, make_model
 from difftissue.solvers import StaticResult, solve_static
+from difftissue.solvers import static as static_solver
 
 E0 = 1.0e3
 
@@ -189,6 +190,25 @@ def test_no_recompile_on_second_call_with_new_values(column, caplog):
         solve_static(model, Material(2 * E0, 0.41, cubic_coefficient=1.0), bc2)
     compiled = [r.getMessage() for r in caplog.records if "ompil" in r.getMessage()]
     assert compiled == [], compiled
+
+
+def test_a_concrete_material_is_range_checked_on_the_host_not_in_the_compiled_solve(monkeypatch):
+    """A concrete material reaches the compiled solve already checked (``CheckedMaterial``), so
+    the program holds no ``equinox.error_if`` host callback for it: JAX never writes a program
+    with a host callback to its persistent compilation cache (docs/dev/test-suite.md)."""
+    traced_with = []
+    solve_program = static_solver._solve_program
+
+    def spy(model, material, *args):
+        traced_with.append(type(material))
+        return solve_program(model, material, *args)
+
+    monkeypatch.setattr(static_solver, "_solve_program", spy)
+    mesh = block((1.0, 1.0, 3.0), (1, 1, 3))  # a structure no other test compiles: traced here
+    bc = BoundaryConditions.free(mesh).fix(mesh, {"face": "z-min"}, "xyz").fix(mesh, {"face": "z-max"}, "z", (0.0, 0.0, 1e-3))
+    sol = solve_static(make_model(mesh, "fem_linear"), Material(E0, 0.3), bc)
+    assert int(sol.result) == 0
+    assert traced_with == [CheckedMaterial]
 
 
 # ------------------------------------------------------------------- bad input

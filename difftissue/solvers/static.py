@@ -31,7 +31,7 @@ import numpy as np
 
 from ..boundary import BoundaryConditions, _validate_values, check_rigid_modes
 from ..errors import ConvergenceError, LinearSolverError, ModelError
-from ..materials import Material
+from ..materials import Material, _is_concrete
 from ..models import ElasticModel
 from ..xla_options import ProgramJit
 from .multigrid import BlockEllMatrix, JacobiPreconditioner, MultigridPreconditioner, PreconditionedCG, multigrid_cached, multigrid_setup, sparse_layout
@@ -810,6 +810,11 @@ def solve_static(
     options = _Options(float(rtol), atol, float(xtol), int(max_steps), linear_solver, float(cg_rtol), int(cg_max_steps or default_steps), pattern, layout, hierarchy)
     # Python floats would be static under jit (a recompile per value): make every leaf an array.
     material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
+    if _is_concrete(material):
+        # Range-checked here, on the host (MaterialError / ModelRangeError), so that the compiled
+        # solve carries no ``equinox.error_if`` callback for it: JAX never writes a program with
+        # a host callback to its persistent compilation cache. Traced values keep the checks.
+        material = model.checked(material)
     u_init = jnp.zeros((n, 3)) if initial_displacement is None else jnp.asarray(initial_displacement, dtype=float)
     if int(load_steps) < 1:
         raise ModelError(f"load_steps must be >= 1, got {load_steps}")
