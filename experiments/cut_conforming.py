@@ -18,7 +18,7 @@ points of the top edge), reported per unit pre-strain [mm] (width / (lambda0 - 1
 
 Run:  PYTHONPATH=. python experiments/cut_conforming.py --h 0.4 0.28 [--angles 0 25]
       [--far 1.5]  -> rows appended to experiments/results/cut_conforming_p2.json
-      (a (h_cut, h_far, angle) row given again is replaced).
+      (a (h_cut, h_far, angle) row given again is replaced);  --table prints the 25/0 table.
 Units inside: mm, kPa.
 """
 from __future__ import annotations
@@ -232,9 +232,28 @@ def merge(rows, name=OUT_NAME):
     _write(name, {"units": "widths per unit pre-strain [mm]", "rows": out})
 
 
+def table(name=OUT_NAME):
+    """Markdown table of the 0 / 25 deg max widths and their ratio per (h_far, h_cut) from the JSON;
+    90 deg rows (the 0 deg cut turned by the square's symmetry: mesh noise only) alongside."""
+    rows = (_load(name) or {"rows": []})["rows"]
+    by = {}
+    for r in rows:
+        by.setdefault((r["h_far_mm"], r["h_cut_mm"]), {})[r["angle"]] = r
+    lines = ["| h_far | h_cut | DOFs (0 deg) | 0 deg max | 25 deg max | 25/0 (max) | 25/0 (mean) | 90/0 (max) |", "|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for (far, h), v in sorted(by.items(), key=lambda kv: (kv[0][0], -kv[0][1])):
+        if 0.0 not in v:
+            continue
+        z = v[0.0]
+        f = lambda a, q="max_width": f"{v[a][q] / z[q]:.4f}" if a in v else "-"  # noqa: E731
+        t = f"{v[25.0]['max_width']:.4f}" if 25.0 in v else "-"
+        lines.append(f"| {far:g} | {h:g} | {z['dofs']} | {z['max_width']:.4f} | {t} | {f(25.0)} | {f(25.0, 'mean_width_trapezoid')} | {f(90.0)} |")
+    return "\n".join(lines)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--h", type=float, nargs="+", required=True, help="element size at the cut [mm]")
+    ap.add_argument("--h", type=float, nargs="+", default=[], help="element size at the cut [mm]")
+    ap.add_argument("--table", action="store_true", help="print the markdown table of the JSON's rows")
     ap.add_argument("--far", type=float, default=1.5, help="element size far from the cut [mm]")
     ap.add_argument("--angles", type=float, nargs="+", default=[0.0, 25.0])
     a = ap.parse_args(argv)
@@ -243,6 +262,8 @@ def main(argv=None):
             row = run(angle, h, a.far)
             print(json.dumps(row), flush=True)
             merge([row])
+    if a.table:
+        print(table())
 
 
 if __name__ == "__main__":
