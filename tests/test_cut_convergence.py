@@ -180,3 +180,44 @@ def test_supernodal_and_cholespy_factorisations_give_the_same_widths(monkeypatch
         widths.append(np.array(w))
     assert widths[0][1, 0] > 0.5  # mm
     np.testing.assert_allclose(widths[0], widths[1], rtol=1e-8, atol=0)
+
+
+def test_conforming_cut_mesh_opens_the_face_and_keeps_the_front():
+    """experiments/cut_conforming.py at 25 deg: every cut triangle lies between one plus and one
+    minus tet; the opened nodes are the cut's nodes off the front (bottom edge z = 4, end edges),
+    top edge included; after opening no cut triangle is shared by two tets, the front nodes are."""
+    pytest.importorskip("gmsh")
+    import cut_conforming as cf
+
+    angle = 25.0
+    p, t, derm, tris = cf.conforming_mesh(angle, 0.6, 1.5)
+    X, t2, minus, pairs, edges, n_front = cf.open_cut(p, t, tris, angle)
+    d, n = cf.cut_axes(angle)
+    on = np.unique(tris)
+    s = (p[on, :2] - cf.CENTRE) @ d
+    assert np.allclose((p[on, :2] - cf.CENTRE) @ n, 0.0, atol=1e-9)
+    assert np.isclose(s.min(), -3.0) and np.isclose(s.max(), 3.0)
+    front = (np.abs(p[on, 2] - 4.0) < 1e-7) | (np.abs(np.abs(s) - 3.0) < 1e-7)
+    assert n_front == front.sum() and len(pairs) == len(on) - front.sum()
+    assert np.array_equal(np.sort(pairs[:, 0]), np.sort(on[~front]))
+    assert np.allclose(X[pairs[:, 0]], X[pairs[:, 1]])
+    top = np.abs(p[pairs[:, 0], 2] - 6.0) < 1e-7
+    assert top.sum() >= 5  # the top edge is opened
+    faces = {}
+    for k, tet in enumerate(t):
+        for f in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)):
+            faces.setdefault(tuple(sorted(tet[list(f)])), []).append(k)
+    for tri in tris:
+        ks = faces[tuple(sorted(tri))]
+        assert len(ks) == 2 and minus[ks].sum() == 1
+    faces2 = {}
+    for tet in t2:
+        for f in ((0, 1, 2), (0, 1, 3), (0, 2, 3), (1, 2, 3)):
+            key = tuple(sorted(tet[list(f)]))
+            faces2[key] = faces2.get(key, 0) + 1
+    copy = dict(map(tuple, pairs))
+    for tri in tris:
+        assert faces2.get(tuple(sorted(tri)), 0) == 1
+        assert faces2.get(tuple(sorted(copy.get(v, v) for v in tri)), 0) == 1
+    # minus tets use only copies of opened nodes, plus tets only originals
+    assert not np.isin(t2[minus], pairs[:, 0]).any() and not np.isin(t2[~minus], pairs[:, 1]).any()
