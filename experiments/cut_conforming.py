@@ -3,7 +3,7 @@
 What: the whole-square P2 linear limit of the incision geometry of experiments/cut_convergence.py
 (12 x 12 mm square, dermis 2 mm, E = 200 kPa, on fat 4 mm, E = 5 kPa, nu = 0.45; lateral faces held
 in x and y, base clamped; a 6 mm cut through the dermis, z from 4 to 6 mm, centred, at angle theta to
-x; loaded by the dermis' equibiaxial pre-stretch lambda0 = 1.001), on an unstructured gmsh tet mesh
+x; loaded by the dermis' equibiaxial pre-stretch: the linear limit lambda0 = 1.001, or finite lambda0 with --lams), on an unstructured gmsh tet mesh
 in which the cut rectangle is an internal surface (OCC boolean fragments), refined towards the cut
 (Distance + Threshold size fields). Independent of the library's snapped cut meshes
 (`cut_convergence.rotation`), whose 25 deg crack front is rough at 0.5 mm.
@@ -12,12 +12,12 @@ How: the nodes of the cut surface are duplicated except the crack front (bottom 
 the two vertical end edges; the top edge on the free surface is opened); the tets with an opened
 node on the minus side of the cut plane (normal (-sin, cos, 0)) take the copies; midside nodes of
 cut-face edges between two front nodes get a copy through `P2Problem`'s ``open_edges``. The solve
-is `cut_convergence.P2Problem`'s (compressible neo-Hookean, Newton, CHOLMOD) at lambda0 = 1.001.
+is `cut_convergence.P2Problem`'s (compressible neo-Hookean, Newton, CHOLMOD), continued in lambda0.
 Width: the distance between the deformed paired top-surface points (vertices and the P2 midside
 points of the top edge), reported per unit pre-strain [mm] (width / (lambda0 - 1)).
 
 Run:  PYTHONPATH=. python experiments/cut_conforming.py --h 0.4 0.28 [--angles 0 25]
-      [--far 1.5]  -> rows appended to experiments/results/cut_conforming_p2.json
+      [--far 1.5] [--lams 1.001 1.05 1.10 1.15]  -> rows appended to experiments/results/cut_conforming_p2.json
       (a (h_cut, h_far, angle) row given again is replaced);  --table prints the 25/0 table.
 Units inside: mm, kPa.
 """
@@ -182,7 +182,11 @@ def midside_pairs(prob, tets, minus, angle):
     return [(v[False], v[True]) for v in found.values() if len(v) == 2]
 
 
-def run(angle, h_cut, h_far=1.5, lam=LINEAR):
+def run(angle, h_cut, h_far=1.5, lams=(LINEAR,)):
+    """Rows (one per lambda0 of ``lams``, solved in order by continuation from the previous one)
+    of the max / mean surface width of the cut at ``angle`` [deg] on the mesh of ``h_cut``,
+    ``h_far`` [mm]; widths per unit pre-strain (width / (lambda0 - 1)) and, at finite lambda0,
+    also in mm (``max_width_mm``)."""
     t0 = time.process_time()
     points, tets, dermis, tris = conforming_mesh(angle, h_cut, h_far)
     t_mesh = time.process_time() - t0
@@ -197,9 +201,18 @@ def run(angle, h_cut, h_far=1.5, lam=LINEAR):
         return f
 
     prob = P2Problem(X, T, np.where(dermis, E_DERMIS * 1e-3, E_FAT * 1e-3), dermis, fixed, open_edges=edges, minus=minus)
-    t1 = time.process_time()
-    u, its = prob.continuation(1.0, lam)
-    t_solve = time.process_time() - t1
+    rows, u, prev = [], None, 1.0
+    for lam in lams:
+        t1 = time.process_time()
+        u, its = prob.continuation(prev, lam, u)
+        prev = lam
+        t_solve = time.process_time() - t1
+        rows.append(_widths(prob, X, T, minus, pairs, points, tets, tris, edges, n_front, angle, h_cut, h_far, lam, u, its, t_mesh, t_solve))
+    return rows
+
+
+def _widths(prob, X, T, minus, pairs, points, tets, tris, edges, n_front, angle, h_cut, h_far, lam, u, its, t_mesh, t_solve):
+    """One row: the widths of the solved displacement ``u`` (see `run`)."""
     x = prob.doflocs + u
     strain = lam - 1.0
     d, _ = cut_axes(angle)
@@ -221,14 +234,17 @@ def run(angle, h_cut, h_far=1.5, lam=LINEAR):
                top_vertex_pairs=int(len(top)), top_midside_pairs=int(len(mids)),
                max_width_vertices=float(w_v.max()), max_width=float(w_all.max()), s_at_max_mm=float(s_all[np.argmax(w_all)]),
                mean_width_trapezoid=mean, newton=its, cpu_mesh_s=t_mesh, cpu_solve_s=t_solve, rss_mb=rss_mb())
+    if lam != LINEAR:
+        row["max_width_mm"] = float(w_all.max()) * strain
     return row
 
 
 def merge(rows, name=OUT_NAME):
     old = (_load(name) or {"rows": []})["rows"]
-    keys = {(r["h_cut_mm"], r["h_far_mm"], r["angle"]) for r in rows}
-    out = [r for r in old if (r["h_cut_mm"], r["h_far_mm"], r["angle"]) not in keys] + rows
-    out.sort(key=lambda r: (-r["h_cut_mm"], r["h_far_mm"], r["angle"]))
+    key = lambda r: (r["h_cut_mm"], r["h_far_mm"], r["angle"], round(r["pre_stretch"], 9))  # noqa: E731
+    keys = {key(r) for r in rows}
+    out = [r for r in old if key(r) not in keys] + rows
+    out.sort(key=lambda r: (r["pre_stretch"], -r["h_cut_mm"], r["h_far_mm"], r["angle"]))
     _write(name, {"units": "widths per unit pre-strain [mm]", "rows": out})
 
 
@@ -238,15 +254,15 @@ def table(name=OUT_NAME):
     rows = (_load(name) or {"rows": []})["rows"]
     by = {}
     for r in rows:
-        by.setdefault((r["h_far_mm"], r["h_cut_mm"]), {})[r["angle"]] = r
-    lines = ["| h_far | h_cut | DOFs (0 deg) | 0 deg max | 25 deg max | 25/0 (max) | 25/0 (mean) | 90/0 (max) |", "|---:|---:|---:|---:|---:|---:|---:|---:|"]
-    for (far, h), v in sorted(by.items(), key=lambda kv: (kv[0][0], -kv[0][1])):
+        by.setdefault((r["pre_stretch"], r["h_far_mm"], r["h_cut_mm"]), {})[r["angle"]] = r
+    lines = ["| lambda0 | h_far | h_cut | DOFs (0 deg) | 0 deg max | 25 deg max | 25/0 (max) | 25/0 (mean) | 90/0 (max) |", "|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    for (lam, far, h), v in sorted(by.items(), key=lambda kv: (kv[0][0], kv[0][1], -kv[0][2])):
         if 0.0 not in v:
             continue
         z = v[0.0]
         f = lambda a, q="max_width": f"{v[a][q] / z[q]:.4f}" if a in v else "-"  # noqa: E731
         t = f"{v[25.0]['max_width']:.4f}" if 25.0 in v else "-"
-        lines.append(f"| {far:g} | {h:g} | {z['dofs']} | {z['max_width']:.4f} | {t} | {f(25.0)} | {f(25.0, 'mean_width_trapezoid')} | {f(90.0)} |")
+        lines.append(f"| {'linear limit' if lam == LINEAR else f'{lam:g}'} | {far:g} | {h:g} | {z['dofs']} | {z['max_width']:.4f} | {t} | {f(25.0)} | {f(25.0, 'mean_width_trapezoid')} | {f(90.0)} |")
     return "\n".join(lines)
 
 
@@ -256,12 +272,14 @@ def main(argv=None):
     ap.add_argument("--table", action="store_true", help="print the markdown table of the JSON's rows")
     ap.add_argument("--far", type=float, default=1.5, help="element size far from the cut [mm]")
     ap.add_argument("--angles", type=float, nargs="+", default=[0.0, 25.0])
+    ap.add_argument("--lams", type=float, nargs="+", default=[LINEAR], help="pre-stretches lambda0, solved in this order by continuation")
     a = ap.parse_args(argv)
     for h in a.h:
         for angle in a.angles:
-            row = run(angle, h, a.far)
-            print(json.dumps(row), flush=True)
-            merge([row])
+            rows = run(angle, h, a.far, tuple(a.lams))
+            for row in rows:
+                print(json.dumps(row), flush=True)
+            merge(rows)
     if a.table:
         print(table())
 

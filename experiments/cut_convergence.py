@@ -27,7 +27,9 @@ Parts (each writes its JSON into experiments/results/ and can be run alone):
                    promoted to P2; the ratio 25/0 deg.  -> cut_convergence_rotation.json
 --table            the convergence table (markdown) from the JSON files present; ``--p2-fine``
                    adds cut_convergence_p2_fine.json's levels to the reference,
-                   ``--rotation-cell MM`` picks the rotation ratio (default 1 mm).
+                   ``--rotation-source conforming|snapped`` where the 25 deg references'
+                   25/0 ratio comes from (default: conforming meshes, experiments/cut_conforming.py),
+                   ``--rotation-cell MM`` the snapped ratio's cell size (default 1 mm).
 """
 from __future__ import annotations
 
@@ -593,20 +595,58 @@ def rotation_ratio():
     return out
 
 
-#: cell size [m] of the whole-square rotation ratio that turns the 0 deg reference into the
-#: 25 deg one in the tables (``--table --rotation-cell``); None: the finest in
-#: cut_convergence_rotation.json. 1 mm: the 0.5 mm ratio is not converged either (1 mm 0.9835,
-#: 0.5 mm 0.9569) and its 25 deg snapped cut is the rougher one (docs/dev/cut-openings-finite-strain.md)
+#: where the 25 / 0 deg ratio that turns the 0 deg reference into the 25 deg one comes from
+#: (``--table --rotation-source``): "conforming" (default), the whole-square P2 on gmsh meshes
+#: that follow the cut (experiments/cut_conforming.py: 1.0018 at h_cut = 0.1 mm, converged to
+#: about +-0.001), or "snapped", the whole-square P2 on the library's snapped cut meshes
+#: (`rotation_ratio`, `ROTATION_CELL`: 0.9835 at 1 mm, 0.9569 at 0.5 mm, an artefact of the
+#: snapped 25 deg crack front; docs/dev/cut-openings-finite-strain.md)
+ROTATION_SOURCE = "conforming"
+#: element size at the cut [m] of the conforming ratio (None: the finest run with h_far 1.5 mm)
+CONFORMING_H = None
+#: cell size [m] of the snapped ratio (``--rotation-cell``); None: the finest in
+#: cut_convergence_rotation.json
 ROTATION_CELL = 1e-3
 
 
+def conforming_ratio():
+    """25 deg / 0 deg max and mean surface width of the whole-square P2 on conforming meshes
+    (cut_conforming_p2.json, far-field size 1.5 mm), per lambda0 and quantity:
+    {(lam, quantity): [(h_cut [m], ratio), ...]}, h_cut decreasing."""
+    d = _load("cut_conforming_p2.json") or {"rows": []}
+    names = {"max_width_mm": "max_width", "mean_width_mm": "mean_width_trapezoid"}
+    by = {}
+    for r in d["rows"]:
+        if r["h_far_mm"] == 1.5:
+            by.setdefault((round(r["pre_stretch"], 9), r["h_cut_mm"]), {})[r["angle"]] = r
+    out = {}
+    for (lam, h), v in sorted(by.items(), key=lambda kv: (kv[0][0], -kv[0][1])):
+        if 0.0 in v and 25.0 in v:
+            for q, name in names.items():
+                out.setdefault((lam, q), []).append((h * 1e-3, v[25.0][name] / v[0.0][name]))
+    return out
+
+
 def rotation_factor(quantity="max_width_mm"):
-    """(cell [m], 25/0 deg ratio) of the linear-limit rotation ratio used for the 25 deg
-    reference (`ROTATION_CELL`), or (nan, nan) where there is none."""
-    ratios = rotation_ratio().get((LINEAR, quantity), [])
-    if ROTATION_CELL is not None:
-        ratios = [(c, x) for c, x in ratios if abs(c - ROTATION_CELL) < 1e-12]
+    """(size [m], 25/0 deg ratio) of the linear-limit ratio used for the 25 deg reference
+    (`ROTATION_SOURCE`; `CONFORMING_H` or `ROTATION_CELL` pick the mesh), or (nan, nan) where
+    there is none."""
+    if ROTATION_SOURCE == "conforming":
+        ratios = conforming_ratio().get((round(LINEAR, 9), quantity), [])
+        wanted = CONFORMING_H
+    else:
+        ratios = rotation_ratio().get((LINEAR, quantity), [])
+        wanted = ROTATION_CELL
+    if wanted is not None:
+        ratios = [(c, x) for c, x in ratios if abs(c - wanted) < 1e-12]
     return ratios[-1] if ratios else (float("nan"), float("nan"))
+
+
+def rotation_label():
+    """Where the 25 deg references' ratio comes from, for the tables' captions."""
+    h, x = rotation_factor()
+    where = "conforming whole-square P2, h_cut" if ROTATION_SOURCE == "conforming" else "snapped whole-square P2, h"
+    return f"the linear-limit 25/0 ratio {x:.4f} ({where} = {h * 1e3:.3g} mm)"
 
 
 def _springs_runs(model="springs_volume"):
@@ -657,17 +697,19 @@ def markdown(models=("springs_volume", "springs_volume_mesh_lattice")):
     """The tables of docs/experiments.md (max surface width)."""
     ref = reference()
     rot = rotation_ratio()
-    lines = ["| λ0 | P2 levels n (quarter): max surface width | observed order | extrapolated (± estimate) | 25° / 0° (whole square, P2) |", "|---|---|---|---|---|"]
+    lines = ["| λ0 | P2 levels n (quarter): max surface width | observed order | extrapolated (± estimate) | 25° / 0° (whole square, P2, snapped cut) | 25° / 0° (whole square, P2, conforming mesh) |", "|---|---|---|---|---|---|"]
+    conf = conforming_ratio()
     for lam in LAMS:
         r = ref[(lam, "max_width_mm")]
         sc = 1.0 / (lam - 1.0) if lam == LINEAR else 1.0
         vals = ", ".join(f"{n}: {v * sc:.4f}" for n, v in zip(r["levels"], r["values"]))
         ratio = ", ".join(f"{x:.4f} (h = {c * 1e3:.3g} mm)" for c, x in rot.get((lam, "max_width_mm"), [])) or "-"
+        ratio_c = ", ".join(f"{x:.4f} (h_cut = {c * 1e3:.3g} mm)" for c, x in conf.get((round(lam, 9), "max_width_mm"), [])) or "-"
         o = f"{r['order']:.2f}" if np.isfinite(r["order"]) else ("1 assumed (2 levels)" if len(r["values"]) < 3 else f"none ({no_order_reason(r['values'][-3:], [1.0 / n for n in r['levels'][-3:]])}; 1 assumed)")
         lab = "linear limit" if lam == LINEAR else f"{lam:.2f}"
-        lines.append(f"| {lab} | {vals} | {o} | {r['value'] * sc:.4f} ± {r['error'] * sc:.4f} ({100 * r['error'] / r['value']:.1f} %) | {ratio} |")
+        lines.append(f"| {lab} | {vals} | {o} | {r['value'] * sc:.4f} ± {r['error'] * sc:.4f} ({100 * r['error'] / r['value']:.1f} %) | {ratio} | {ratio_c} |")
     print("\n".join(lines) + "\n")
-    print(f"25° references: the 0° ones times the linear-limit ratio at h = {rotation_factor()[0] * 1e3:.3g} mm\n")
+    print(f"25° references: the 0° ones times {rotation_label()}\n")
     for model in models:
         if _springs_runs(model):
             print(f"\n{model}\n")
@@ -711,7 +753,10 @@ def table():
     print("\nrotation ratio 25/0 deg (whole-square P2 on snapped meshes)\n")
     for k, v in rotation_ratio().items():
         print(k, ", ".join(f"h={c * 1e3:.3g} mm: {x:.4f}" for c, x in v))
-    print(f"25 deg references: the 0 deg ones times the linear-limit ratio at h = {rotation_factor()[0] * 1e3:.3g} mm")
+    print("\nrotation ratio 25/0 deg (whole-square P2 on conforming meshes, experiments/cut_conforming.py)\n")
+    for k, v in conforming_ratio().items():
+        print(k, ", ".join(f"h_cut={c * 1e3:.3g} mm: {x:.4f}" for c, x in v))
+    print(f"25 deg references: the 0 deg ones times {rotation_label()}")
     for quantity in ("max_width", "mean_width"):
         print(f"\nsprings_volume, staircase cut: {quantity}\n")
         for ln in springs_table(quantity):
@@ -771,6 +816,9 @@ if __name__ == "__main__":
     ap.add_argument("--p2-fine", action="store_true", help="--table: the reference also from " + P2_FINE)
     ap.add_argument("--rotation-cell", type=float, default=1.0, help="--table: cell size [mm] of the rotation ratio for "
                     "the 25 deg reference (default 1; 0: the finest run)")
+    ap.add_argument("--rotation-source", choices=("conforming", "snapped"), default="conforming",
+                    help="--table: the 25 deg reference's 25/0 ratio from the conforming meshes (default; the finest "
+                    "h_cut) or from the snapped ones (--rotation-cell)")
     ap.add_argument("--plot", action="store_true", help="docs/img/cut_convergence.png")
     a = ap.parse_args()
     P2Problem.log_iterations = a.newton_log
@@ -800,9 +848,9 @@ if __name__ == "__main__":
         _write("cut_convergence_rotation.json", sorted(old, key=lambda r: -r["cell"]))
     if a.table:
         ROTATION_CELL = a.rotation_cell * 1e-3 if a.rotation_cell > 0 else None
+        ROTATION_SOURCE = a.rotation_source
         P2_FILES = P2_FILES + ((P2_FINE,) if a.p2_fine else ())
-        print(f"P2 reference from {', '.join(P2_FILES)}; 25 deg by the rotation ratio at "
-              f"{'the finest cell' if ROTATION_CELL is None else f'h = {a.rotation_cell:g} mm'}\n")
+        print(f"P2 reference from {', '.join(P2_FILES)}; 25 deg by {rotation_label()}\n")
         table()
         markdown()
     if a.plot:

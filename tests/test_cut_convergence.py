@@ -158,10 +158,32 @@ def test_p2_files_keep_the_reference_apart_from_other_gradings():
 def test_rotation_factor_takes_the_finest_ratio_unless_a_cell_is_named(monkeypatch):
     ratios = {(cc.LINEAR, "max_width_mm"): [(1e-3, 0.98), (5e-4, 0.99)]}
     monkeypatch.setattr(cc, "rotation_ratio", lambda: ratios)
+    monkeypatch.setattr(cc, "ROTATION_SOURCE", "snapped")
     monkeypatch.setattr(cc, "ROTATION_CELL", None)
     assert cc.rotation_factor() == (5e-4, 0.99)
     monkeypatch.setattr(cc, "ROTATION_CELL", 1e-3)
     assert cc.rotation_factor() == (1e-3, 0.98)
+
+
+def test_the_25_degree_reference_takes_the_conforming_ratio_of_the_finest_mesh(monkeypatch):
+    """The default source of the 25/0 ratio is the conforming whole-square P2: its finest h_cut
+    with the 1.5 mm far field, linear limit, both angles present; other far fields, lambda0 and
+    a mesh with one angle only are not taken."""
+    def row(h, far, angle, width, lam=cc.LINEAR):
+        return {"h_cut_mm": h, "h_far_mm": far, "angle": angle, "pre_stretch": lam, "max_width": width, "mean_width_trapezoid": width / 2}
+
+    rows = [row(0.4, 1.5, 0.0, 10.0), row(0.4, 1.5, 25.0, 10.1), row(0.2, 1.5, 0.0, 10.0), row(0.2, 1.5, 25.0, 10.02),
+            row(0.1, 1.5, 0.0, 10.0), row(0.1, 0.75, 0.0, 10.0), row(0.1, 0.75, 25.0, 9.0), row(0.2, 1.5, 25.0, 12.0, lam=1.05),
+            row(0.2, 1.5, 0.0, 10.0, lam=1.05)]
+    monkeypatch.setattr(cc, "_load", lambda name: {"rows": rows} if name == "cut_conforming_p2.json" else None)
+    monkeypatch.setattr(cc, "ROTATION_SOURCE", "conforming")
+    monkeypatch.setattr(cc, "CONFORMING_H", None)
+    h, x = cc.rotation_factor()
+    assert h == pytest.approx(2e-4) and x == pytest.approx(1.002)
+    assert cc.rotation_factor("mean_width_mm")[1] == pytest.approx(1.002)
+    monkeypatch.setattr(cc, "CONFORMING_H", 4e-4)
+    assert cc.rotation_factor()[1] == pytest.approx(1.01)
+    assert cc.conforming_ratio()[(round(1.05, 9), "max_width_mm")] == [(pytest.approx(2e-4), pytest.approx(1.2))]
 
 
 def test_supernodal_and_cholespy_factorisations_give_the_same_widths(monkeypatch):
