@@ -18,8 +18,12 @@ radius ``R_c``): the in-plane gradient is exact for a linear triangle, the hoop 
 ``r_c / R_c`` of the current centroid radius, and the element energy is
 ``2 pi R_c A Psi(F)`` (``2 pi R_c A`` is exactly the volume of the triangle's ring). Any 3-D
 density ``Psi(F)`` applies: the linear (``fem_linear``) and the compressible neo-Hookean
-(``fem_neo_hookean``) densities of :mod:`difftissue.energies.fem`, both finite-strain exact in
-this kinematics.
+(``fem_neo_hookean``) densities of :mod:`difftissue.energies.fem` and the stable neo-Hookean
+density (``stable_neo_hookean``, :func:`~difftissue.energies.neo_hookean.stable_neo_hookean_energy_density`
+with ``lam' = lambda + mu``, as the 3-D :class:`~difftissue.models.StableNeoHookeanModel`), all
+finite-strain exact in this kinematics. The axisymmetric stable neo-Hookean is the continuum
+law of the XPBD constraints on a converged mesh: it tells the stable neo-Hookean material's E
+and nu, not what a coarse 3-D tet mesh of it does.
 
 The nodes are stored as 3-D points ``(r, 0, z)`` so that the static solver, the sparse Hessian
 path, the contact penalty and the indenters of :mod:`difftissue.contact` work unchanged: the
@@ -40,6 +44,7 @@ import numpy as np
 from .boundary import BoundaryConditions
 from .contact import ConeIndenter, ContactModel, SphereIndenter, adopt_base_fields
 from .energies.fem import linear_elastic_energy_density, neo_hookean_energy_density
+from .energies.neo_hookean import stable_neo_hookean_energy_density
 from .errors import BoundaryConditionError, InvertedElementError, ModelError
 from .materials import Material, _is_concrete, lame_parameters
 from .mesh import graded_axis, graded_cells
@@ -56,9 +61,8 @@ __all__ = [
 ]
 
 #: Constitutive models the axisymmetric model supports (any 3-D density of ``F``; the
-#: springs_volume lattice and the stable neo-Hookean XPBD energy are 3-D element forms with no
-#: axisymmetric counterpart here).
-AXISYMMETRIC_MODELS = ("fem_linear", "fem_neo_hookean")
+#: springs_volume lattices are 3-D element forms with no axisymmetric counterpart).
+AXISYMMETRIC_MODELS = ("fem_linear", "fem_neo_hookean", "stable_neo_hookean")
 
 
 class AxisymmetricMesh(eqx.Module):
@@ -163,6 +167,14 @@ def _axisym_neo_hookean_energy(x, Dm_inv, R_c, V0, lam, mu):
     return V0 * neo_hookean_energy_density(_ring_F(x, Dm_inv, R_c), lam, mu)
 
 
+def _axisym_stable_neo_hookean_energy(x, Dm_inv, R_c, V0, lam, mu):
+    return V0 * stable_neo_hookean_energy_density(_ring_F(x, Dm_inv, R_c), mu, lam + mu)
+
+
+_AXISYMMETRIC_ENERGIES = {"fem_linear": _axisym_linear_energy, "fem_neo_hookean": _axisym_neo_hookean_energy,
+                          "stable_neo_hookean": _axisym_stable_neo_hookean_energy}
+
+
 def _ring_jacobian(x, Dm_inv, R_c):
     F = _ring_F(x, Dm_inv, R_c)
     return (F[0, 0] * F[2, 2] - F[0, 2] * F[2, 0]) * F[1, 1]
@@ -186,7 +198,7 @@ class AxisymmetricModel(ElasticModel):
             raise ModelError(f"AxisymmetricModel needs an AxisymmetricMesh, got {type(mesh).__name__}")
         if kind not in AXISYMMETRIC_MODELS:
             raise ModelError(f"the axisymmetric model supports {AXISYMMETRIC_MODELS}, got {kind!r} "
-                             "(springs_volume and stable_neo_hookean are 3-D element forms: use a 3-D Indentation)")
+                             "(the springs_volume lattices are 3-D element forms: use a 3-D Indentation)")
         p, t = mesh.points, mesh.triangles
         Dm = np.stack([p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]]], axis=2)  # (M, 2 coords, 2 edges)
         area = 0.5 * (Dm[:, 0, 0] * Dm[:, 1, 1] - Dm[:, 0, 1] * Dm[:, 1, 0])
@@ -224,7 +236,7 @@ class AxisymmetricModel(ElasticModel):
         p = self.region_values(material)
         lam, mu = lame_parameters(p["youngs_modulus"], p["poisson_ratio"])
         r = self.tet_regions
-        fn = _axisym_linear_energy if self.kind == "fem_linear" else _axisym_neo_hookean_energy
+        fn = _AXISYMMETRIC_ENERGIES[self.kind]
         return (ElementTerm("triangles", self.tets, fn, (self.tet_Dm_inv, self.ring_radii, self.tet_volumes, lam[r], mu[r])),)
 
     def tet_jacobians(self, x):

@@ -1618,8 +1618,8 @@ class AxisymmetricIndentation(eqx.Module):
     depths are solved in order, each from the previous equilibrium, with a Newton solve of the
     whole meridian mesh and a sparse direct factorisation (``options.linear_solver="auto"``
     means ``"sparse"`` here); the gradient with respect to the material is implicit at every
-    depth. Models: ``fem_linear`` and ``fem_neo_hookean`` (the springs_volume lattice and the
-    stable neo-Hookean element have no axisymmetric form: use :class:`Indentation`).
+    depth. Models: ``fem_linear``, ``fem_neo_hookean`` and ``stable_neo_hookean`` (the
+    springs_volume lattices have no axisymmetric form: use :class:`Indentation`).
     """
 
     #: the XLA option set of this scenario's compiled programs (a program kind of
@@ -1646,7 +1646,8 @@ class AxisymmetricIndentation(eqx.Module):
             depths: depth protocol [m], non-decreasing, from the contact point.
             forces: measured forces [N] (None: predictions only, ``observed`` is zeros).
             indenter: ``"sphere"`` (``radius`` [m]) or ``"cone"`` (``half_angle`` [rad]).
-            model: ``"fem_linear"`` or ``"fem_neo_hookean"``.
+            model: ``"fem_linear"``, ``"fem_neo_hookean"`` or ``"stable_neo_hookean"``
+                (:data:`~difftissue.axisymmetric.AXISYMMETRIC_MODELS`).
             mesh: the cylinder's meridian mesh; default :func:`axisymmetric_specimen_for`
                 at the largest depth with ``thickness`` and ``cells_per_contact_radius``.
             base: ``"bonded"`` or ``"sliding"``.

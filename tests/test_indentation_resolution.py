@@ -156,18 +156,21 @@ def test_config_without_specimen_refuses_with_the_key(curve_dir, model, shape, s
     assert "specimen" in str(err.value)
 
 
-def test_config_without_specimen_is_axisymmetric_for_a_fem_sphere(curve_dir):
-    """The default for a sphere or a cone with a FEM model: the axisymmetric specimen of
-    axisymmetric_specimen_for; its discretisation check's coarser meshes every cell times sqrt(2)
-    and 2 (refined(1 / sqrt(2)), refined(0.5)), the order observed on the three levels."""
+@pytest.mark.parametrize("model", ["fem_neo_hookean", "stable_neo_hookean"])
+def test_config_without_specimen_is_axisymmetric_for_a_continuum_sphere(curve_dir, model):
+    """The default for a sphere or a cone with a continuum model (FEM or stable neo-Hookean):
+    the axisymmetric specimen of axisymmetric_specimen_for; its discretisation check's coarser
+    meshes every cell times sqrt(2) and 2 (refined(1 / sqrt(2)), refined(0.5)), the order
+    observed on the three levels."""
     from difftissue.config import load_config
     from difftissue.scenarios import AxisymmetricIndentation, axisymmetric_specimen_for
 
-    (curve_dir / "axi.toml").write_text(_TOML.format(model='model = "fem_neo_hookean"', shape="sphere", size="radius = 1.0,", extra=""))
+    (curve_dir / "axi.toml").write_text(_TOML.format(model=f'model = "{model}"', shape="sphere", size="radius = 1.0,", extra=""))
     exp = load_config(curve_dir / "axi.toml").experiments[0]
     sc = exp.scenario
     chosen = axisymmetric_specimen_for("sphere", radius=R, max_depth=D)
-    assert isinstance(sc, AxisymmetricIndentation) and sc.specimen == chosen and exp.model == "fem_neo_hookean"
+    assert isinstance(sc, AxisymmetricIndentation) and sc.specimen == chosen and exp.model == model
+    assert sc.model.base.kind == model
     assert sc.record()["geometry"] == "axisymmetric"
     assert any("specimen chosen automatically" in n and "axisymmetric, 8 cells per contact radius" in n for n in exp.notes)
     coarse_sc, info = exp.coarsen()
@@ -192,7 +195,7 @@ def test_config_cells_per_contact_radius_sets_the_automatic_resolution(curve_dir
 
 
 @pytest.mark.parametrize("model, extra, material", [
-    ('model = "stable_neo_hookean"', "", ""),  # no axisymmetric form: the 3-D block
+    ('model = "stable_neo_hookean"', "", "pre_stretch = 1.05"),  # pre-tension: 3-D
     ('model = "fem_linear"', 'specimen = { geometry = "3d" }', ""),
     ('model = "fem_linear"', "", "pre_stretch = 1.1"),  # pre-tension: 3-D
 ])

@@ -298,7 +298,7 @@ def _axisymmetric_obstacles(kw: Mapping, model: str, rollers, material, fitted) 
     if kw["indenter"] not in ("sphere", "cone"):
         why.append(f"a {kw['indenter']} indenter (axisymmetric: a sphere or a cone)")
     if model not in AXISYMMETRIC_MODELS:
-        why.append(f"model {model!r} (axisymmetric: {' or '.join(AXISYMMETRIC_MODELS)}; a lattice or the stable neo-Hookean element is 3-D only)")
+        why.append(f"model {model!r} (axisymmetric: {' or '.join(AXISYMMETRIC_MODELS)}; a springs_volume lattice is 3-D only)")
     if rollers:
         why.append("rollers (boundary conditions of a 3-D block)")
     if kw.get("surface") == "boundary":
