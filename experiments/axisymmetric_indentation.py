@@ -2,6 +2,7 @@
 "Axisymmetric indentation").
 
     PYTHONPATH=. python experiments/axisymmetric_indentation.py [convergence|nu|fit|all]
+    PYTHONPATH=. python experiments/axisymmetric_indentation.py config sphere|cone [MODEL]
 
 - convergence: sphere R = 1 mm to d = 20 um (d/R = 0.02) and 70 deg cone to 0.1 mm, nu = 0.45,
   fem_linear, E = 10 kPa, bonded cylinder of radius and height 200 a: the automatic specimen
@@ -14,7 +15,15 @@
   specimen and uniform sigma, by difftissue.fit.fit and in closed form (fem_linear: the force is
   linear in E at fixed nu, so the least-squares E follows from one evaluation).
 
+- config: the same exact curves (200 samples to d) fitted through a TOML config as
+  ``difftissue fit`` builds and runs it (``difftissue.cli.main``: no ``specimen``, so the
+  automatic specimen; 20 points, the config's sigma; the start from the data (the default), nu = 0.45 fixed; the
+  discretisation check on): fitted and corrected E, steps, CPU time (this process,
+  user + sys) and the chosen simulation. MODEL: fem_linear (default), fem_neo_hookean or
+  stable_neo_hookean.
+
 Raw output: experiments/results/axisymmetric_indentation_<part>_<kind>.json
+(``config``: axisymmetric_indentation_config_<kind>_<model>.json)
 (``python experiments/axisymmetric_indentation.py convergence sphere`` runs one kind).
 """
 
@@ -113,8 +122,53 @@ def fit(kind):
     return out
 
 
+def config_fit(kind, model="fem_linear"):
+    import tempfile
+
+    from difftissue.cli import main as cli_main
+
+    dmax = D_SPHERE if kind == "sphere" else D_CONE
+    depths = np.linspace(dmax / 200, dmax, 200)
+    data = exact(kind, depths, NU)
+    ind = (f'{{ shape = "sphere", radius = {SPHERE["radius"]} }}' if kind == "sphere"
+           else f'{{ shape = "cone", half_angle_deg = {np.degrees(CONE["half_angle"]):.12g} }}')
+    tmp = Path(tempfile.mkdtemp(prefix=f"axi_config_{kind}_"))
+    (tmp / "curve.csv").write_text("depth,force\n" + "".join(f"{a:.12g},{b:.12g}\n" for a, b in zip(depths, data)))
+    (tmp / "fit.toml").write_text(f'''title = "exact {kind}, {model}"
+[material]
+youngs_modulus = 8000.0
+poisson_ratio = {NU}
+[fit]
+parameters = ["youngs_modulus"]
+[[experiment]]
+name = "ind"
+scenario = "indentation"
+model = "{model}"
+data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
+indenter = {ind}
+''')
+    t, w = time.process_time(), time.perf_counter()
+    rc = cli_main(["fit", str(tmp / "fit.toml"), "--out", str(tmp / "out"), "--no-progress"])
+    cpu, wall = time.process_time() - t, time.perf_counter() - w
+    res = json.loads((tmp / "out" / "fit.json").read_text())
+    disc = res.get("discretisation") or {}
+    Efit = float(res["parameters"]["youngs_modulus"]["value"]) if isinstance(res["parameters"]["youngs_modulus"], dict) else float(res["parameters"]["youngs_modulus"])
+    Ecorr = (disc.get("corrected") or {}).get("youngs_modulus")
+    out = {"kind": kind, "model": model, "rc": rc, "E_fit": Efit, "E_err": Efit / E - 1, "E_corrected": Ecorr,
+           "E_corrected_err": None if Ecorr is None else Ecorr / E - 1, "cpu_s": cpu, "wall_s": wall,
+           "steps": res.get("steps", res.get("optimizer", {}).get("steps") if isinstance(res.get("optimizer"), dict) else None),
+           "simulation": res.get("simulation"), "discretisation": disc}
+    print({k: v for k, v in out.items() if k != "discretisation"}, flush=True)
+    return out
+
+
 if __name__ == "__main__":
     part = sys.argv[1] if len(sys.argv) > 1 else "all"
+    if part == "config":
+        kind, model = sys.argv[2], sys.argv[3] if len(sys.argv) > 3 else "fem_linear"
+        OUT.mkdir(exist_ok=True)
+        (OUT / f"axisymmetric_indentation_config_{kind}_{model}.json").write_text(json.dumps(config_fit(kind, model), indent=1, default=str))
+        sys.exit(0)
     kinds = tuple(sys.argv[2].split(",")) if len(sys.argv) > 2 else ("sphere", "cone")
     OUT.mkdir(exist_ok=True)
     jobs = {"convergence": lambda: {k: convergence(k) for k in kinds}, "nu": nu_dependence,
