@@ -2,7 +2,7 @@
 "Axisymmetric indentation").
 
     PYTHONPATH=. python experiments/axisymmetric_indentation.py [convergence|nu|fit|all]
-    PYTHONPATH=. python experiments/axisymmetric_indentation.py config sphere|cone [MODEL]
+    PYTHONPATH=. python experiments/axisymmetric_indentation.py config sphere|cone [MODEL] [SOLVER]
 
 - convergence: sphere R = 1 mm to d = 20 um (d/R = 0.02) and 70 deg cone to 0.1 mm, nu = 0.45,
   fem_linear, E = 10 kPa, bonded cylinder of radius and height 200 a: the automatic specimen
@@ -20,10 +20,11 @@
   automatic specimen; 20 points, the config's sigma; the start from the data (the default), nu = 0.45 fixed; the
   discretisation check on): fitted and corrected E, steps, CPU time (this process,
   user + sys) and the chosen simulation. MODEL: fem_linear (default), fem_neo_hookean or
-  stable_neo_hookean.
+  stable_neo_hookean. SOLVER: the experiment's ``solver`` table's content (e.g.
+  "xtol = 2e-8"; default none), output file suffix ``_solver``.
 
 Raw output: experiments/results/axisymmetric_indentation_<part>_<kind>.json
-(``config``: axisymmetric_indentation_config_<kind>_<model>.json)
+(``config``: axisymmetric_indentation_config_<kind>_<model>[_solver].json)
 (``python experiments/axisymmetric_indentation.py convergence sphere`` runs one kind).
 """
 
@@ -122,7 +123,7 @@ def fit(kind):
     return out
 
 
-def config_fit(kind, model="fem_linear"):
+def config_fit(kind, model="fem_linear", solver=None):
     import tempfile
 
     from difftissue.cli import main as cli_main
@@ -146,7 +147,7 @@ scenario = "indentation"
 model = "{model}"
 data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
 indenter = {ind}
-''')
+''' + ("" if solver is None else f"solver = {{ {solver} }}\n"))
     t, w = time.process_time(), time.perf_counter()
     rc = cli_main(["fit", str(tmp / "fit.toml"), "--out", str(tmp / "out"), "--no-progress"])
     cpu, wall = time.process_time() - t, time.perf_counter() - w
@@ -154,7 +155,7 @@ indenter = {ind}
     disc = res.get("discretisation") or {}
     Efit = float(res["parameters"]["youngs_modulus"]["value"]) if isinstance(res["parameters"]["youngs_modulus"], dict) else float(res["parameters"]["youngs_modulus"])
     Ecorr = (disc.get("corrected") or {}).get("youngs_modulus")
-    out = {"kind": kind, "model": model, "rc": rc, "E_fit": Efit, "E_err": Efit / E - 1, "E_corrected": Ecorr,
+    out = {"kind": kind, "model": model, "solver": solver, "rc": rc, "E_fit": Efit, "E_err": Efit / E - 1, "E_corrected": Ecorr,
            "E_corrected_err": None if Ecorr is None else Ecorr / E - 1, "cpu_s": cpu, "wall_s": wall,
            "steps": res.get("steps", res.get("optimizer", {}).get("steps") if isinstance(res.get("optimizer"), dict) else None),
            "simulation": res.get("simulation"), "discretisation": disc}
@@ -166,8 +167,10 @@ if __name__ == "__main__":
     part = sys.argv[1] if len(sys.argv) > 1 else "all"
     if part == "config":
         kind, model = sys.argv[2], sys.argv[3] if len(sys.argv) > 3 else "fem_linear"
+        solver = sys.argv[4] if len(sys.argv) > 4 else None
         OUT.mkdir(exist_ok=True)
-        (OUT / f"axisymmetric_indentation_config_{kind}_{model}.json").write_text(json.dumps(config_fit(kind, model), indent=1, default=str))
+        (OUT / f"axisymmetric_indentation_config_{kind}_{model}{'' if solver is None else '_solver'}.json").write_text(
+            json.dumps(config_fit(kind, model, solver), indent=1, default=str))
         sys.exit(0)
     kinds = tuple(sys.argv[2].split(",")) if len(sys.argv) > 2 else ("sphere", "cone")
     OUT.mkdir(exist_ok=True)
