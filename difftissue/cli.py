@@ -19,6 +19,7 @@ import warnings
 from pathlib import Path
 
 from ._version import __version__
+from .errors import runtime_error_message
 
 __all__ = ["main", "build_parser"]
 
@@ -511,13 +512,7 @@ def _is_runtime_error(e: BaseException) -> bool:
 
 def _runtime_message(e: BaseException) -> str:
     """The useful line of a JAX runtime error (the equinox message, not the traceback)."""
-    lines = [ln.strip() for ln in str(e).splitlines() if ln.strip()]
-    for ln in reversed(lines):
-        for tag in ("EquinoxRuntimeError:", "ConvergenceError:"):
-            if tag in ln:
-                return ln.split(tag, 1)[1].strip()
-    text = next((ln for ln in lines if not ln.startswith(("File ", "Traceback", "---"))), "")
-    return _one_line(text)[:300]
+    return runtime_error_message(e)
 
 
 LOCK_NAME = ".difftissue.lock"

@@ -432,3 +432,22 @@ class ThinSpecimenWarning(DifftissueWarning):
     radii (:func:`difftissue.scenarios.thin_specimen_warning`): the simulated layer is then
     markedly stiffer than a half-space, which the model includes, so the fitted modulus depends
     on the thickness and the base condition given as much as on the data."""
+
+
+# ===================================================================== runtime error messages
+__all__ += ["runtime_error_message"]
+
+
+def runtime_error_message(error: BaseException, limit: int = 300) -> str:
+    """The one useful line of an exception raised inside compiled code (a JAX / XLA runtime
+    error carrying an ``equinox.error_if`` message, or a named error raised in a host
+    callback): the message after ``EquinoxRuntimeError:`` or ``ConvergenceError:``, not the
+    traceback of the callback nor equinox's closing paragraph on ``filter_jit``; otherwise the
+    first line that is not a traceback line. At most ``limit`` characters, on one line."""
+    lines = [ln.strip() for ln in str(error).splitlines() if ln.strip()]
+    for ln in reversed(lines):
+        for tag in ("EquinoxRuntimeError:", "ConvergenceError:"):
+            if tag in ln:
+                return " ".join(ln.split(tag, 1)[1].split())[:limit]
+    text = next((ln for ln in lines if not ln.startswith(("File ", "Traceback", "---"))), "")
+    return " ".join(text.split())[:limit]

@@ -511,6 +511,37 @@ def test_runtime_errors_are_reported_in_one_line():
     assert _runtime_message(RuntimeError(text)) == "static solve did not converge within max_steps Newton steps"
 
 
+def test_a_failed_evaluation_is_recorded_as_its_message():
+    """SeparatelyCompiled keeps the message of an evaluation that raised inside compiled code
+    (equinox's runtime error carries the callback's traceback and a paragraph on filter_jit),
+    as the discretisation check's reason reports it; it kept the last 300 characters before,
+    traceback included."""
+    from dataclasses import dataclass
+
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    from difftissue import Material
+    from difftissue.config import SeparatelyCompiled
+
+    @dataclass(frozen=True, eq=False)
+    class Failing:
+        name: str
+        abscissa: np.ndarray
+        observed: np.ndarray
+        sigma: np.ndarray
+        x_label: str = "load [N]"
+        y_label: str = "displacement [m]"
+
+        def predict(self, material):
+            e = jnp.atleast_1d(material.youngs_modulus)
+            return eqx.error_if(e, e > 100.0, "the test's solve did not converge (raise max_steps)")
+
+    wrapped = SeparatelyCompiled(Failing("failing", np.array([1.0]), np.zeros(1), np.ones(1)), mode="reverse")
+    assert np.all(np.isnan(np.asarray(wrapped.evaluate(Material(1e3, 0.3)))))
+    assert wrapped.failures == ["the test's solve did not converge (raise max_steps)"]
+
+
 def test_separately_compiled_scenario_matches_the_scenario():
     from difftissue import Material
     from difftissue.scenarios import AnalyticIndentation

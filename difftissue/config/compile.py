@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, runtime_error_message
 from ..fit.problem import data_leaf_indices, hash_scenario_leaves
 from ..materials import Material
 from ..scenarios import argument_setup, compiles_with_arguments, traced_arguments
@@ -335,11 +335,9 @@ class SeparatelyCompiled:
             except jax.errors.JAXTypeError:
                 raise  # a tracing error (a value read on the host while traced): a defect, not a failed solve
             except Exception as e:  # a static solve that failed to converge, an inverted element, ...
-                # an equinox runtime error ends with a paragraph on filter_jit after a dashed
-                # line: keep the message before it
-                text = str(e)
-                cut = text.find("\n--------------------")
-                self.failures.append(" ".join((text[:cut] if cut > 0 else text).split())[-300:])
+                # the message itself (an equinox runtime error carries the callback's
+                # traceback and a closing paragraph on filter_jit)
+                self.failures.append(runtime_error_message(e))
                 return None if shape is None else np.full(shape, np.nan)
 
         if mode == "forward":
