@@ -135,6 +135,25 @@ def stack_materials(materials: Sequence[Material]) -> Material:
     return jax.tree_util.tree_map(lambda *v: jnp.stack([jnp.asarray(a, dtype=float) for a in v]), *materials)
 
 
+#: The messages of :meth:`ElasticModel.region_values`'s checks of a traced material (an
+#: ``equinox.error_if`` inside a compiled program), for :func:`material_error_type`.
+NONFINITE_MATERIAL_MESSAGE = "material parameters contain NaN or infinite values"
+NONPOSITIVE_YOUNGS_MODULUS_MESSAGE = "youngs_modulus must be > 0 Pa"
+
+
+def material_error_type(message: str) -> type | None:
+    """The named error a traced material check's ``message`` stands for (raised by a
+    library-compiled program: :class:`~difftissue.errors.MaterialError` for a NaN, a
+    non-positive modulus or pre-stretch, :class:`~difftissue.errors.ModelRangeError` for a
+    Poisson's ratio outside the model's range), None for any other message."""
+    if message in (NONFINITE_MATERIAL_MESSAGE, NONPOSITIVE_YOUNGS_MODULUS_MESSAGE) or (
+            message.startswith("pre_stretch") and " must be > 0 " in message):
+        return MaterialError
+    if message.startswith("poisson_ratio outside ["):
+        return ModelRangeError
+    return None
+
+
 class CheckedMaterial(Material):
     """A :class:`Material` whose fields are ``(n_regions,)`` arrays already range-checked by
     one model's :meth:`ElasticModel.checked` (internal to the solvers: the model skips its
@@ -360,8 +379,8 @@ class ElasticModel(eqx.Module):
                 raise ModelRangeError(f"{bad_nu}: {nu_np}")
         else:
             finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(a)) for a in out.values()]))
-            E = eqx.error_if(E, ~finite, "material parameters contain NaN or infinite values")
-            E = eqx.error_if(E, jnp.any(E <= 0), "youngs_modulus must be > 0 Pa")
+            E = eqx.error_if(E, ~finite, NONFINITE_MATERIAL_MESSAGE)
+            E = eqx.error_if(E, jnp.any(E <= 0), NONPOSITIVE_YOUNGS_MODULUS_MESSAGE)
             for name in ("pre_stretch", "pre_stretch_y"):
                 if name in out:
                     out[name] = eqx.error_if(out[name], jnp.any(out[name] <= 0), f"{name} must be > 0 (1 = no pre-tension)")

@@ -60,7 +60,7 @@ from .solvers import solver_setup
 from .solvers.condensed import CondensedContactModel, CondensedParameters, condensation_setup, linear_response_columns, solve_condensed_contact
 from .solvers.spectral import SpectralDecomposition, spectral_decomposition, spectral_unsupported
 from .solvers.host import HOST_MAX_NODES, HostStaticSolver
-from .solvers.static import prediction_rtol, solve_static
+from .solvers.static import named_runtime_error, prediction_rtol, solve_static
 from .structure_keys import data_leaf_indices, hash_scenario_leaves
 from .xla_options import ProgramJit
 
@@ -783,7 +783,7 @@ class _ScenarioSolve:
         return hit
 
     def __call__(self, material, *extra):
-        return self.program.fn(self._dynamic, self.setup(material), material, *extra)
+        return _call_raising_named_errors(self.program.fn, self._dynamic, self.setup(material), material, *extra)
 
 
 #: ``(scenario, setup, material key)`` while an outer program traces ``scenario``'s arrays as
@@ -894,7 +894,7 @@ def _jitted_solve(scenario, method: str = "_solve_protocol"):
         if entry is None:
             entry = (scenario, _SharedSolve(method))
         entry[1].add(scenario)
-        fn = entry[1].fn
+        fn = _raising_named_errors(entry[1].fn)
     if shared_key is not None:
         _SHARED[shared_key] = entry  # most recent last
         while len(_SHARED) > SHARED_SOLVES_SIZE:
@@ -902,6 +902,29 @@ def _jitted_solve(scenario, method: str = "_solve_protocol"):
     # Only a weak reference to the scenario in its own entry: dropped with the object.
     _JITTED[key] = (weakref.ref(scenario, lambda _, k=key, cache=_JITTED: cache.pop(k, None)), fn)
     return fn
+
+
+def _call_raising_named_errors(fn, *args):
+    """``fn(*args)`` (a scenario's compiled protocol); called with concrete values it waits for
+    the result and raises a failed check inside the program as the named error
+    (:func:`~difftissue.solvers.static.named_runtime_error`: a static solve's failure as
+    :class:`~difftissue.errors.ConvergenceError`, as ``SolverOptions.failure = "raise"``
+    documents), not as JAX's runtime error with the host callback's traceback. Traced (inside
+    an outer program) it is ``fn(*args)``."""
+    if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(args)):
+        return fn(*args)
+    try:
+        return jax.block_until_ready(fn(*args))
+    except jax.errors.JaxRuntimeError as err:
+        named = named_runtime_error(err)
+        if named is None:
+            raise
+        raise named from None
+
+
+def _raising_named_errors(fn):
+    """``fn`` calling through :func:`_call_raising_named_errors`."""
+    return functools.wraps(fn)(functools.partial(_call_raising_named_errors, fn))
 
 
 def _history(u0):

@@ -365,3 +365,22 @@ def test_a_first_prediction_inside_jit_leaves_no_tracer_behind():
     assert np.all(first < 0) or np.all(first > 0)
     np.testing.assert_allclose(second, first, rtol=1e-12)
     np.testing.assert_allclose(plain, first, rtol=1e-12)
+
+
+def test_a_failure_inside_a_compiled_protocol_raises_its_named_error():
+    """A scenario's predict outside jit (SolverOptions.failure = "raise"): a static solve that
+    fails raises ConvergenceError with the solver's message, a model's range check of the
+    material ModelRangeError, not JAX's runtime error with the callback's traceback and
+    equinox's advice to use filter_jit."""
+    from difftissue.models import material_error_type
+    from difftissue.scenarios import AxisymmetricIndentation, SolverOptions
+
+    stalled = AxisymmetricIndentation([1e-5, 2e-5], indenter="sphere", radius=1e-3, cells_per_contact_radius=3, options=SolverOptions(max_steps=1))
+    with pytest.raises(errors.ConvergenceError, match=r"^static solve did not converge within max_steps Newton steps \(raise max_steps"):
+        stalled.predict(Material(1e4, 0.45))
+    lattice = Indentation(block((2e-3, 2e-3, 1e-3), (2, 2, 1)), [1e-5], model="springs_volume", indenter="sphere", radius=1e-3, symmetry="quarter")
+    with pytest.raises(errors.ModelRangeError, match=r"^poisson_ratio outside \[0.25, 0.5\) for the springs_volume model"):
+        lattice.predict(Material(1e4, 0.1))
+    assert material_error_type("youngs_modulus must be > 0 Pa") is errors.MaterialError
+    assert material_error_type("pre_stretch must be > 0 (1 = no pre-tension)") is errors.MaterialError
+    assert material_error_type("static solve produced NaN or infinite values") is None

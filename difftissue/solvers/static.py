@@ -34,7 +34,7 @@ import numpy as np
 from ..boundary import BoundaryConditions, _validate_values, check_rigid_modes
 from ..errors import ConvergenceError, LinearSolverError, ModelError
 from ..materials import Material, _is_concrete
-from ..models import ElasticModel
+from ..models import ElasticModel, material_error_type
 from ..xla_options import ProgramJit
 from .multigrid import BlockEllMatrix, JacobiPreconditioner, MultigridPreconditioner, PreconditionedCG, multigrid_cached, multigrid_setup, sparse_layout
 from .sparse import SparseLU, assemble_csr_data, cache_key, sparse_pattern
@@ -714,6 +714,24 @@ _SOLVE_JIT = ProgramJit(_solve_combined, "static", static_argnums=1)
 
 #: What ``equinox`` puts before the message of an ``eqx.error_if`` raised inside a program.
 _EQX_ERROR_TAG = "_EquinoxRuntimeError: "
+
+
+def named_runtime_error(error: BaseException) -> Exception | None:
+    """The named error for a runtime error raised by an ``equinox.error_if`` inside a
+    library-compiled program called with concrete values: a static solve's failure
+    :class:`~difftissue.errors.ConvergenceError`, a material check's
+    :class:`~difftissue.errors.MaterialError` / :class:`~difftissue.errors.ModelRangeError`
+    (:func:`~difftissue.models.material_error_type`), any other check
+    ``equinox.EquinoxRuntimeError`` with its message alone (not the callback's traceback and
+    equinox's advice to use ``filter_jit``); None when ``error`` carries no equinox message."""
+    text = str(error)
+    if _EQX_ERROR_TAG not in text:
+        return None
+    message = text.split(_EQX_ERROR_TAG, 1)[1].split("\n", 1)[0].strip()
+    if message in _MESSAGES[1:]:
+        return ConvergenceError(message)
+    kind = material_error_type(message)
+    return kind(message) if kind is not None else eqx.EquinoxRuntimeError(message)
 
 
 def _solve(model, material, bc, u_init, options: _Options):
