@@ -8,7 +8,12 @@ E_fit / E = sum(F_data g) / sum(g^2), g = F_model(E) / E. The mesh-corrected E i
 discretisation check's (first-order Richardson with the check's coarser specimen, linearised
 through the fit's Jacobian: exact here).
 
-    PYTHONPATH=. python experiments/indentation_default_fit.py {sphere,cone} [MODEL] [--m CELLS_PER_A] [--points N] [--out DIR]
+    PYTHONPATH=. python experiments/indentation_default_fit.py {sphere,cone} [MODEL] [--m CELLS_PER_A] [--points N] [--solver full] [--max-steps N] [--nan-failures] [--out DIR]
+
+--solver full builds the config's scenarios with ``Indentation(solver="full")`` (a Newton solve
+of the whole specimen per depth, multigrid CG) in place of the condensed solve the config uses
+for fem_linear under a sphere or cone (the same equilibrium to solver tolerance; the condensed
+one's dense response columns ``(3 x candidates, 3 N)`` are what limits its memory at m = 8).
 """
 import sys, math, time, json, pathlib
 import jax; jax.config.update("jax_enable_x64", True)
@@ -23,7 +28,18 @@ _ap.add_argument("model", nargs="?", default="fem_linear")
 _ap.add_argument("--out", default="experiments/results")
 _ap.add_argument("--points", type=int, default=None, help="data points fitted (default: the config's, 20)")
 _ap.add_argument("--m", type=float, default=None, help="cells per contact radius (default: the rule's)")
+_ap.add_argument("--solver", choices=["auto", "full"], default="auto", help="Indentation(solver=...): the config's 'auto' (condensed for fem_linear) or 'full'")
+_ap.add_argument("--max-steps", type=int, default=None, help="the config's solver.max_steps (default: SolverOptions', 50)")
+_ap.add_argument("--nan-failures", action="store_true", help="SolverOptions(failure='nan'): a depth whose solve fails predicts NaN (shows which depths fail) instead of raising")
 _args = _ap.parse_args()
+if _args.nan_failures:
+    import functools
+    import difftissue.config.builders as _builders
+    _builders.SolverOptions = functools.partial(_builders.SolverOptions, failure="nan")
+if _args.solver != "auto":
+    import functools
+    import difftissue.config.builders as _builders
+    _builders.Indentation = functools.partial(_builders.Indentation, solver=_args.solver)
 ind, model = _args.indenter, _args.model
 E, NU = 1.0e4, 0.45
 import tempfile
@@ -47,6 +63,7 @@ model = "{model}"
 {'' if _args.points is None else f'points = {_args.points}'}
 data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
 indenter = {ind_t}
+{'' if _args.max_steps is None else f'solver = {{ max_steps = {_args.max_steps} }}'}
 specimen = {{ geometry = "3d"{'' if _args.m is None else f', cells_per_contact_radius = {_args.m}'} }}  # the automatic 3-D block (the config default is axisymmetric for fem sphere/cone)
 ''')
 cfg = load_config(tmp / "fit.toml")
@@ -67,8 +84,8 @@ Ecorr = Efit * (1 + e_rel)
 out = {"indenter": ind, "model": model, "cells_per_contact_radius": (info.get("specimen") or {}).get("cells_per_contact_radius"),
        "points": len(pf), "coarse_nodes": int(np.prod(np.asarray(info["coarse_cells"]) + 1)) if isinstance(info["coarse_cells"], list) else None, "nodes": int(np.prod(np.asarray(info["fine_cells"]) + 1)) if isinstance(info.get("fine_cells"), list) else None, "specimen": info.get("specimen"),
        "coarse_cells": info["coarse_cells"], "ratio": r, "force_err_maxdepth": float(pf[-1] / obs[-1] - 1), "coarse_force_err_maxdepth": float(pc[-1] / obs[-1] - 1),
-       "E_fit_err": Efit / E - 1, "E_corrected_err": Ecorr / E - 1, "cpu_fine_s": tf, "cpu_coarse_s": tc,
+       "solver": _args.solver, "max_steps": _args.max_steps, "E_fit_err": Efit / E - 1, "E_corrected_err": Ecorr / E - 1, "cpu_fine_s": tf, "cpu_coarse_s": tc,
        "force_err_per_depth": list(pf / obs - 1), "coarse_err_per_depth": list(pc / obs - 1)}
 print(json.dumps(out))
 out_dir.mkdir(parents=True, exist_ok=True)
-(out_dir / f"indentation_default_fit_{ind}_{model}{'' if _args.m is None else f'_m{_args.m:g}'}{'' if _args.points is None else f'_p{_args.points}'}.json").write_text(json.dumps(out, indent=1))
+(out_dir / f"indentation_default_fit_{ind}_{model}{'' if _args.m is None else f'_m{_args.m:g}'}{'' if _args.points is None else f'_p{_args.points}'}{'' if _args.solver == 'auto' else f'_{_args.solver}'}{'' if _args.max_steps is None else f'_s{_args.max_steps}'}.json").write_text(json.dumps(out, indent=1))
