@@ -11,68 +11,71 @@ and the corrected E (the coarse forces from the config run's JSON, its check lev
 
     PYTHONPATH=. python experiments/indentation_default_condensed_offline.py sphere 8
 """
-import sys, os, json, math, time, pathlib, tempfile
-import jax; jax.config.update("jax_enable_x64", True)
-import numpy as np
-from difftissue.config import load_config
-from difftissue.analytic import cone_force, hertz_force
-ind, m = sys.argv[1], float(sys.argv[2])
-E, NU = 1e4, 0.45
-tmp = pathlib.Path(tempfile.mkdtemp())
-if ind == "sphere":
-    R, D = 1e-3, 2e-5; dd = np.linspace(D/200, D, 200); F = np.asarray(hertz_force(dd, E, NU, R)); ind_t = f'{{ shape = "sphere", radius = {R} }}'
-else:
-    th, D = math.radians(70.0), 1e-4; dd = np.linspace(D/200, D, 200); F = np.asarray(cone_force(dd, E, NU, th)); ind_t = '{ shape = "cone", half_angle_deg = 70.0 }'
-(tmp/"curve.csv").write_text("depth,force\n" + "".join(f"{a:.12g},{b:.12g}\n" for a, b in zip(dd, F)))
-(tmp/"fit.toml").write_text(f'''title = "x"
-[material]
-youngs_modulus = {E}
-poisson_ratio = {NU}
-[fit]
-parameters = ["youngs_modulus"]
-[[experiment]]
-name = "ind"
-scenario = "indentation"
-model = "fem_linear"
-points = 4
-data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
-indenter = {ind_t}
-specimen = {{ geometry = "3d", cells_per_contact_radius = {m} }}
-''')
-cfg = load_config(tmp/"fit.toml"); sc = cfg.experiments[0].scenario
-c = sc.condensation
-N = c.base.n_nodes
-print(ind, m, "nodes", N, "unknowns", 3*N, "cand nodes", c.nodes.size, "cond dofs", c.dofs.size, "Z GB", c.dofs.size*3*N*8/1e9)
-import jax.numpy as jnp
-from difftissue.materials import Material
-from difftissue.solvers.condensed import CondensedParameters, linear_response_columns, solve_condensed_contact
-from difftissue.scenarios import _advance, _extrapolate, _history
-mat = Material(youngs_modulus=E, poisson_ratio=NU)
-f = f"/tmp/indent_G_{ind}_m{m:g}.npz"
-if not os.path.exists(f):
-    t0 = time.process_time()
-    Z, G = linear_response_columns(c.base, mat, c.free, c.dofs, linear_solver="sparse")
-    G = np.asarray(G); del Z
-    print("G: cpu", time.process_time() - t0, "s, condition number", np.linalg.cond(G), flush=True)
-    np.savez(f, G=G)
-G = np.load(f)["G"]
-S_free = np.linalg.inv(G); S_free = 0.5 * (S_free + S_free.T)
-k = c.nodes.size
-S = np.zeros((3 * k, 3 * k)); S[np.ix_(c.rows, c.rows)] = S_free
-params = CondensedParameters(jnp.asarray(S), E * jnp.asarray(c.penalty_factors))
-free_c = ~c.contact_fixed
-depths, XC, opts = np.asarray(sc.abscissa), jnp.asarray(c.contact.rest_points), sc.options
-pf, h = [], _history(jnp.zeros((k, 3)))
-for dep in depths:
-    model = c.contact.with_depth(dep)
-    uc, ok = solve_condensed_contact(model, params, free_c, _extrapolate(h, dep), rtol=opts.rtol, xtol=opts.xtol, max_steps=opts.max_steps)
-    pf.append(float(model.reaction_force(XC + uc, params))); h = _advance(h, uc, dep)
-    print(f"depth {dep:.4g} m: converged {bool(ok)}, force (quarter) {pf[-1]:.6g} N", flush=True)
-pf = 4.0 * np.asarray(pf)  # the quarter block's force, x 4 (as the scenario reports it)
-obs = np.asarray(sc.observed)
-r = json.load(open(f"experiments/results/indentation_default_fit_{ind}_fem_linear_m{m:g}_p4_s200.json"))
-pc = obs * (1 + np.asarray(r["coarse_err_per_depth"]))
-g, gc = pf / E, pc / E
-Efit = float(obs @ g / (g @ g)); e_rel = float(g @ ((gc - g) / (r["ratio"] - 1.0)) / (g @ g))
-print(json.dumps({"indenter": ind, "model": "fem_linear", "cells_per_contact_radius": m, "offline_condensed": True, "candidate_dofs": int(c.dofs.size),
-                  "force_err_per_depth": list(pf / obs - 1), "E_fit_err": Efit / E - 1, "E_corrected_err": Efit * (1 + e_rel) / E - 1}))
+import json
+import os
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import jax
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from indentation_default_fit import E, NU, write_config  # noqa: E402
+from difftissue.config import load_config  # noqa: E402
+from difftissue.materials import Material  # noqa: E402
+from difftissue.scenarios import _advance, _extrapolate, _history  # noqa: E402
+from difftissue.solvers.condensed import CondensedParameters, linear_response_columns, solve_condensed_contact  # noqa: E402
+
+
+def setup(ind: str, m: float) -> SimpleNamespace:
+    """The config's scenario (fem_linear, 4 points, the automatic 3-D block at ``m`` cells per
+    contact radius), its condensation ``c``, the condensed parameters at E (G cached in
+    /tmp/indent_G_{ind}_m{m}.npz), the free candidate components, depths, rest points, options."""
+    sc = load_config(write_config(ind, "fem_linear", m=m, points=4)).experiments[0].scenario
+    c = sc.condensation
+    N = c.base.n_nodes
+    print(ind, m, "nodes", N, "unknowns", 3 * N, "cand nodes", c.nodes.size, "cond dofs", c.dofs.size, "Z GB", c.dofs.size * 3 * N * 8 / 1e9)
+    f = f"/tmp/indent_G_{ind}_m{m:g}.npz"
+    if not os.path.exists(f):
+        t0 = time.process_time()
+        Z, G = linear_response_columns(c.base, Material(youngs_modulus=E, poisson_ratio=NU), c.free, c.dofs, linear_solver="sparse")
+        G = np.asarray(G)
+        del Z
+        print("G: cpu", time.process_time() - t0, "s, condition number", np.linalg.cond(G), flush=True)
+        np.savez(f, G=G)
+    G = np.load(f)["G"]
+    S_free = np.linalg.inv(G)
+    S_free = 0.5 * (S_free + S_free.T)
+    k = c.nodes.size
+    S = np.zeros((3 * k, 3 * k))
+    S[np.ix_(c.rows, c.rows)] = S_free
+    return SimpleNamespace(sc=sc, c=c, k=k, params=CondensedParameters(jnp.asarray(S), E * jnp.asarray(c.penalty_factors)), free_c=~c.contact_fixed,
+                           depths=np.asarray(sc.abscissa), XC=jnp.asarray(c.contact.rest_points), opts=sc.options)
+
+
+def main(ind: str, m: float):
+    s = setup(ind, m)
+    pf, h = [], _history(jnp.zeros((s.k, 3)))
+    for dep in s.depths:
+        model = s.c.contact.with_depth(dep)
+        uc, ok = solve_condensed_contact(model, s.params, s.free_c, _extrapolate(h, dep), rtol=s.opts.rtol, xtol=s.opts.xtol, max_steps=s.opts.max_steps)
+        pf.append(float(model.reaction_force(s.XC + uc, s.params)))
+        h = _advance(h, uc, dep)
+        print(f"depth {dep:.4g} m: converged {bool(ok)}, force (quarter) {pf[-1]:.6g} N", flush=True)
+    pf = 4.0 * np.asarray(pf)  # the quarter block's force, x 4 (as the scenario reports it)
+    obs = np.asarray(s.sc.observed)
+    r = json.load(open(f"experiments/results/indentation_default_fit_{ind}_fem_linear_m{m:g}_p4_s200.json"))
+    pc = obs * (1 + np.asarray(r["coarse_err_per_depth"]))
+    g, gc = pf / E, pc / E
+    Efit = float(obs @ g / (g @ g))
+    e_rel = float(g @ ((gc - g) / (r["ratio"] - 1.0)) / (g @ g))
+    print(json.dumps({"indenter": ind, "model": "fem_linear", "cells_per_contact_radius": m, "offline_condensed": True, "candidate_dofs": int(s.c.dofs.size),
+                      "force_err_per_depth": list(pf / obs - 1), "E_fit_err": Efit / E - 1, "E_corrected_err": Efit * (1 + e_rel) / E - 1}))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1], float(sys.argv[2]))

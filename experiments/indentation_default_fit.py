@@ -21,36 +21,22 @@ import numpy as np
 from difftissue.analytic import cone_force, hertz_force
 from difftissue.config import load_config
 from difftissue.materials import Material
-import argparse
-_ap = argparse.ArgumentParser()
-_ap.add_argument("indenter", choices=["sphere", "cone"])
-_ap.add_argument("model", nargs="?", default="fem_linear")
-_ap.add_argument("--out", default="experiments/results")
-_ap.add_argument("--points", type=int, default=None, help="data points fitted (default: the config's, 20)")
-_ap.add_argument("--m", type=float, default=None, help="cells per contact radius (default: the rule's)")
-_ap.add_argument("--solver", choices=["auto", "full"], default="auto", help="Indentation(solver=...): the config's 'auto' (condensed for fem_linear) or 'full'")
-_ap.add_argument("--max-steps", type=int, default=None, help="the config's solver.max_steps (default: SolverOptions', 50)")
-_ap.add_argument("--nan-failures", action="store_true", help="SolverOptions(failure='nan'): a depth whose solve fails predicts NaN (shows which depths fail) instead of raising")
-_args = _ap.parse_args()
-if _args.nan_failures:
-    import functools
-    import difftissue.config.builders as _builders
-    _builders.SolverOptions = functools.partial(_builders.SolverOptions, failure="nan")
-if _args.solver != "auto":
-    import functools
-    import difftissue.config.builders as _builders
-    _builders.Indentation = functools.partial(_builders.Indentation, solver=_args.solver)
-ind, model = _args.indenter, _args.model
 E, NU = 1.0e4, 0.45
-import tempfile
-tmp = pathlib.Path(tempfile.mkdtemp(prefix=f"indent_{ind}_"))
-out_dir = pathlib.Path(_args.out)
-if ind == "sphere":
-    R, D = 1e-3, 2e-5; dd = np.linspace(D / 200, D, 200); F = np.asarray(hertz_force(dd, E, NU, R)); ind_t = f'{{ shape = "sphere", radius = {R} }}'
-else:
-    th, D = math.radians(70.0), 1e-4; dd = np.linspace(D / 200, D, 200); F = np.asarray(cone_force(dd, E, NU, th)); ind_t = f'{{ shape = "cone", half_angle_deg = 70.0 }}'
-(tmp / "curve.csv").write_text("depth,force\n" + "".join(f"{a:.12g},{b:.12g}\n" for a, b in zip(dd, F)))
-(tmp / "fit.toml").write_text(f'''title = "exact {ind}"
+
+
+def write_config(ind: str, model: str, *, m=None, points=None, max_steps=None) -> pathlib.Path:
+    """A fit config on exact data (200 samples of Hertz, sphere R = 1 mm to 20 um, or Sneddon,
+    70 deg cone to 0.1 mm; E, NU) with the automatic 3-D block (``m`` cells per contact radius,
+    None: the rule's), in a new temporary directory; returns the path of its fit.toml."""
+    import tempfile
+
+    tmp = pathlib.Path(tempfile.mkdtemp(prefix=f"indent_{ind}_"))
+    if ind == "sphere":
+        R, D = 1e-3, 2e-5; dd = np.linspace(D / 200, D, 200); F = np.asarray(hertz_force(dd, E, NU, R)); ind_t = f'{{ shape = "sphere", radius = {R} }}'
+    else:
+        th, D = math.radians(70.0), 1e-4; dd = np.linspace(D / 200, D, 200); F = np.asarray(cone_force(dd, E, NU, th)); ind_t = '{ shape = "cone", half_angle_deg = 70.0 }'
+    (tmp / "curve.csv").write_text("depth,force\n" + "".join(f"{a:.12g},{b:.12g}\n" for a, b in zip(dd, F)))
+    (tmp / "fit.toml").write_text(f'''title = "exact {ind}"
 [material]
 youngs_modulus = {E}
 poisson_ratio = {NU}
@@ -60,32 +46,61 @@ parameters = ["youngs_modulus"]
 name = "ind"
 scenario = "indentation"
 model = "{model}"
-{'' if _args.points is None else f'points = {_args.points}'}
+{'' if points is None else f'points = {points}'}
 data = {{ format = "table", path = "curve.csv", columns = {{ depth = {{ name = "depth", unit = "m" }}, force = {{ name = "force", unit = "N" }} }} }}
 indenter = {ind_t}
-{'' if _args.max_steps is None else f'solver = {{ max_steps = {_args.max_steps} }}'}
-specimen = {{ geometry = "3d"{'' if _args.m is None else f', cells_per_contact_radius = {_args.m}'} }}  # the automatic 3-D block (the config default is axisymmetric for fem sphere/cone)
+{'' if max_steps is None else f'solver = {{ max_steps = {max_steps} }}'}
+specimen = {{ geometry = "3d"{'' if m is None else f', cells_per_contact_radius = {m}'} }}  # the automatic 3-D block (the config default is axisymmetric for fem sphere/cone)
 ''')
-cfg = load_config(tmp / "fit.toml")
-ex = cfg.experiments[0]
-for n in ex.notes: print("NOTE", n[:400])
-sc = ex.scenario
-depth = np.asarray(sc.depth) if hasattr(sc, "depth") else None
-mat = Material(youngs_modulus=E, poisson_ratio=NU)
-t0 = time.process_time(); pf = np.asarray(sc.predict(mat)); tf = time.process_time() - t0
-obs = np.asarray(sc.observed) if hasattr(sc, "observed") else None
-print("depths", len(pf), "obs", None if obs is None else obs[-1])
-t0 = time.process_time(); csc, info = ex.coarsen(); pc = np.asarray(csc.predict(mat)); tc = time.process_time() - t0
-g, gc = pf / E, pc / E
-Efit = float(obs @ g / (g @ g))
-r = info["refinement_ratio"]
-e_rel = float(g @ ((gc - g) / (r - 1.0)) / (g @ g))  # E_fit - E_conv = -E_fit*... ; corrected = E_fit (1 + e_rel)
-Ecorr = Efit * (1 + e_rel)
-out = {"indenter": ind, "model": model, "cells_per_contact_radius": (info.get("specimen") or {}).get("cells_per_contact_radius"),
-       "points": len(pf), "coarse_nodes": int(np.prod(np.asarray(info["coarse_cells"]) + 1)) if isinstance(info["coarse_cells"], list) else None, "nodes": int(np.prod(np.asarray(info["fine_cells"]) + 1)) if isinstance(info.get("fine_cells"), list) else None, "specimen": info.get("specimen"),
-       "coarse_cells": info["coarse_cells"], "ratio": r, "force_err_maxdepth": float(pf[-1] / obs[-1] - 1), "coarse_force_err_maxdepth": float(pc[-1] / obs[-1] - 1),
-       "solver": _args.solver, "max_steps": _args.max_steps, "E_fit_err": Efit / E - 1, "E_corrected_err": Ecorr / E - 1, "cpu_fine_s": tf, "cpu_coarse_s": tc,
-       "force_err_per_depth": list(pf / obs - 1), "coarse_err_per_depth": list(pc / obs - 1)}
-print(json.dumps(out))
-out_dir.mkdir(parents=True, exist_ok=True)
-(out_dir / f"indentation_default_fit_{ind}_{model}{'' if _args.m is None else f'_m{_args.m:g}'}{'' if _args.points is None else f'_p{_args.points}'}{'' if _args.solver == 'auto' else f'_{_args.solver}'}{'' if _args.max_steps is None else f'_s{_args.max_steps}'}.json").write_text(json.dumps(out, indent=1))
+    return tmp / "fit.toml"
+
+
+def main():
+    import argparse
+    _ap = argparse.ArgumentParser()
+    _ap.add_argument("indenter", choices=["sphere", "cone"])
+    _ap.add_argument("model", nargs="?", default="fem_linear")
+    _ap.add_argument("--out", default="experiments/results")
+    _ap.add_argument("--points", type=int, default=None, help="data points fitted (default: the config's, 20)")
+    _ap.add_argument("--m", type=float, default=None, help="cells per contact radius (default: the rule's)")
+    _ap.add_argument("--solver", choices=["auto", "full"], default="auto", help="Indentation(solver=...): the config's 'auto' (condensed for fem_linear) or 'full'")
+    _ap.add_argument("--max-steps", type=int, default=None, help="the config's solver.max_steps (default: SolverOptions', 50)")
+    _ap.add_argument("--nan-failures", action="store_true", help="SolverOptions(failure='nan'): a depth whose solve fails predicts NaN (shows which depths fail) instead of raising")
+    _args = _ap.parse_args()
+    if _args.nan_failures:
+        import functools
+        import difftissue.config.builders as _builders
+        _builders.SolverOptions = functools.partial(_builders.SolverOptions, failure="nan")
+    if _args.solver != "auto":
+        import functools
+        import difftissue.config.builders as _builders
+        _builders.Indentation = functools.partial(_builders.Indentation, solver=_args.solver)
+    ind, model = _args.indenter, _args.model
+    out_dir = pathlib.Path(_args.out)
+    cfg = load_config(write_config(ind, model, m=_args.m, points=_args.points, max_steps=_args.max_steps))
+    ex = cfg.experiments[0]
+    for n in ex.notes: print("NOTE", n[:400])
+    sc = ex.scenario
+    depth = np.asarray(sc.depth) if hasattr(sc, "depth") else None
+    mat = Material(youngs_modulus=E, poisson_ratio=NU)
+    t0 = time.process_time(); pf = np.asarray(sc.predict(mat)); tf = time.process_time() - t0
+    obs = np.asarray(sc.observed) if hasattr(sc, "observed") else None
+    print("depths", len(pf), "obs", None if obs is None else obs[-1])
+    t0 = time.process_time(); csc, info = ex.coarsen(); pc = np.asarray(csc.predict(mat)); tc = time.process_time() - t0
+    g, gc = pf / E, pc / E
+    Efit = float(obs @ g / (g @ g))
+    r = info["refinement_ratio"]
+    e_rel = float(g @ ((gc - g) / (r - 1.0)) / (g @ g))  # E_fit - E_conv = -E_fit*... ; corrected = E_fit (1 + e_rel)
+    Ecorr = Efit * (1 + e_rel)
+    out = {"indenter": ind, "model": model, "cells_per_contact_radius": (info.get("specimen") or {}).get("cells_per_contact_radius"),
+           "points": len(pf), "coarse_nodes": int(np.prod(np.asarray(info["coarse_cells"]) + 1)) if isinstance(info["coarse_cells"], list) else None, "nodes": int(np.prod(np.asarray(info["fine_cells"]) + 1)) if isinstance(info.get("fine_cells"), list) else None, "specimen": info.get("specimen"),
+           "coarse_cells": info["coarse_cells"], "ratio": r, "force_err_maxdepth": float(pf[-1] / obs[-1] - 1), "coarse_force_err_maxdepth": float(pc[-1] / obs[-1] - 1),
+           "solver": _args.solver, "max_steps": _args.max_steps, "E_fit_err": Efit / E - 1, "E_corrected_err": Ecorr / E - 1, "cpu_fine_s": tf, "cpu_coarse_s": tc,
+           "force_err_per_depth": list(pf / obs - 1), "coarse_err_per_depth": list(pc / obs - 1)}
+    print(json.dumps(out))
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / f"indentation_default_fit_{ind}_{model}{'' if _args.m is None else f'_m{_args.m:g}'}{'' if _args.points is None else f'_p{_args.points}'}{'' if _args.solver == 'auto' else f'_{_args.solver}'}{'' if _args.max_steps is None else f'_s{_args.max_steps}'}.json").write_text(json.dumps(out, indent=1))
+
+
+if __name__ == "__main__":
+    main()
