@@ -139,6 +139,10 @@ def stack_materials(materials: Sequence[Material]) -> Material:
 #: ``equinox.error_if`` inside a compiled program), for :func:`material_error_type`.
 NONFINITE_MATERIAL_MESSAGE = "material parameters contain NaN or infinite values"
 NONPOSITIVE_YOUNGS_MODULUS_MESSAGE = "youngs_modulus must be > 0 Pa"
+#: ``.format(name=...)`` for ``pre_stretch`` / ``pre_stretch_y``
+NONPOSITIVE_PRE_STRETCH_MESSAGE = "{name} must be > 0 (1 = no pre-tension)"
+#: the start of the Poisson's ratio range message (the model's range and name follow)
+POISSON_RANGE_MESSAGE_START = "poisson_ratio outside ["
 
 
 def material_error_type(message: str) -> type | None:
@@ -146,10 +150,10 @@ def material_error_type(message: str) -> type | None:
     library-compiled program: :class:`~difftissue.errors.MaterialError` for a NaN, a
     non-positive modulus or pre-stretch, :class:`~difftissue.errors.ModelRangeError` for a
     Poisson's ratio outside the model's range), None for any other message."""
-    if message in (NONFINITE_MATERIAL_MESSAGE, NONPOSITIVE_YOUNGS_MODULUS_MESSAGE) or (
-            message.startswith("pre_stretch") and " must be > 0 " in message):
+    pre_stretch = tuple(NONPOSITIVE_PRE_STRETCH_MESSAGE.format(name=n) for n in ("pre_stretch", "pre_stretch_y"))
+    if message in (NONFINITE_MATERIAL_MESSAGE, NONPOSITIVE_YOUNGS_MODULUS_MESSAGE) + pre_stretch:
         return MaterialError
-    if message.startswith("poisson_ratio outside ["):
+    if message.startswith(POISSON_RANGE_MESSAGE_START):
         return ModelRangeError
     return None
 
@@ -362,7 +366,7 @@ class ElasticModel(eqx.Module):
                 raise MaterialError(f"{name} has shape {v.shape}; give a scalar or one value per region ({R}: {list(self.region_names)})")
             out[name] = v
         E, nu = out["youngs_modulus"], out["poisson_ratio"]
-        bad_nu = f"poisson_ratio outside [{self.nu_min:g}, 0.5) for the {self.kind} model"
+        bad_nu = f"{POISSON_RANGE_MESSAGE_START}{self.nu_min:g}, 0.5) for the {self.kind} model"
         if self.kind == "springs_volume":
             bad_nu += " (its volume term would need negative stiffness below 1/4; use stable_neo_hookean or fem_* there)"
         if _is_concrete(out):
@@ -373,7 +377,7 @@ class ElasticModel(eqx.Module):
                 raise MaterialError(f"youngs_modulus must be > 0 Pa, got {np.asarray(E)}")
             for name in ("pre_stretch", "pre_stretch_y"):
                 if name in out and not np.all(np.asarray(out[name]) > 0):
-                    raise MaterialError(f"{name} must be > 0 (1 = no pre-tension), got {np.asarray(out[name])}")
+                    raise MaterialError(f"{NONPOSITIVE_PRE_STRETCH_MESSAGE.format(name=name)}, got {np.asarray(out[name])}")
             nu_np = np.asarray(nu)
             if not np.all((nu_np >= self.nu_min) & (nu_np < 0.5)):
                 raise ModelRangeError(f"{bad_nu}: {nu_np}")
@@ -383,7 +387,7 @@ class ElasticModel(eqx.Module):
             E = eqx.error_if(E, jnp.any(E <= 0), NONPOSITIVE_YOUNGS_MODULUS_MESSAGE)
             for name in ("pre_stretch", "pre_stretch_y"):
                 if name in out:
-                    out[name] = eqx.error_if(out[name], jnp.any(out[name] <= 0), f"{name} must be > 0 (1 = no pre-tension)")
+                    out[name] = eqx.error_if(out[name], jnp.any(out[name] <= 0), NONPOSITIVE_PRE_STRETCH_MESSAGE.format(name=name))
             nu = eqx.error_if(nu, jnp.any((nu < self.nu_min) | (nu >= 0.5)), bad_nu)
             out["youngs_modulus"], out["poisson_ratio"] = E, nu
         return out

@@ -716,6 +716,15 @@ _SOLVE_JIT = ProgramJit(_solve_combined, "static", static_argnums=1)
 _EQX_ERROR_TAG = "_EquinoxRuntimeError: "
 
 
+def _equinox_message(error: BaseException) -> str | None:
+    """The message of an ``eqx.error_if`` that failed inside a program (the line after
+    ``_EQX_ERROR_TAG`` in JAX's runtime error), None when ``error`` carries none."""
+    text = str(error)
+    if _EQX_ERROR_TAG not in text:
+        return None
+    return text.split(_EQX_ERROR_TAG, 1)[1].split("\n", 1)[0].strip()
+
+
 def named_runtime_error(error: BaseException) -> Exception | None:
     """The named error for a runtime error raised by an ``equinox.error_if`` inside a
     library-compiled program called with concrete values: a static solve's failure
@@ -724,10 +733,9 @@ def named_runtime_error(error: BaseException) -> Exception | None:
     (:func:`~difftissue.models.material_error_type`), any other check
     ``equinox.EquinoxRuntimeError`` with its message alone (not the callback's traceback and
     equinox's advice to use ``filter_jit``); None when ``error`` carries no equinox message."""
-    text = str(error)
-    if _EQX_ERROR_TAG not in text:
+    message = _equinox_message(error)
+    if message is None:
         return None
-    message = text.split(_EQX_ERROR_TAG, 1)[1].split("\n", 1)[0].strip()
     if message in _MESSAGES[1:]:
         return ConvergenceError(message)
     kind = material_error_type(message)
@@ -749,10 +757,10 @@ def _solve(model, material, bc, u_init, options: _Options):
             sol.result.block_until_ready()  # a runtime error raised here, as eqx.filter_jit does
         return sol
     except jax.errors.JaxRuntimeError as err:
-        text = str(err)
-        if _EQX_ERROR_TAG not in text:
+        message = _equinox_message(err)
+        if message is None:
             raise
-        raise eqx.EquinoxRuntimeError(text.split(_EQX_ERROR_TAG, 1)[1].split("\n", 1)[0]) from None
+        raise eqx.EquinoxRuntimeError(message) from None
 
 
 def solve_static(
