@@ -25,6 +25,7 @@ For a one-region ``fem_linear`` body without pre-stretch, ``linear_solver="spect
 
 from __future__ import annotations
 
+import functools
 from typing import ClassVar
 
 import equinox as eqx
@@ -36,7 +37,7 @@ import numpy as np
 
 from ..errors import ModelError
 from ..models import ElasticModel, ElementTerm
-from .sparse import sparse_pattern
+from .sparse import _factor_solve, _Rows, sparse_pattern
 from .spectral import spectral_decomposition, spectral_response_columns
 from .static import AUTO_DENSE_MAX, SolverSetup, _element_data, _Options, _projected_operator, armijo_backtracking
 
@@ -74,11 +75,61 @@ def condensation_setup(model: ElasticModel, material, *, linear_solver: str = "a
     return SolverSetup(options.linear_solver, model.n_nodes, options.pattern)
 
 
+#: Bytes of the gathered rows of ``Z`` that the derivative's ``dK Z^T`` handles at a time
+#: (:func:`_stiffness_derivative_rows`): ``Z[:, element dofs]`` is ``m x E x 12`` (8 bytes
+#: each), about 12 GB for the m = 8 sphere block's 458 rows and 280,000 tets if formed whole.
+ROW_BLOCK_BYTES = 2**28
+
+
+def _host_columns(pattern, data, dofs):
+    """Callback body: the rows ``Z[j] = K^{-1} e_{dofs[j]}`` ``(m, n)`` of the CSR matrix
+    ``data``, one factorisation, the unit right-hand sides formed and solved
+    ``sparse.COLUMN_CHUNK`` at a time into the result (:class:`~difftissue.solvers.sparse._Rows`)."""
+    data = np.asarray(data)
+    x, _ = _factor_solve(pattern, data, _Rows(pattern.n, dofs=np.asarray(dofs), dtype=data.dtype))
+    return x.astype(data.dtype, copy=False)  # (NaN where the matrix is not finite)
+
+
 def _solve_columns(material, model, free, dofs, options):
     op, solver, opts = _projected_operator(model, jnp.zeros((model.n_nodes, 3)), material, jnp.asarray(free), options)
     n3 = 3 * model.n_nodes
+    if options.linear_solver == "sparse":
+        # One host callback: no dense one-hot right-hand sides, no transposed copies; the
+        # result (m, n) is about the only Z-sized array (plus JAX's copy of it).
+        data = opts["csr_data"]
+        shape = jax.ShapeDtypeStruct((dofs.size, n3), data.dtype)
+        return jax.pure_callback(functools.partial(_host_columns, options.pattern), shape, data, jnp.asarray(dofs), vmap_method="sequential")
     rhs = jnp.zeros((dofs.size, n3)).at[jnp.arange(dofs.size), jnp.asarray(dofs)].set(1.0)
     return jax.vmap(lambda b: lx.linear_solve(op, b, solver, options=opts, throw=False).value)(rhs)
+
+
+def _stiffness_derivative_rows(Z, d_hess, dofs_of, P):
+    """``-(dK Z^T)^T`` projected on the free components (``(m, n)``): the rows of ``Z``
+    times the element Hessians' derivative ``d_hess`` (``[(E, 12, 12)]``, gathers and
+    scatters), in blocks of rows whose gather ``Z[rows, element dofs]`` stays within
+    ``ROW_BLOCK_BYTES`` (a scan that writes each block into the result)."""
+    m = Z.shape[0]
+
+    def rows_of(Zb):
+        Rb = jnp.zeros_like(Zb)
+        for dh, d in zip(d_hess, dofs_of):
+            Rb = Rb.at[:, d].add(jnp.einsum("eij,mej->mei", dh, Zb[:, d]))
+        return Rb * (-P)[None, :]
+
+    per_row = max(1, sum(int(np.prod(d.shape)) for d in dofs_of)) * Z.dtype.itemsize
+    block = int(min(m, max(1, ROW_BLOCK_BYTES // per_row)))
+    if block >= m:
+        return rows_of(Z)
+    count = -(-m // block)
+    # the last block starts at m - block (it rewrites rows of the one before: the same values)
+    starts = jnp.minimum(jnp.arange(count) * block, m - block)
+
+    def body(R, start):
+        Rb = rows_of(jax.lax.dynamic_slice_in_dim(Z, start, block, 0))
+        return jax.lax.dynamic_update_slice_in_dim(R, Rb, start, 0), None
+
+    R, _ = jax.lax.scan(body, jnp.zeros_like(Z), starts)
+    return R
 
 
 @eqx.filter_custom_jvp
@@ -107,15 +158,13 @@ def _columns_jvp(primals, tangents, *, model, free, dofs, options):
     # second-order pass over the whole mesh per row: several times slower.)
     dofs_of = [d for _, d in _element_data(model, x0, material)]
     _, d_hess = jax.jvp(lambda m: [h for h, _ in _element_data(model, x0, m)], (material,), (t_material,))
-    R = jnp.zeros_like(Z)
-    for dh, d in zip(d_hess, dofs_of):
-        R = R.at[:, d].add(jnp.einsum("eij,mej->mei", dh, Z[:, d]))
-    R = R * P[None, :]  # rows: (dK Z^T)^T
-    # dG = -C K^-1 dK K^-1 C^T = -Z dK Z^T: no solve. dZ needs one (with the same
-    # factorisation); when only G is used downstream the solve is dead code and removed.
-    dG = -Z @ R.T
+    R = _stiffness_derivative_rows(Z, d_hess, dofs_of, P)  # rows: -(dK Z^T)^T, in blocks of rows
+    # dG = -C K^-1 dK K^-1 C^T = -Z dK Z^T: no solve. dZ needs one (a factorisation in one
+    # host call for all rows, solved in chunks: sparse._Rows); when only G is used downstream
+    # the solve is dead code and removed.
+    dG = Z @ R.T
     op, solver, opts = _projected_operator(model, jnp.zeros((N, 3), Z.dtype), material, jnp.asarray(free), options)
-    dZ = jax.vmap(lambda r: lx.linear_solve(op, -r, solver, options=opts, throw=False).value)(R)
+    dZ = jax.vmap(lambda r: lx.linear_solve(op, r, solver, options=opts, throw=False).value)(R)
     return (Z, G), (dZ, 0.5 * (dG + dG.T))
 
 

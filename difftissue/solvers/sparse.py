@@ -127,6 +127,56 @@ CHOLMOD_FAILURES_MAX = 2
 _CHOLMOD_FAILURES: dict[str, int] = {}
 
 
+#: How many right-hand sides a many-column solve (:class:`_Rows`: the condensation's response
+#: rows, a batch of tangents or adjoints) passes to the factorisation at a time: each chunk's
+#: right-hand sides and solution are ``n x COLUMN_CHUNK`` (float64: 8 n x 64 bytes, 78 MB at
+#: 152,000 unknowns), written into one preallocated ``(B, n)`` result.
+COLUMN_CHUNK = 64
+
+
+class _Rows:
+    """Right-hand sides of a many-column solve given as rows, solved chunk by chunk.
+
+    ``x[j] = A^{-1} b[j]`` for the rows ``b[j]`` of a ``(B, n)`` array (``rows``) or, with
+    ``dofs`` (``(B,)`` indices), of the identity (``b[j] = e_{dofs[j]}``, never formed whole).
+    The factorisation paths (:func:`_factor_solve`) take it in place of a ``(n, k)`` array and
+    pass it to :func:`_solve_each`, which solves ``chunk`` columns at a time into one ``(B, n)``
+    result of ``dtype`` (the layout JAX wants: no transposed copy of all the right-hand sides or
+    solutions, no ``astype`` copy). ``shape`` is the result's."""
+
+    def __init__(self, n: int, *, rows=None, dofs=None, dtype=np.float64, chunk: int | None = None):
+        self.n, self.rows, self.dofs, self.dtype = int(n), rows, None if dofs is None else np.asarray(dofs, dtype=np.int64).reshape(-1), np.dtype(dtype)
+        self.shape = (int(rows.shape[0]) if rows is not None else int(self.dofs.size), self.n)
+        self.chunk = max(1, int(COLUMN_CHUNK if chunk is None else chunk))
+
+    def finite(self) -> bool:
+        return True if self.rows is None else bool(np.all(np.isfinite(self.rows)))
+
+    def rhs(self, j0: int, j1: int) -> np.ndarray:
+        """Right-hand sides ``j0:j1`` as an ``(n, j1 - j0)`` Fortran-ordered float64 array."""
+        if self.rows is None:
+            b = np.zeros((self.n, j1 - j0), dtype=np.float64, order="F")
+            b[self.dofs[j0:j1], np.arange(j1 - j0)] = 1.0
+            return b
+        return np.asfortranarray(self.rows[j0:j1].T, dtype=np.float64)
+
+
+def _solve_each(b, solve):
+    """``solve(b)`` for an array ``b``; for a :class:`_Rows` request, ``solve`` of each chunk
+    of its right-hand sides (``(n, c)``) written into one ``(B, n)`` result."""
+    if not isinstance(b, _Rows):
+        return solve(b)
+    out = np.empty(b.shape, dtype=b.dtype)
+    for j0 in range(0, b.shape[0], b.chunk):
+        j1 = min(b.shape[0], j0 + b.chunk)
+        out[j0:j1] = np.asarray(solve(b.rhs(j0, j1))).reshape(b.n, j1 - j0).T
+    return out
+
+
+def _finite(b) -> bool:
+    return b.finite() if isinstance(b, _Rows) else bool(np.all(np.isfinite(b)))
+
+
 def _suitesparse_cholmod():
     """scikit-sparse's CHOLMOD module (``sksparse.cholmod``), or None where scikit-sparse is
     not installed (then :func:`_factor_solve` uses cholespy and SuperLU)."""
@@ -163,7 +213,7 @@ def _suitesparse_solve(cholmod, pattern: SparsePattern, data: np.ndarray, b: np.
     A = sps.csc_matrix((data, pattern.indices, pattern.indptr), shape=(pattern.n, pattern.n))  # CSR of a symmetric matrix read as CSC: the same matrix
     try:
         factor = cholmod.cholesky(A, mode="supernodal")
-        return factor(b), True
+        return _solve_each(b, factor), True
     except cholmod.CholmodNotPositiveDefiniteError:
         pass
     try:
@@ -173,7 +223,7 @@ def _suitesparse_solve(cholmod, pattern: SparsePattern, data: np.ndarray, b: np.
     definite = _ldlt_pivots_definite(factor.D())
     if definite is None:
         return None
-    return factor(b), definite
+    return _solve_each(b, factor), definite
 
 
 def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
@@ -190,9 +240,13 @@ def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
         factor = cholespy.CholeskySolverD(pattern.n, pattern.indptr, pattern.indices, np.array(data, dtype=np.float64), cholespy.MatrixType.CSR)  # a writable copy: the binding refuses read-only arrays
     except ValueError:  # "Matrix is not positive definite!"
         return None
-    x = np.zeros(b.shape, dtype=np.float64)
-    factor.solve(np.array(b, dtype=np.float64, order="C"), x)
-    return x
+
+    def solve(rhs):
+        x = np.zeros(rhs.shape, dtype=np.float64)
+        factor.solve(np.array(rhs, dtype=np.float64, order="C"), x)
+        return x
+
+    return _solve_each(b, solve)
 
 
 def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
@@ -221,7 +275,7 @@ def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tu
     stiffness matrices (condensation, fits of linear models: many right-hand sides, where
     CHOLMOD wins) are never indefinite and keep CHOLMOD. Which factorisation solved a definite
     matrix changes the result at round-off level only."""
-    if not (np.all(np.isfinite(data)) and np.all(np.isfinite(b))):
+    if not (np.all(np.isfinite(data)) and _finite(b)):
         return np.full(b.shape, np.nan), False
     cholmod = _suitesparse_cholmod()
     if cholmod is not None:
@@ -251,9 +305,14 @@ def _superlu_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray, read
         return np.full(b.shape, np.nan), False
     del A
     definite = _lu_is_definite(lu) if read_pivots else False
-    if b.ndim == 1 or b.shape[1] < 4:
-        return lu.solve(b), definite
-    return _solve_many(lu, b), definite
+    factors = []  # the triangular factors as CSR, converted once for all chunks of a _Rows request
+
+    def solve(rhs):
+        if rhs.ndim == 1 or rhs.shape[1] < 4:
+            return lu.solve(rhs)
+        return _solve_many(lu, rhs, factors)
+
+    return _solve_each(b, solve), definite
 
 
 def _lu_is_definite(lu) -> bool:
@@ -267,7 +326,7 @@ def _lu_is_definite(lu) -> bool:
     return _ldlt_pivots_definite(lu.U.diagonal()) is True
 
 
-def _solve_many(lu, b: np.ndarray) -> np.ndarray:
+def _solve_many(lu, b: np.ndarray, factors: list | None = None) -> np.ndarray:
     """``A^{-1} b`` for many right-hand sides ``b (n, k)`` with SuperLU's factors ``Pr A Pc = L U``.
 
     SciPy's ``SuperLU.solve`` with a matrix right-hand side is several times slower than the
@@ -276,7 +335,11 @@ def _solve_many(lu, b: np.ndarray) -> np.ndarray:
     """
     import scipy.sparse.linalg as spla
 
-    L, U = lu.L.tocsr(), lu.U.tocsr()
+    if factors is None:
+        factors = []
+    if not factors:  # (``factors``: a cache of ``(L, U)`` for solves of several chunks)
+        factors.extend((lu.L.tocsr(), lu.U.tocsr()))
+    L, U = factors
     pb = np.empty_like(b)
     pb[lu.perm_r] = b
     y = spla.spsolve_triangular(L, pb, lower=True, unit_diagonal=True)
@@ -294,18 +357,20 @@ def _host_solve(pattern: SparsePattern, data, b):
     dtype = b.dtype
     if data.ndim == 1:
         x, definite = _factor_solve(pattern, data, b)
-        return x.astype(dtype), np.asarray(definite)
+        return x.astype(dtype, copy=False), np.asarray(definite)
     batch = np.broadcast_shapes(data.shape[:-1], b.shape[:-1])
     d2 = data.reshape(-1, data.shape[-1])
     b2 = np.broadcast_to(b, batch + b.shape[-1:]).reshape(-1, b.shape[-1])
     if d2.shape[0] == 1:
-        xt, definite = _factor_solve(pattern, d2[0], np.ascontiguousarray(b2.T))
-        x, flags = xt.T, np.full(b2.shape[0], definite)
+        # one factorisation, the right-hand sides solved in chunks into the (B, n) result
+        # (_Rows): no transposed copy of them all, no astype copy of the solution
+        x, definite = _factor_solve(pattern, d2[0], _Rows(pattern.n, rows=b2, dtype=dtype))
+        flags = np.full(b2.shape[0], definite)
     else:
         d2 = np.broadcast_to(data, batch + data.shape[-1:]).reshape(-1, data.shape[-1])
         solved = [_factor_solve(pattern, d2[i], b2[i]) for i in range(b2.shape[0])]
         x, flags = np.stack([s[0] for s in solved]), np.array([s[1] for s in solved])
-    return x.reshape(batch + b.shape[-1:]).astype(dtype), flags.reshape(batch)
+    return x.reshape(batch + b.shape[-1:]).astype(dtype, copy=False), flags.reshape(batch)
 
 
 class SparseLU(lx.AbstractLinearSolver):
