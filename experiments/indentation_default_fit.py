@@ -8,12 +8,17 @@ E_fit / E = sum(F_data g) / sum(g^2), g = F_model(E) / E. The mesh-corrected E i
 discretisation check's (first-order Richardson with the check's coarser specimen, linearised
 through the fit's Jacobian: exact here).
 
-    PYTHONPATH=. python experiments/indentation_default_fit.py {sphere,cone} [MODEL] [--m CELLS_PER_A] [--points N] [--solver full] [--max-steps N] [--nan-failures] [--out DIR]
+    PYTHONPATH=. python experiments/indentation_default_fit.py {sphere,cone} [MODEL] [--m CELLS_PER_A] [--points N] [--solver full] [--max-steps N] [--nan-failures] [--compiled] [--out DIR]
 
 --solver full builds the config's scenarios with ``Indentation(solver="full")`` (a Newton solve
 of the whole specimen per depth, multigrid CG) in place of the condensed solve the config uses
 for fem_linear under a sphere or cone (the same equilibrium to solver tolerance; the condensed
 one's dense response columns ``(3 x candidates, 3 N)`` are what limits its memory at m = 8).
+
+--compiled evaluates both meshes as the fit and the discretisation check do, through
+``SeparatelyCompiled(scenario).evaluate`` (the forward-mode program: the prediction and one
+zero tangent, so the condensation's custom derivative runs too) instead of ``scenario.predict``
+(the primal alone).
 """
 import sys, math, time, json, pathlib
 import jax; jax.config.update("jax_enable_x64", True)
@@ -65,6 +70,7 @@ def main():
     _ap.add_argument("--m", type=float, default=None, help="cells per contact radius (default: the rule's)")
     _ap.add_argument("--solver", choices=["auto", "full"], default="auto", help="Indentation(solver=...): the config's 'auto' (condensed for fem_linear) or 'full'")
     _ap.add_argument("--max-steps", type=int, default=None, help="the config's solver.max_steps (default: SolverOptions', 50)")
+    _ap.add_argument("--compiled", action="store_true", help="evaluate through SeparatelyCompiled(...).evaluate (the fit's and the check's forward-mode program) instead of scenario.predict")
     _ap.add_argument("--nan-failures", action="store_true", help="SolverOptions(failure='nan'): a depth whose solve fails predicts NaN (shows which depths fail) instead of raising")
     _args = _ap.parse_args()
     if _args.nan_failures:
@@ -83,10 +89,15 @@ def main():
     sc = ex.scenario
     depth = np.asarray(sc.depth) if hasattr(sc, "depth") else None
     mat = Material(youngs_modulus=E, poisson_ratio=NU)
-    t0 = time.process_time(); pf = np.asarray(sc.predict(mat)); tf = time.process_time() - t0
+    if _args.compiled:
+        from difftissue.config import SeparatelyCompiled
+        predict = lambda s, m: SeparatelyCompiled(s).evaluate(m)  # noqa: E731
+    else:
+        predict = lambda s, m: s.predict(m)  # noqa: E731
+    t0 = time.process_time(); pf = np.asarray(predict(sc, mat)); tf = time.process_time() - t0
     obs = np.asarray(sc.observed) if hasattr(sc, "observed") else None
     print("depths", len(pf), "obs", None if obs is None else obs[-1])
-    t0 = time.process_time(); csc, info = ex.coarsen(); pc = np.asarray(csc.predict(mat)); tc = time.process_time() - t0
+    t0 = time.process_time(); csc, info = ex.coarsen(); pc = np.asarray(predict(csc, mat)); tc = time.process_time() - t0
     g, gc = pf / E, pc / E
     Efit = float(obs @ g / (g @ g))
     r = info["refinement_ratio"]
@@ -95,11 +106,11 @@ def main():
     out = {"indenter": ind, "model": model, "cells_per_contact_radius": (info.get("specimen") or {}).get("cells_per_contact_radius"),
            "points": len(pf), "coarse_nodes": int(np.prod(np.asarray(info["coarse_cells"]) + 1)) if isinstance(info["coarse_cells"], list) else None, "nodes": int(np.prod(np.asarray(info["fine_cells"]) + 1)) if isinstance(info.get("fine_cells"), list) else None, "specimen": info.get("specimen"),
            "coarse_cells": info["coarse_cells"], "ratio": r, "force_err_maxdepth": float(pf[-1] / obs[-1] - 1), "coarse_force_err_maxdepth": float(pc[-1] / obs[-1] - 1),
-           "solver": _args.solver, "max_steps": _args.max_steps, "E_fit_err": Efit / E - 1, "E_corrected_err": Ecorr / E - 1, "cpu_fine_s": tf, "cpu_coarse_s": tc,
+           "solver": _args.solver, "max_steps": _args.max_steps, "compiled": _args.compiled, "E_fit_err": Efit / E - 1, "E_corrected_err": Ecorr / E - 1, "cpu_fine_s": tf, "cpu_coarse_s": tc,
            "force_err_per_depth": list(pf / obs - 1), "coarse_err_per_depth": list(pc / obs - 1)}
     print(json.dumps(out))
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / f"indentation_default_fit_{ind}_{model}{'' if _args.m is None else f'_m{_args.m:g}'}{'' if _args.points is None else f'_p{_args.points}'}{'' if _args.solver == 'auto' else f'_{_args.solver}'}{'' if _args.max_steps is None else f'_s{_args.max_steps}'}.json").write_text(json.dumps(out, indent=1))
+    (out_dir / f"indentation_default_fit_{ind}_{model}{'' if _args.m is None else f'_m{_args.m:g}'}{'' if _args.points is None else f'_p{_args.points}'}{'' if _args.solver == 'auto' else f'_{_args.solver}'}{'' if _args.max_steps is None else f'_s{_args.max_steps}'}{'_compiled' if _args.compiled else ''}.json").write_text(json.dumps(out, indent=1))
 
 
 if __name__ == "__main__":

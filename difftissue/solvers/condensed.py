@@ -13,6 +13,14 @@ tolerance. One sparse factorisation of ``K`` and ``m`` solves (``m`` = 3 x candi
 material replace a factorisation per Newton step per depth, which is what makes fitting a
 simulated force-depth curve on a few-thousand-tet specimen take seconds.
 
+Memory (the sparse solver): the rows ``Z`` (``m x 3N`` float64, dense: 0.56 GB for the
+458 rows of a 152,000-unknown block) are solved in one host callback with one factorisation,
+the unit right-hand sides formed and solved ``sparse.COLUMN_CHUNK`` at a time into the result
+(no ``m x 3N`` one-hot matrix, no transposed copies), so a material's solve holds ``Z`` about
+twice (the callback's result and JAX's copy of it) besides the factor. The derivative's
+``dK Z^T`` is formed in blocks of rows (``ROW_BLOCK_BYTES``) and its solve (``dZ``) also in
+chunks.
+
 Derivatives with respect to the material come from ``dZ = -K^{-1} dK Z`` with
 ``Z = K^{-1} C^T`` (one more solve with the same factorisation per tangent, a custom JVP that
 JAX transposes for reverse mode), the contact equilibrium on the candidates is differentiated
@@ -196,7 +204,9 @@ def linear_response_columns(model: ElasticModel, material, free, dofs, *, linear
 
     Returns:
         ``(Z, G)``: ``Z`` ``(m, 3N)`` and ``G`` ``(m, m)`` (symmetric) [m/N]. The derivative of
-        ``G`` needs no extra solve (``dG = -Z dK Z^T``); that of ``Z`` one per tangent.
+        ``G`` needs no extra solve (``dG = -Z dK Z^T``); that of ``Z`` one per tangent (one
+        more factorisation for all of them). ``Z`` is dense, ``8 m 3N`` bytes; with
+        ``"sparse"`` the solve holds about twice that besides the factor (module docstring).
     """
     if isinstance(dofs, jax.core.Tracer) or isinstance(free, jax.core.Tracer):
         dofs = jnp.reshape(dofs, (-1,))  # traced (a compiled program's arguments): checked where they were built

@@ -250,8 +250,9 @@ def _cholesky_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray):
 
 
 def _factor_solve(pattern: SparsePattern, data: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, bool]:
-    """Solve with one factorisation for ``b`` of shape ``(n,)`` or ``(n, k)``. Returns
-    ``(x, definite)``: ``definite`` is True when the factorisation shows the matrix positive
+    """Solve with one factorisation for ``b`` of shape ``(n,)`` or ``(n, k)``, or for the rows
+    of a :class:`_Rows` request (then ``x`` is ``(B, n)``, solved ``COLUMN_CHUNK`` columns at a
+    time: the memory of ``x`` and one chunk besides the factor). Returns ``(x, definite)``: ``definite`` is True when the factorisation shows the matrix positive
     definite (a Cholesky succeeded, or the pivots of an LDLᵀ or symmetric LU are all
     positive), False when it is indefinite, singular, not finite or its inertia is not known.
     (A Newton step at an indefinite point: the Newton loop then checks the direction.)
@@ -352,7 +353,8 @@ def _host_solve(pattern: SparsePattern, data, b):
     (``vmap_method="expand_dims"``) ``data`` is ``(B or 1, ..., nnz)`` and ``b``
     ``(B or 1, ..., n)``, ``definite`` then has the batch shape: an unbatched matrix (the
     common case: several tangents or adjoints of one solve) is factorised once for all
-    right-hand sides."""
+    right-hand sides, solved in chunks of ``COLUMN_CHUNK`` into the ``(B, n)`` result
+    (:class:`_Rows`: besides the input and the result, the factor and one chunk)."""
     data, b = np.asarray(data), np.asarray(b)
     dtype = b.dtype
     if data.ndim == 1:
