@@ -459,21 +459,21 @@ def report():
         if not rows:
             continue
         h = np.array([f["cell_size_m"] * 1e3 for f in rows])
-        axs[0].loglog(h, [100 * abs(f["E_error"]) for f in rows], mk + "-", label=model)
-        axs[1].loglog(h, [abs(f["nu_error"]) for f in rows], mk + "-", label=model)
+        (line,) = axs[0].loglog(h, [100 * abs(f["E_error"]) for f in rows], mk + "-", label=model)
+        axs[1].loglog(h, [abs(f["nu_error"]) for f in rows], mk + "-", color=line.get_color(), label=model)
         g = sorted((f for f in graded if f["model"] == model), key=lambda f: f["n"])
         if g:  # the graded meshes at the cube size of the uniform lattice with as many nodes
             hg = np.array([uniform_equivalent_h(f["nodes"]) * 1e3 for f in g])
             label = f"{model}, graded (at the h of equal nodes)"
-            axs[0].loglog(hg, [100 * abs(f["E_error"]) for f in g], mk + "--", mfc="none", label=label)
-            axs[1].loglog(hg, [abs(f["nu_error"]) for f in g], mk + "--", mfc="none", label=label)
+            axs[0].loglog(hg, [100 * abs(f["E_error"]) for f in g], mk + "--", mfc="none", color=line.get_color(), label=label)
+            axs[1].loglog(hg, [abs(f["nu_error"]) for f in g], mk + "--", mfc="none", color=line.get_color(), label=label)
     axs[0].axhline(2.0, color="k", lw=0.8, ls="--")
     axs[1].axhline(0.02, color="k", lw=0.8, ls="--")
     axs[0].set_ylabel("|E error| [%]")
     axs[1].set_ylabel("|nu error|")
-    for ax in axs:
+    for ax, loc in zip(axs, ("lower right", "upper left")):
         ax.set_xlabel("cell size h [mm] (punch half-width 3 mm)")
-        ax.legend(fontsize=7)
+        ax.legend(fontsize=7, loc=loc)
         ax.grid(True, which="both", lw=0.3)
     fig.suptitle("Exp 1 converged: fits against a Richardson-extrapolated P2 reference (E = 12 kPa, nu = 0.42)")
     fig.tight_layout()
