@@ -24,10 +24,18 @@ displacement of the finest level is sampled at the nodes of a uniform P2 mesh of
 ``block`` of h-cubes (reference interpolated; prescribed: bottom xyz, punch z, rollers;
 reaction: the punch z force = the extrapolated reference force); E and nu free, Gauss-Newton.
 
+**Graded fits** (``fit --graded``): the FEM models on the graded tet mesh of level ``n``
+(:func:`graded_specimen`: ``structured_grid`` of the reference's own axes ``punch_axes(n)``, a
+node at the punch edge x = y = 3 mm, cells falling as ``t**GRADING`` towards it from both sides
+and towards the top z = 6 mm; one parameter n, smallest cell 3 mm / n**GRADING), with the same
+punch node set, rollers and bonded base.
+
 Run:  python experiments/exp1_converged.py reference [--levels 4,6,8,12]
       python experiments/exp1_converged.py fit [--models springs_volume,fem_linear,stable_neo_hookean] [--cell-sizes 1,0.75,0.5,0.375,0.25]
+      python experiments/exp1_converged.py fit --graded [--models fem_linear,stable_neo_hookean] [--levels 4,6,8,12,16]
       python experiments/exp1_converged.py report
-Raw output: experiments/results/exp1_converged_*.json (one file per reference level and per fit).
+Raw output: experiments/results/exp1_converged_*.json (one file per reference level and per fit;
+graded fits: exp1_converged_fit_{model}_graded_n{n}.json).
 """
 
 from __future__ import annotations
@@ -251,17 +259,28 @@ def converged_force(power=GRADING):
 
 
 # ---------------------------------------------------------------- fits
-def make_scenario(model: str, h: float, force: float):
+def graded_specimen(n: int, power: float = GRADING):
+    """The graded model mesh of level ``n``: ``structured_grid`` of :func:`punch_axes` (x and y
+    with a node at the punch edge 3 mm and ``n`` intervals on each side, z with ``n`` intervals
+    towards the top; sizes falling as ``t**power`` towards the edge and the top), 6 tets per box."""
+    from difftissue.mesh import structured_grid
+
+    return structured_grid(*punch_axes(n, power))
+
+
+def make_scenario(model: str, h: float | None, force: float, specimen=None):
+    """The fit scenario on the uniform ``block`` of ``h``-cubes, or on ``specimen`` (``h`` None)."""
     from difftissue.data import FEMResult
     from difftissue.mesh import block
     from difftissue.scenarios import FEMField, SolverOptions
 
     d = np.load(RESULTS / "exp1_converged_reference.npz")
     ref = FEMResult(None, d["displacement"], points=d["points"], cells={"tetra10": d["cells"]})
-    cells = tuple(int(round(s / h)) for s in QUARTER)
-    if not np.allclose(np.array(cells) * h, QUARTER) or abs(HALF_WIDTH / h - round(HALF_WIDTH / h)) > 1e-9:
-        raise ValueError(f"cell size {h} m does not divide the quarter {QUARTER} m and the punch half-width {HALF_WIDTH} m")
-    specimen = block(QUARTER, cells, origin=(0.0, 0.0, 0.0))
+    if specimen is None:
+        cells = tuple(int(round(s / h)) for s in QUARTER)
+        if not np.allclose(np.array(cells) * h, QUARTER) or abs(HALF_WIDTH / h - round(HALF_WIDTH / h)) > 1e-9:
+            raise ValueError(f"cell size {h} m does not divide the quarter {QUARTER} m and the punch half-width {HALF_WIDTH} m")
+        specimen = block(QUARTER, cells, origin=(0.0, 0.0, 0.0))
     eps = 1e-9
     punch = {"box": {"lower": [-eps, -eps, QUARTER[2] - eps], "upper": [HALF_WIDTH + eps, HALF_WIDTH + eps, QUARTER[2] + eps]}}
     prescribed = [
@@ -273,7 +292,8 @@ def make_scenario(model: str, h: float, force: float):
     return FEMField(ref, ref.displacement, specimen=specimen, prescribed=prescribed, reaction={"set": punch, "components": "z", "force": [-force]}, model=model, options=SolverOptions(), name=f"punch_{model}"), int(specimen.points.shape[0])
 
 
-def fit_one(model: str, h: float, force: float):
+def fit_one(model: str, h: float | None, force: float, graded_n: int | None = None, power: float = GRADING):
+    """One fit on the uniform lattice of ``h``-cubes, or (``graded_n``) on :func:`graded_specimen`."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -282,15 +302,21 @@ def fit_one(model: str, h: float, force: float):
     from difftissue.materials import Material, MaterialParameterization, ScaledLogit
 
     t0 = time.process_time()
-    sc, n_nodes = make_scenario(model, h, force)
+    specimen = None if graded_n is None else graded_specimen(graded_n, power)
+    sc, n_nodes = make_scenario(model, h, force, specimen)
     lower = 0.25 if model == "springs_volume" else 0.0
     param = MaterialParameterization(("youngs_modulus", "poisson_ratio"), {"poisson_ratio": ScaledLogit(lower, 0.499)})
     with warnings.catch_warnings():  # the lattice misses the data near the punch edge by far more than sigma: expected
         warnings.simplefilter("ignore", FitQualityWarning)
         res = fit(sc, param, Material(*INITIAL), method="gauss_newton", max_steps=40)
     f_true = float(np.asarray(sc.predict(Material(E_TRUE, NU_TRUE)))[-1])
+    if graded_n is None:
+        mesh = {"cell_size_m": h, "cells_per_half_width": HALF_WIDTH / h}
+    else:
+        d = [np.diff(a) for a in punch_axes(graded_n, power)]
+        mesh = {"mesh": "graded", "n": graded_n, "grading": power, "smallest_cell_m": float(min(v.min() for v in d)), "largest_cell_m": float(max(v.max() for v in d)), "tets": int(specimen.tets.shape[0])}
     return {
-        "model": model, "cell_size_m": h, "cells_per_half_width": HALF_WIDTH / h, "nodes": n_nodes,
+        "model": model, **mesh, "nodes": n_nodes,
         "E": res.values["youngs_modulus"], "nu": res.values["poisson_ratio"],
         "E_error": res.values["youngs_modulus"] / E_TRUE - 1.0, "nu_error": res.values["poisson_ratio"] - NU_TRUE,
         "force_error_at_true_material": f_true / sc.observed[-1] - 1.0,
@@ -299,17 +325,30 @@ def fit_one(model: str, h: float, force: float):
     }
 
 
-def run_fits(models, cell_sizes):
+def graded_fit_path(model: str, n: int, power: float = GRADING) -> Path:
+    q = "" if power == GRADING else f"_q{power:g}"
+    return RESULTS / f"exp1_converged_fit_{model}_graded_n{n}{q}.json"
+
+
+def run_fits(models, cell_sizes, graded_levels=None, power=GRADING):
+    """Uniform fits at ``cell_sizes`` [m], or (``graded_levels``) graded fits at those levels n."""
     force = converged_force()
-    for h in cell_sizes:
+    levels = cell_sizes if graded_levels is None else graded_levels
+    for level in levels:
         for model in models:
-            out = RESULTS / f"exp1_converged_fit_{model}_h{h * 1e3:g}mm.json"
+            if graded_levels is None:
+                out = RESULTS / f"exp1_converged_fit_{model}_h{level * 1e3:g}mm.json"
+            else:
+                out = graded_fit_path(model, level, power)
             claim = out.with_suffix(".running")  # another process fits this level: skip it
             if out.exists() or claim.exists():
                 continue
             claim.write_text("")
             try:
-                row = fit_one(model, h, force)
+                if graded_levels is None:
+                    row = fit_one(model, level, force)
+                else:
+                    row = fit_one(model, None, force, graded_n=level, power=power)
                 out.write_text(json.dumps(row, indent=2))
             finally:
                 claim.unlink()
@@ -317,6 +356,58 @@ def run_fits(models, cell_sizes):
 
 
 # ---------------------------------------------------------------- report
+def uniform_equivalent_h(nodes: int) -> float:
+    """The cube edge [m] of the uniform lattice of the quarter with ``nodes`` nodes: (6 mm / h + 1)**3 = nodes."""
+    return QUARTER[0] / (nodes ** (1.0 / 3.0) - 1.0)
+
+
+def uniform_at_nodes(uniform_rows, nodes: int, key: str = "E_error"):
+    """The uniform lattice's error ``key`` at ``nodes`` nodes: log-log interpolation in the
+    node count between the two uniform levels around it (None outside their range or on a sign change)."""
+    rows = sorted(uniform_rows, key=lambda f: f["nodes"])
+    for a, b in zip(rows, rows[1:]):
+        if a["nodes"] <= nodes <= b["nodes"] and a[key] * b[key] > 0:
+            w = np.log(nodes / a["nodes"]) / np.log(b["nodes"] / a["nodes"])
+            return float(np.sign(a[key]) * np.exp((1 - w) * np.log(abs(a[key])) + w * np.log(abs(b[key]))))
+    return None
+
+
+def graded_report(graded, uniform):
+    """Print the graded-mesh tables; returns the Richardson extrapolation per model."""
+    if not graded:
+        return {}
+    print("\n| model | n | smallest / largest cell [mm] | nodes | E error | local order (E) vs smallest cell | vs nodes^(-1/3) | nu error | force at truth | uniform E error at equal nodes | CPU [s] |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    slope = lambda a, b, ha, hb: np.log(abs(a) / abs(b)) / np.log(ha / hb) if a * b > 0 else float("nan")  # noqa: E731
+    summary = {}
+    for model in ("fem_linear", "stable_neo_hookean"):
+        rows = sorted((f for f in graded if f["model"] == model), key=lambda f: f["n"])
+        uni = [f for f in uniform if f["model"] == model]
+        for i, f in enumerate(rows):
+            oh = oN = "–"
+            if i:
+                g = rows[i - 1]
+                oh = f"{slope(g['E_error'], f['E_error'], g['smallest_cell_m'], f['smallest_cell_m']):.2f}"
+                oN = f"{slope(g['E_error'], f['E_error'], g['nodes'] ** (-1 / 3), f['nodes'] ** (-1 / 3)):.2f}"
+            u = uniform_at_nodes(uni, f["nodes"])
+            us = "–" if u is None else f"{100 * u:+.2f} %"
+            print(f"| {model} | {f['n']} | {f['smallest_cell_m'] * 1e3:.4f} / {f['largest_cell_m'] * 1e3:.3f} | {f['nodes']:,} | {100 * f['E_error']:+.2f} % | {oh} | {oN} | {f['nu_error']:+.4f} | {100 * f['force_error_at_true_material']:+.2f} % | {us} | {f['cpu_seconds']:.0f} |")
+        if len(rows) >= 3:
+            h = [f["smallest_cell_m"] for f in rows]
+            pE, E0, _ = richardson(h, [f["E"] for f in rows])
+            pN, E0N, _ = richardson([f["nodes"] ** (-1 / 3) for f in rows], [f["E"] for f in rows])
+            pF, F0, _ = richardson(h, [f["force_error_at_true_material"] for f in rows])
+            summary[model] = {"levels": [f["n"] for f in rows[-3:]], "E_order_smallest_cell": pE, "E_limit": E0, "E_order_nodes": pN, "E_limit_nodes": E0N, "force_error_limit": F0}
+    if not summary:
+        return summary
+    print("\n| model | levels n | Richardson order in E (smallest cell) | extrapolated E [kPa] | order vs nodes^(-1/3) | extrapolated E [kPa] | force at truth, extrapolated |")
+    print("|---|---|---|---|---|---|---|")
+    fmt = lambda v, spec, scale=1.0: "–" if v is None else format(v * scale, spec)  # noqa: E731
+    for model, s in summary.items():
+        print(f"| {model} | {', '.join(map(str, s['levels']))} | {fmt(s['E_order_smallest_cell'], '.2f')} | {fmt(s['E_limit'], '.4f', 1e-3)} | {fmt(s['E_order_nodes'], '.2f')} | {fmt(s['E_limit_nodes'], '.4f', 1e-3)} | {fmt(s['force_error_limit'], '+.2%')} |")
+    return summary
+
+
 def report():
     print("| level n | smallest interval [mm] | unknowns | force [mN] | observed order | extrapolated [mN] | estimated error of this level | CPU [s] |")
     print("|---|---|---|---|---|---|---|---|")
@@ -325,7 +416,9 @@ def report():
         x = "–" if r["extrapolated_N"] is None else f"{r['extrapolated_N'] * 1e3:.5f}"
         e = "–" if r["estimated_error"] is None else f"{100 * r['estimated_error']:+.3f} %"
         print(f"| {r['n']} | {r['smallest_interval_m'] * 1e3:.4f} | {r['unknowns']:,} | {r['force_N'] * 1e3:.5f} | {o} | {x} | {e} | {r['cpu_seconds']:.0f} |")
-    fits = [json.loads(p.read_text()) for p in RESULTS.glob("exp1_converged_fit_*.json")]
+    fits = [json.loads(p.read_text()) for p in RESULTS.glob("exp1_converged_fit_*_h*mm.json")]
+    graded = [json.loads(p.read_text()) for p in RESULTS.glob("exp1_converged_fit_*_graded_n*.json")]
+    graded = [g for g in graded if g["grading"] == GRADING]
     if not fits:
         return
     summary = {}
@@ -352,7 +445,8 @@ def report():
     for model, s in summary.items():
         fmt = lambda v, spec: "–" if v is None else format(v, spec)  # noqa: E731
         print(f"| {model} | {fmt(s['E_order'], '.2f')} | {fmt(None if s['E_limit'] is None else s['E_limit'] / 1e3, '.4f')} | {fmt(s['nu_order'], '.2f')} | {fmt(s['nu_limit'], '.4f')} |")
-    (RESULTS / "exp1_converged_summary.json").write_text(json.dumps({"reference": reference_table(), "fits": fits, "extrapolation": summary}, indent=2))
+    graded_summary = graded_report(graded, fits)
+    (RESULTS / "exp1_converged_summary.json").write_text(json.dumps({"reference": reference_table(), "fits": fits, "extrapolation": summary, "graded_fits": graded, "graded_extrapolation": graded_summary}, indent=2))
 
     import matplotlib
 
@@ -365,15 +459,21 @@ def report():
         if not rows:
             continue
         h = np.array([f["cell_size_m"] * 1e3 for f in rows])
-        axs[0].loglog(h, [100 * abs(f["E_error"]) for f in rows], mk + "-", label=model)
-        axs[1].loglog(h, [abs(f["nu_error"]) for f in rows], mk + "-", label=model)
+        (line,) = axs[0].loglog(h, [100 * abs(f["E_error"]) for f in rows], mk + "-", label=model)
+        axs[1].loglog(h, [abs(f["nu_error"]) for f in rows], mk + "-", color=line.get_color(), label=model)
+        g = sorted((f for f in graded if f["model"] == model), key=lambda f: f["n"])
+        if g:  # the graded meshes at the cube size of the uniform lattice with as many nodes
+            hg = np.array([uniform_equivalent_h(f["nodes"]) * 1e3 for f in g])
+            label = f"{model}, graded (at the h of equal nodes)"
+            axs[0].loglog(hg, [100 * abs(f["E_error"]) for f in g], mk + "--", mfc="none", color=line.get_color(), label=label)
+            axs[1].loglog(hg, [abs(f["nu_error"]) for f in g], mk + "--", mfc="none", color=line.get_color(), label=label)
     axs[0].axhline(2.0, color="k", lw=0.8, ls="--")
     axs[1].axhline(0.02, color="k", lw=0.8, ls="--")
     axs[0].set_ylabel("|E error| [%]")
     axs[1].set_ylabel("|nu error|")
-    for ax in axs:
+    for ax, loc in zip(axs, ("lower right", "upper left")):
         ax.set_xlabel("cell size h [mm] (punch half-width 3 mm)")
-        ax.legend()
+        ax.legend(fontsize=7, loc=loc)
         ax.grid(True, which="both", lw=0.3)
     fig.suptitle("Exp 1 converged: fits against a Richardson-extrapolated P2 reference (E = 12 kPa, nu = 0.42)")
     fig.tight_layout()
@@ -385,13 +485,16 @@ def main():
     ap.add_argument("command", choices=("reference", "fit", "report"))
     ap.add_argument("--levels", default="4,6,8,12", help="reference levels n (intervals on each side of the punch edge)")
     ap.add_argument("--grading", type=float, default=GRADING)
-    ap.add_argument("--models", default="springs_volume,fem_linear,stable_neo_hookean")
+    ap.add_argument("--models", default=None, help="default: springs_volume,fem_linear,stable_neo_hookean (with --graded: the FEM models)")
     ap.add_argument("--cell-sizes", default="1,0.75,0.5,0.375,0.25", help="model cube edges [mm]")
+    ap.add_argument("--graded", action="store_true", help="fit: the graded model meshes of levels --levels (graded_specimen) instead of uniform cubes")
     args = ap.parse_args()
     if args.command == "reference":
         run_reference([int(v) for v in args.levels.split(",")], args.grading)
     elif args.command == "fit":
-        run_fits(args.models.split(","), [float(v) * 1e-3 for v in args.cell_sizes.split(",")])
+        levels = [int(v) for v in args.levels.split(",")] if args.graded else None
+        models = args.models or ("fem_linear,stable_neo_hookean" if args.graded else "springs_volume,fem_linear,stable_neo_hookean")
+        run_fits(models.split(","), [float(v) * 1e-3 for v in args.cell_sizes.split(",")], levels, args.grading)
     report()
 
 

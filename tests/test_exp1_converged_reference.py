@@ -70,3 +70,33 @@ def test_richardson_recovers_a_known_limit():
     assert p == pytest.approx(1.3, rel=1e-9) and f0 == pytest.approx(2.0, rel=1e-12)
     assert err == pytest.approx(0.35 * 0.3**1.3, rel=1e-9)
     assert X.richardson(h, [1.0, 2.0, 1.5]) == (None, None, None)  # not monotone: no order
+
+
+@pytest.mark.parametrize("n", [2, 3, 5])
+def test_graded_model_mesh(n):
+    """The graded model mesh of the FEM fits: a node plane at the punch edge x = y = 3 mm, cells
+    shrinking monotonically towards it (and towards the top), n intervals per side, 6 tets per box."""
+    m = X.graded_specimen(n)
+    xs, ys, zs = (np.unique(np.round(m.points[:, a], 12)) for a in range(3))
+    assert len(xs) == len(ys) == 2 * n + 1 and len(zs) == n + 1
+    assert m.points.shape[0] == (2 * n + 1) ** 2 * (n + 1) and m.tets.shape[0] == 6 * (2 * n) ** 2 * n
+    for ax, full in ((xs, X.QUARTER[0]), (ys, X.QUARTER[1])):
+        assert ax[0] == 0.0 and ax[-1] == pytest.approx(full, abs=1e-15)
+        assert ax[n] == pytest.approx(X.HALF_WIDTH, abs=1e-15)  # the punch edge is a node
+        d = np.diff(ax)
+        assert np.all(np.diff(d[:n]) < 0) and np.all(np.diff(d[n:]) > 0)  # graded towards the edge from both sides
+        assert d[n - 1] == pytest.approx(X.HALF_WIDTH / n**X.GRADING) and d[n] == pytest.approx((full - X.HALF_WIDTH) / n**X.GRADING)
+    dz = np.diff(zs)
+    assert zs[0] == 0.0 and zs[-1] == pytest.approx(X.QUARTER[2]) and np.all(np.diff(dz) < 0)  # graded towards the top
+    # the square punch node set of make_scenario: (n + 1)^2 top nodes with x, y <= 3 mm
+    top = np.isclose(m.points[:, 2], X.QUARTER[2]) & (m.points[:, 0] <= X.HALF_WIDTH + 1e-9) & (m.points[:, 1] <= X.HALF_WIDTH + 1e-9)
+    assert top.sum() == (n + 1) ** 2
+    assert np.isclose(m.points[top, 0].max(), X.HALF_WIDTH) and np.isclose(m.points[top, 1].max(), X.HALF_WIDTH)
+
+
+def test_uniform_at_nodes_interpolates_log_log():
+    rows = [{"nodes": 100, "E_error": -0.1}, {"nodes": 800, "E_error": -0.025}]
+    assert X.uniform_at_nodes(rows, 100) == pytest.approx(-0.1)
+    assert X.uniform_at_nodes(rows, 400) == pytest.approx(-0.1 * (400 / 100) ** (np.log(0.25) / np.log(8)))
+    assert X.uniform_at_nodes(rows, 900) is None
+    assert X.uniform_equivalent_h(7**3) == pytest.approx(1e-3)  # 6 mm / 1 mm cubes: 7 nodes per axis
