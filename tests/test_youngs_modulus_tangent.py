@@ -133,3 +133,29 @@ def test_other_tangents_than_the_compiled_ones_are_still_right():
     _, jt = jax.jvp(_fn(w, f2), (jnp.array([12e3, 0.42]),), (t,))
     _, jti = jax.jvp(_fn(sc, f2), (jnp.array([12e3, 0.42]),), (t,))
     np.testing.assert_allclose(jt, jti, rtol=1e-8)
+
+
+def test_a_fit_of_youngs_modulus_alone_compiles_the_prediction_only():
+    """With E the only fitted field and its tangent in closed form, a Jacobian needs no tangent
+    solve: the one program compiled is the primal prediction (kind ``"value"``), not the
+    prediction-and-tangents program run with a zero tangent (which still paid a linear solve
+    per load step, with a sparse solver a factorisation each). A tangent along another field
+    later compiles the tangent program and is still right."""
+    sc = SCENARIOS["indentation_springs_volume"]()
+    w = SeparatelyCompiled(sc, fields=("youngs_modulus",))
+    assert w.scales_with_youngs_modulus
+    before = compile_cache_info()["compilations"]
+    J = np.asarray(jax.jacfwd(_fn(w, ("youngs_modulus",)))(jnp.array([12e3])))
+    assert compile_cache_info()["compilations"] - before == 1 and w.calls["value_and_tangents"] == 1
+    kind = next(reversed(compile_module._PROGRAMS))[0][0]  # the newest program: (kind, structure key), ...
+    assert kind == "value"
+    y = np.asarray(w.evaluate(Material(12e3, 0.42, cubic_coefficient=0.5)))
+    assert compile_cache_info()["compilations"] - before == 1  # the same program
+    np.testing.assert_allclose(J[:, 0], y / 12e3, rtol=1e-14)
+    # the prediction equals the scenario's own
+    np.testing.assert_allclose(y, np.asarray(_fn(sc, ("youngs_modulus",))(jnp.array([12e3]))), rtol=1e-12)
+    # a nu tangent: the tangent program, the scenario's implicit Jacobian's numbers
+    jn = np.asarray(jax.jacfwd(_fn(w, ("poisson_ratio",)))(jnp.array([0.42])))
+    jni = np.asarray(jax.jacfwd(_fn(sc, ("poisson_ratio",)))(jnp.array([0.42])))
+    assert compile_cache_info()["compilations"] - before == 2
+    np.testing.assert_allclose(jn, jni, rtol=1e-10)

@@ -241,7 +241,9 @@ class SeparatelyCompiled:
                 (``scenario.prediction_scales_with_youngs_modulus``), the tangent along
                 ``youngs_modulus`` is the prediction over ``E`` (no model solve) and the
                 program is compiled for the other tangents only when ``fields`` names
-                ``youngs_modulus`` (with ``n_tangents`` alone, for ``n_tangents`` tangents).
+                ``youngs_modulus`` (with ``n_tangents`` alone, for ``n_tangents`` tangents);
+                where ``fields`` is ``youngs_modulus`` alone, the one program is the
+                prediction's (no tangent, not even a zero one, is solved).
                 Any tangent is answered correctly either way; a call with more tangents to
                 solve than the program was compiled for compiles another.
         """
@@ -343,8 +345,8 @@ class SeparatelyCompiled:
         if mode == "forward":
             # ONE compiled program gives the prediction and its derivatives along a batch of
             # tangents: the model is solved once, the tangents (one implicit linear solve each
-            # per load step) are batched. A primal-only call runs it with zero tangents (their
-            # linear solves stop at once), so nothing is compiled twice.
+            # per load step) are batched. A primal-only call runs it with zero tangents, so
+            # nothing is compiled twice (except E alone in closed form: see ``primal_only``).
             # Compiled ahead of time per tangent count (_compiled_per_shape).
             #: whether the predictions and their tangents are solved on the host (NumPy, no
             #: compiled protocol): :meth:`predict_and_tangents_on_host` is then available, and
@@ -374,6 +376,13 @@ class SeparatelyCompiled:
                 n_solved -= 1
             n_zero = max(n_solved, 1)
 
+            # Where every tangent a fit asks for is the closed-form E one (E the only fitted
+            # field), the prediction needs no tangent solve at all: a primal-only program,
+            # compiled only then (a zero tangent would still cost its linear solves: with the
+            # sparse solver a factorisation per load step, with the condensation dK Z^T).
+            primal_only = n_solved == 0 and self.scales_with_youngs_modulus and not self.solves_on_host
+            value = _compiled_per_shape(f, program_key("value"), data, options) if primal_only else None
+
             def solve_tangents(v, T):
                 y, JT = both(v, T)
                 return np.asarray(y, dtype=np.float64), np.asarray(JT, dtype=np.float64)
@@ -385,6 +394,9 @@ class SeparatelyCompiled:
                 along_E = T[:, 0] / float(v[0])  # v[0] > 0 (guarded)
                 T[:, 0] = 0.0
                 rows = np.flatnonzero(np.any(T != 0.0, axis=1))
+                if rows.size == 0 and value is not None:
+                    y = np.asarray(value(v), dtype=np.float64)
+                    return y, along_E[:, None] * y[None, :]
                 solved = np.zeros((max(n_zero, rows.size), n_leaves))
                 solved[: rows.size] = T[rows]
                 y, JS = solve_tangents(v, solved)
