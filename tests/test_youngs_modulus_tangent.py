@@ -146,16 +146,17 @@ def test_a_fit_of_youngs_modulus_alone_compiles_the_prediction_only():
     assert w.scales_with_youngs_modulus
     before = compile_cache_info()["compilations"]
     J = np.asarray(jax.jacfwd(_fn(w, ("youngs_modulus",)))(jnp.array([12e3])))
-    assert compile_cache_info()["compilations"] - before == 1 and w.calls["value_and_tangents"] == 1
-    kind = next(reversed(compile_module._PROGRAMS))[0][0]  # the newest program: (kind, structure key), ...
+    compiled = compile_cache_info()["compilations"] - before  # 0 where an equal scenario's program is shared
+    assert compiled <= 1 and w.calls["value_and_tangents"] == 1
+    kind = next(reversed(compile_module._PROGRAMS))[0][0]  # the program used last: (kind, structure key), ...
     assert kind == "value"
     y = np.asarray(w.evaluate(Material(12e3, 0.42, cubic_coefficient=0.5)))
-    assert compile_cache_info()["compilations"] - before == 1  # the same program
+    assert compile_cache_info()["compilations"] - before == compiled  # the same program
     np.testing.assert_allclose(J[:, 0], y / 12e3, rtol=1e-14)
     # the prediction equals the scenario's own
     np.testing.assert_allclose(y, np.asarray(_fn(sc, ("youngs_modulus",))(jnp.array([12e3]))), rtol=1e-12)
-    # a nu tangent: the tangent program, the scenario's implicit Jacobian's numbers
+    # a nu tangent: the tangent program (compiled now, or shared), the scenario's implicit Jacobian's numbers
     jn = np.asarray(jax.jacfwd(_fn(w, ("poisson_ratio",)))(jnp.array([0.42])))
+    assert next(reversed(compile_module._PROGRAMS))[0][0] == "value_and_tangents"
     jni = np.asarray(jax.jacfwd(_fn(sc, ("poisson_ratio",)))(jnp.array([0.42])))
-    assert compile_cache_info()["compilations"] - before == 2
     np.testing.assert_allclose(jn, jni, rtol=1e-10)
