@@ -2,7 +2,12 @@
 calls of `SeparatelyCompiled._host_tangents` along E, for a 3-D sphere indentation (quarter block
 12 x 12 x 8 cells, 1,521 nodes, sparse solver, 5 depths). Run with PYTHONPATH of the tree to
 measure: `python benchmarks/e_only_primal_program.py stable_neo_hookean`. CPU seconds (process time)."""
-import time, sys, numpy as np, jax
+import sys
+import time
+
+import jax
+import numpy as np
+
 jax.config.update("jax_enable_x64", True)
 from difftissue.scenarios import Indentation, indentation_block
 from difftissue.materials import Material

@@ -372,13 +372,19 @@ def uniform_at_nodes(uniform_rows, nodes: int, key: str = "E_error"):
     return None
 
 
+def local_order(error_a, error_b, h_a, h_b) -> float:
+    """Log-log slope of |error| between two levels of size ``h_a`` and ``h_b`` (NaN on a sign change)."""
+    if error_a * error_b <= 0:
+        return float("nan")
+    return float(np.log(abs(error_a) / abs(error_b)) / np.log(h_a / h_b))
+
+
 def graded_report(graded, uniform):
     """Print the graded-mesh tables; returns the Richardson extrapolation per model."""
     if not graded:
         return {}
     print("\n| model | n | smallest / largest cell [mm] | nodes | E error | local order (E) vs smallest cell | vs nodes^(-1/3) | nu error | force at truth | uniform E error at equal nodes | CPU [s] |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    slope = lambda a, b, ha, hb: np.log(abs(a) / abs(b)) / np.log(ha / hb) if a * b > 0 else float("nan")  # noqa: E731
     summary = {}
     for model in ("fem_linear", "stable_neo_hookean"):
         rows = sorted((f for f in graded if f["model"] == model), key=lambda f: f["n"])
@@ -387,8 +393,8 @@ def graded_report(graded, uniform):
             oh = oN = "–"
             if i:
                 g = rows[i - 1]
-                oh = f"{slope(g['E_error'], f['E_error'], g['smallest_cell_m'], f['smallest_cell_m']):.2f}"
-                oN = f"{slope(g['E_error'], f['E_error'], g['nodes'] ** (-1 / 3), f['nodes'] ** (-1 / 3)):.2f}"
+                oh = f"{local_order(g['E_error'], f['E_error'], g['smallest_cell_m'], f['smallest_cell_m']):.2f}"
+                oN = f"{local_order(g['E_error'], f['E_error'], g['nodes'] ** (-1 / 3), f['nodes'] ** (-1 / 3)):.2f}"
             u = uniform_at_nodes(uni, f["nodes"])
             us = "–" if u is None else f"{100 * u:+.2f} %"
             print(f"| {model} | {f['n']} | {f['smallest_cell_m'] * 1e3:.4f} / {f['largest_cell_m'] * 1e3:.3f} | {f['nodes']:,} | {100 * f['E_error']:+.2f} % | {oh} | {oN} | {f['nu_error']:+.4f} | {100 * f['force_error_at_true_material']:+.2f} % | {us} | {f['cpu_seconds']:.0f} |")
@@ -424,7 +430,6 @@ def report():
     summary = {}
     print("\n| model | h [mm] | cells per half-width | nodes | E error | order (E) | nu error | order (nu) | force error at truth | steps | CPU [s] |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
-    slope = lambda a, b, ha, hb: np.log(abs(a) / abs(b)) / np.log(ha / hb) if a * b > 0 else float("nan")  # noqa: E731
     for model in ("springs_volume", "fem_linear", "stable_neo_hookean"):
         rows = sorted((f for f in fits if f["model"] == model), key=lambda f: -f["cell_size_m"])
         for i, f in enumerate(rows):
@@ -432,8 +437,8 @@ def report():
             oE = on = "–"
             if i:
                 g = rows[i - 1]
-                oE = f"{slope(g['E_error'], f['E_error'], g['cell_size_m'], f['cell_size_m']):.2f}"
-                on = f"{slope(g['nu_error'], f['nu_error'], g['cell_size_m'], f['cell_size_m']):.2f}"
+                oE = f"{local_order(g['E_error'], f['E_error'], g['cell_size_m'], f['cell_size_m']):.2f}"
+                on = f"{local_order(g['nu_error'], f['nu_error'], g['cell_size_m'], f['cell_size_m']):.2f}"
             print(f"| {model} | {f['cell_size_m'] * 1e3:g} | {f['cells_per_half_width']:g} | {f['nodes']:,} | {100 * f['E_error']:+.2f} % | {oE} | {f['nu_error']:+.4f} | {on} | {100 * f['force_error_at_true_material']:+.2f} % | {f['steps']} | {f['cpu_seconds']:.0f} |")
         if len(rows) >= 3:
             hs = [f["cell_size_m"] for f in rows]
