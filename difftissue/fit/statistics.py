@@ -198,8 +198,10 @@ class QualityFlag:
 
     Attributes:
         name: ``non_finite``, ``not_converged``, ``at_bound``, ``implausible_value`` (errors:
-            the answer is unusable), ``poor_fit``, ``systematic_residuals`` or
-            ``discretisation_error`` (warnings; the last from :func:`with_discretisation`).
+            the answer is unusable), ``poor_fit``, ``systematic_residuals``,
+            ``discretisation_error`` (warnings; the last from :func:`with_discretisation`), and
+            from a config fit's checks ``outside_tissue_range`` and ``lattice_pre_stretch_bias``
+            (warnings: :mod:`difftissue.config.fitconfig`).
         severity: ``"error"`` or ``"warning"``.
         subject: the field or scenario it concerns (None for the whole fit).
         message: one line for people.
