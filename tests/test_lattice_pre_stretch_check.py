@@ -82,6 +82,7 @@ def test_the_fixed_layer_s_pre_stretch_counts_too():
     ("springs_volume", 1.2, True),     # beyond the measured range
     ("springs_volume", 0.99, False),   # within 0.02 below 1: the linear limit
     ("springs_volume", 0.95, True),    # compressive pre-stretch: unmeasured
+    ("springs_volume", 0.9, True),     # and outside the matched lattice's range: not proposed
 ])
 def test_the_check_flags_a_measured_or_unmeasured_bias_and_names_the_remedy(model, lam0, flagged):
     flags, messages = _check(model, Material(2e5, 0.45, pre_stretch=lam0))
@@ -91,7 +92,7 @@ def test_the_check_flags_a_measured_or_unmeasured_bias_and_names_the_remedy(mode
     (flag,) = flags
     assert flag.severity == "warning" and flag.subject == "wound" and flag.numbers["model"] == model
     assert flag.message.startswith(f"wound: pre_stretch = {lam0:.4g} ")
-    assert 'use model = "springs_volume_matched_lattice"' in flag.message or lam0 > 1.2
+    assert ('use model = "springs_volume_matched_lattice"' in flag.message) == (0.95 <= lam0 <= 1.2)
     assert messages == [f"warning: {flag.message}"]
     if 1.0 <= lam0 <= 1.15:
         assert abs(flag.numbers["relative_bias"]) >= LATTICE_BIAS_FLAG

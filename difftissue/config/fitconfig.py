@@ -303,7 +303,7 @@ def lattice_pre_stretch_check(result, experiments):
             continue
         isotropic = result.material.pre_stretch_y is None
         remedy = ("use model = \"springs_volume_matched_lattice\" (within 5 % of the continuum up to 1.15) "
-                  if isotropic and lam <= 1.2 else "") + "or a finite-strain continuum model (stable_neo_hookean, fem_neo_hookean) on a converged mesh"
+                  if isotropic and 0.95 <= lam <= 1.2 else "") + "or a finite-strain continuum model (stable_neo_hookean, fem_neo_hookean) on a converged mesh"
         if bias is None:
             what = (f"lies outside the measured range 1-1.15 of the {info['model']} lattice's opening bias "
                     f"(measured {measured} against the converged neo-Hookean opening): the widths carry an unmeasured model bias")
