@@ -445,15 +445,24 @@ def _quality_md(quality: "FitQuality | None") -> list[str]:
 
 
 def simulation_record(scenario) -> dict | None:
-    """How a simulated indentation was modelled, for ``fit.json`` (``simulation``) and the
-    report: ``{"name", "model", "geometry": "axisymmetric" | "3d", "cells_per_contact_radius"
-    (at the deepest point) [-], "resolution"}`` with ``resolution`` e.g. ``"axisymmetric, 8
-    cells per contact radius"``; None for other scenarios (closed forms, compression, ...)."""
-    record, resolution = getattr(scenario, "record", None), getattr(scenario, "resolution", None)
-    if not callable(record) or not callable(resolution):
+    """How a simulated experiment was modelled, for ``fit.json`` (``simulation``) and the
+    report: the model and the resolution its fitted numbers belong to.
+
+    - an indentation: ``{"name", "model", "geometry": "axisymmetric" | "3d",
+      "cells_per_contact_radius"`` (at the deepest point) [-] ``, "resolution"}`` with
+      ``resolution`` e.g. ``"axisymmetric, 8 cells per contact radius"``;
+    - a compression, fem_field or incision: ``{"name", "model", "geometry": "3d", "nodes",
+      "tets", "median_edge"`` [m] ``, "resolution"}``, e.g. ``"3-D mesh, 1183 nodes, 5400 tets,
+      median edge 1.41 mm"`` (the mesh's tet edges, face diagonals of a cube lattice included);
+    - None for the closed forms (no mesh)."""
+    record = getattr(scenario, "record", None)
+    if not callable(record):
         return None
     rec = record()
-    if rec.get("experiment") != "indentation":
+    if rec.get("experiment") in ("compression", "fem_field", "incision"):
+        return _mesh_record(rec, getattr(scenario, "model", None))
+    resolution = getattr(scenario, "resolution", None)
+    if rec.get("experiment") != "indentation" or not callable(resolution):
         return None
     spec = rec.get("specimen") or {}
     geometry = rec.get("geometry", "3d")
@@ -465,6 +474,20 @@ def simulation_record(scenario) -> dict | None:
     where = "axisymmetric" if geometry == "axisymmetric" else "3-D block"
     return {"name": rec.get("name"), "model": rec.get("model"), "geometry": geometry, "cells_per_contact_radius": m,
             "resolution": f"{where}, {m:.3g} cells per contact radius"}
+
+
+def _mesh_record(rec: Mapping, model) -> dict | None:
+    """:func:`simulation_record` of a scenario on a tet mesh (its model's ``rest_points`` and
+    ``tets``); None when the model does not expose them."""
+    points, tets = getattr(model, "rest_points", None), getattr(model, "tets", None)
+    if points is None or tets is None:
+        return None
+    points, tets = np.asarray(points, dtype=float), np.asarray(tets, dtype=np.int64)
+    edges = np.unique(np.sort(tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2), axis=1), axis=0)
+    h = float(np.median(np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)))
+    n, m = int(points.shape[0]), int(tets.shape[0])
+    return {"name": rec.get("name"), "model": rec.get("model"), "geometry": "3d", "nodes": n, "tets": m, "median_edge": h,
+            "resolution": f"3-D mesh, {n} nodes, {m} tets, median edge {h * 1e3:.3g} mm"}
 
 
 def _discretisation_md(rec: Mapping | None) -> list[str]:
