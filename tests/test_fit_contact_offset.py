@@ -176,3 +176,16 @@ def test_simulated_axisymmetric_indentation_recovers_modulus_and_offset():
         warnings.simplefilter("ignore")
         plain = fit(sc, P_E, START)
     assert plain.values["youngs_modulus"] / E_TRUE - 1 > 0.1
+
+
+def test_outputs_show_the_offset_and_the_material_card_does_not(tmp_path):
+    import json
+
+    from difftissue.report import write_fit_outputs
+
+    res = fit(hertz_curve(), P_E, START, scenario_parameters=ASK)
+    write_fit_outputs(res, tmp_path / "out")
+    rec = json.loads((tmp_path / "out" / "fit.json").read_text())["parameters"][FIELD]
+    assert rec["unit"] == "m" and abs(rec["value"] - OFFSET) < 1e-9 and np.isfinite(rec["standard_error"])
+    assert "contact_offset" not in (tmp_path / "out" / "material.json").read_text()
+    assert f"| {FIELD} |" in (tmp_path / "out" / "report.md").read_text()
