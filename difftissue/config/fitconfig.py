@@ -153,6 +153,9 @@ class FitConfig:
             if e.coarsen is None:
                 skipped[e.name] = e.coarsen_skip or "this scenario cannot be coarsened"
                 continue
+            if e.fit_contact_offset:
+                skipped[e.name] = "its contact offset is fitted (contact_offset = \"fit\"): the coarser mesh is not evaluated at the fitted offset"
+                continue
             try:
                 sc, info = e.coarsen()
                 info = dict(info)
