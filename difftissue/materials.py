@@ -47,6 +47,7 @@ __all__ = [
     "pre_stretch_from_surface_tension",
     "Transform",
     "Identity",
+    "Linear",
     "Log",
     "ScaledLogit",
     "MaterialParameterization",
@@ -521,6 +522,28 @@ class Identity(Transform):
 
     def inverse(self, value):
         return value
+
+
+class Linear(Transform):
+    """``value = scale * u``: unbounded parameters of a natural size ``scale`` [unit of the
+    parameter], e.g. an indentation's contact offset (``scale`` of a few micrometres), so that
+    the optimiser works with numbers of order one."""
+
+    scale: float = 1.0
+
+    def __check_init__(self):
+        if _is_concrete(self.scale) and not (math.isfinite(float(self.scale)) and float(self.scale) > 0):
+            raise MaterialError(f"Linear needs a finite scale > 0, got {self.scale!r}")
+
+    def forward(self, u):
+        return self.scale * u
+
+    def derivative(self, u):
+        return self.scale * _xp(u).ones_like(u)
+
+    def inverse(self, value):
+        _check_bounds(value, None, None)
+        return value / self.scale
 
 
 class Log(Transform):

@@ -113,6 +113,25 @@ def _check_depths(depths: np.ndarray) -> None:
         raise DataError("the depth protocol must be non-decreasing (simulate the approach segment; each depth starts from the previous equilibrium)")
 
 
+# =========================================================================== contact offset
+#: The natural size of a fitted contact offset (the scale of its transform and the floor of its
+#: relative standard error) as a fraction of the largest depth of the curve [-].
+CONTACT_OFFSET_SCALE = 0.01
+
+
+def contact_offset_parameter(depths) -> dict:
+    """The ``fittable_parameters()`` entry of an indentation's contact offset [m]: added to
+    every depth (the indenter at ``depth + contact_offset``: a contact point picked
+    ``contact_offset`` too late), start 0, transform ``Linear`` with the scale
+    :data:`CONTACT_OFFSET_SCALE` times the largest depth (1 um where the depths are all 0)."""
+    from .materials import Linear
+
+    d = np.asarray(depths, dtype=float)
+    top = float(np.max(np.abs(d))) if d.size and np.all(np.isfinite(d)) else 0.0
+    scale = CONTACT_OFFSET_SCALE * top if top > 0 else 1e-6
+    return {"contact_offset": {"unit": "m", "transform": Linear(scale=scale), "start": 0.0, "scale": scale}}
+
+
 # =========================================================================== analytic
 class AnalyticIndentation(eqx.Module):
     """Force-depth curve of a closed-form (or exact layer) indentation solution.
@@ -178,8 +197,17 @@ class AnalyticIndentation(eqx.Module):
             analytic._check_chi(np.sqrt(size * self.abscissa) / self.thickness)
         self.x_label, self.y_label = "depth [m]", "force [N]"
 
-    def predict(self, material: Material):
-        d = jnp.asarray(self.abscissa)
+    def fittable_parameters(self) -> dict:
+        """What :func:`~difftissue.fit.fit` can fit besides the material
+        (``scenario_parameters``): the ``contact_offset`` [m] (:func:`contact_offset_parameter`)."""
+        return contact_offset_parameter(self.abscissa)
+
+    def predict(self, material: Material, contact_offset=0.0):
+        """Force [N] at each depth; ``contact_offset`` [m] is added to every depth (the
+        indenter at ``depth + contact_offset``), and a depth that becomes negative is out of
+        contact (force 0, as the simulated sphere and cone: the closed forms hold no
+        adhesion). Differentiable in ``contact_offset``."""
+        d = jnp.maximum(jnp.asarray(self.abscissa) + contact_offset, 0.0)
         E, nu = material.youngs_modulus, material.poisson_ratio
         if self.indenter == "sphere":
             if self.solution == "half_space":
@@ -1394,8 +1422,9 @@ class Indentation(eqx.Module):
         The forces are differentiable with respect to it (implicit function theorem: the
         indenter depth is a differentiated leaf of the contact model, or the punch's
         prescribed displacement), e.g. ``jax.grad(lambda c: sc.solve(m, c)[0].sum())``.
-        It is not a fitted parameter of :func:`~difftissue.fit.fit` (which fits material
-        fields only); see docs/scenarios.md."""
+        :func:`~difftissue.fit.fit` fits it with the material fields where asked
+        (``scenario_parameters={name: ("contact_offset",)}``, :meth:`fittable_parameters`);
+        see docs/scenarios.md."""
         material = jax.tree_util.tree_map(lambda v: jnp.asarray(v, dtype=float), material)
         return _jitted_solve(self)(material, jnp.asarray(contact_offset, dtype=float))
 
@@ -1459,6 +1488,12 @@ class Indentation(eqx.Module):
         then takes a Jacobian's ``E`` column in that closed form instead of an
         implicit-function-theorem solve per depth."""
         return _scales_with_youngs_modulus(self.model, self.bc)
+
+    def fittable_parameters(self) -> dict:
+        """What :func:`~difftissue.fit.fit` can fit besides the material
+        (``scenario_parameters``): the ``contact_offset`` [m] of :meth:`solve`
+        (:func:`contact_offset_parameter`)."""
+        return contact_offset_parameter(self.abscissa)
 
     def predict(self, material: Material, contact_offset=0.0):
         """Indentation force [N] at each depth (positive compressive); ``contact_offset`` [m]
@@ -1786,8 +1821,15 @@ class AxisymmetricIndentation(eqx.Module):
         prescribed (see :attr:`Indentation.prediction_scales_with_youngs_modulus`)."""
         return _scales_with_youngs_modulus(self.model, self.bc)
 
+    def fittable_parameters(self) -> dict:
+        """What :func:`~difftissue.fit.fit` can fit besides the material
+        (``scenario_parameters``): the ``contact_offset`` [m] of :meth:`solve`
+        (:func:`contact_offset_parameter`)."""
+        return contact_offset_parameter(self.abscissa)
+
     def predict(self, material: Material, contact_offset=0.0):
-        """Indentation force [N] at each depth (positive compressive)."""
+        """Indentation force [N] at each depth (positive compressive); ``contact_offset`` [m]
+        shifts every depth (see :meth:`Indentation.solve`)."""
         return self.solve(material, contact_offset)[0]
 
     def record(self) -> dict:

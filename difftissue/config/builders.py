@@ -9,6 +9,7 @@ discretisation estimate. Each returns an :class:`~difftissue.config.Experiment`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping
 from pathlib import Path
@@ -84,12 +85,16 @@ def _build_experiment(e: Mapping, path: str, name: str, base_dir: Path, *, mater
     """One experiment; ``material`` is the config's [material] and ``fitted`` its fitted fields
     (an indentation's automatic specimen is axisymmetric only without pre-stretch)."""
     kind = e["scenario"]
+    if "contact_offset" in e and e["contact_offset"] != "fit":
+        _fail(_join(path, "contact_offset"), f"must be \"fit\" (fit the contact offset with the material), got {e['contact_offset']!r}")
     if kind == "incision":
         return _incision(e, path, name, base_dir, material)
     if kind == "indentation":
-        return _indentation(e, path, name, base_dir, material=material, fitted=tuple(fitted))
-    builder = {"analytic_indentation": _analytic, "indentation": _indentation, "compression": _compression, "fem_field": _fem_field}[kind]
-    return builder(e, path, name, base_dir)
+        exp = _indentation(e, path, name, base_dir, material=material, fitted=tuple(fitted))
+    else:
+        builder = {"analytic_indentation": _analytic, "indentation": _indentation, "compression": _compression, "fem_field": _fem_field}[kind]
+        exp = builder(e, path, name, base_dir)
+    return dataclasses.replace(exp, fit_contact_offset=True) if "contact_offset" in e else exp
 
 
 def _indenter(e, path, curve, kind):

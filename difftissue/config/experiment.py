@@ -36,3 +36,6 @@ class Experiment:
     coarsen: Any = None
     #: why the experiment has no discretisation estimate (None when :attr:`coarsen` is given)
     coarsen_skip: str | None = None
+    #: ``contact_offset = "fit"``: the indentation's contact offset [m] is fitted with the
+    #: material (``fit(..., scenario_parameters={name: ("contact_offset",)})``)
+    fit_contact_offset: bool = False

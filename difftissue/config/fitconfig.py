@@ -100,6 +100,10 @@ class FitConfig:
         :class:`SeparatelyCompiled` unless ``separate_compilation`` (default: the config's
         ``fit.separate_compilation``, true) is false."""
         sep = self.options.get("separate_compilation", True) if separate_compilation is None else separate_compilation
+        offset = [e.name for e in self.experiments if e.fit_contact_offset and e.kind != "analytic_indentation"]
+        if sep and offset:
+            raise ConfigError(f"experiment {offset[0]!r}: contact_offset = \"fit\" on a simulated indentation needs fit.separate_compilation = false "
+                              "(the separately compiled programs take the material fields only); or fit it on an analytic_indentation experiment")
         if not sep:
             return self.scenarios
         mode = "reverse" if (self.options.get("method") in ("adam", "lbfgs") or self.options.get("jac") == "bwd") else "forward"
@@ -126,6 +130,9 @@ class FitConfig:
         object.__setattr__(self, "last_scenarios", scenarios)  # for the failures of SeparatelyCompiled
         self.check_reaction_signs(scenarios)
         self.start_cubic_coefficient(scenarios)
+        offsets = {e.name: ("contact_offset",) for e in self.experiments if e.fit_contact_offset}
+        if offsets:
+            opts["scenario_parameters"] = offsets
         result = fit(scenarios, self.parameterization, self.material, **opts)
         result = tissue_range_check(result, tissue)
         result = lattice_pre_stretch_check(result, self.experiments)
@@ -145,6 +152,9 @@ class FitConfig:
         for e in self.experiments:
             if e.coarsen is None:
                 skipped[e.name] = e.coarsen_skip or "this scenario cannot be coarsened"
+                continue
+            if e.fit_contact_offset:
+                skipped[e.name] = "its contact offset is fitted (contact_offset = \"fit\"): the coarser mesh is not evaluated at the fitted offset"
                 continue
             try:
                 sc, info = e.coarsen()

@@ -62,9 +62,9 @@ TISSUE_RANGES: dict[str, tuple[float, float]] = {
 }
 _COMMON_EXPERIMENT_KEYS = ("name", "scenario", "data", "sigma", "points", "length_unit")
 _EXPERIMENT_KEYS = {
-    "analytic_indentation": _COMMON_EXPERIMENT_KEYS + ("indenter", "solution", "thickness", "base", "max_depth"),
+    "analytic_indentation": _COMMON_EXPERIMENT_KEYS + ("indenter", "solution", "thickness", "base", "max_depth", "contact_offset"),
     "indentation": _COMMON_EXPERIMENT_KEYS + ("model", "indenter", "specimen", "base", "rollers", "max_depth", "penalty", "solver",
-                                             "min_cells_per_contact_radius", "under_resolved"),
+                                             "min_cells_per_contact_radius", "under_resolved", "contact_offset"),
     "compression": _COMMON_EXPERIMENT_KEYS + ("model", "specimen", "platens", "rollers", "measure", "max_strain", "solver"),
     "fem_field": ("name", "scenario", "data", "model", "prescribed", "observe", "reaction", "displacement_sigma", "force_sigma", "solver",
                   "reference_mesh", "specimen", "tolerance"),

@@ -271,6 +271,7 @@ def fit_batch(
     labels: Sequence[str] | None = None,
     progress: bool = False,
     spectral: bool | None = None,
+    scenario_parameters=None,
 ) -> BatchFitResult:
     """Fit the fields of ``parameterization`` to each specimen separately, all in one program.
 
@@ -301,6 +302,8 @@ def fit_batch(
             factorising solver to round-off); ``False``: never; ``True``: required for every
             scenario that offers it (an explicit ``linear_solver`` is replaced), a
             :class:`~difftissue.errors.FitError` where it does not apply or no scenario offers it.
+        scenario_parameters: as in :func:`difftissue.fit.fit` (e.g. each specimen's contact
+            offset, fitted per specimen), by the scenario names shared by the specimens.
 
     Returns:
         A :class:`BatchFitResult`. Identifiability problems are emitted as
@@ -345,13 +348,13 @@ def fit_batch(
     problems = []
     for b, (sp, m0) in enumerate(zip(specimens, initials)):
         try:
-            problems.append(FitProblem(sp, parameterization, m0, loss=loss, f_scale=f_scale))
+            problems.append(FitProblem(sp, parameterization, m0, loss=loss, f_scale=f_scale, scenario_parameters=scenario_parameters))
         except FitError as exc:
             raise FitError(f"specimen {labels[b]}: {exc}") from exc
     problems = _shared_structure(problems, labels)
     template = problems[0]
 
-    U = np.stack([np.asarray(initial_starts(parameterization, m0, starts, seed, start_spread)) for m0 in initials])  # (B, S, p)
+    U = np.stack([np.asarray(initial_starts(pr.parameterization, m0, starts, seed, start_spread)) for pr, m0 in zip(problems, initials)])  # (B, S, p)
     n_starts = U.shape[1]
     rtol, atol = tolerances(U.dtype, rtol, atol)
     engine = cached_engine(template, method, rtol=rtol, atol=atol, learning_rate=learning_rate, jac=jac)

@@ -71,6 +71,7 @@ def fit(
     progress: bool = False,
     callback: Callable[[FitProgress], bool | None] | None = None,
     plausible: Mapping[str, Sequence[float]] | None = None,
+    scenario_parameters: Mapping[str, Sequence[str] | Mapping[str, float]] | None = None,
 ) -> FitResult:
     """Fit the fields of ``parameterization`` to one or more scenarios (weighted least squares).
 
@@ -110,6 +111,17 @@ def fit(
             propagates after the checkpoint is written.
         plausible: ``{field: (lo, hi)}`` (SI) widening or narrowing :data:`PLAUSIBLE` (default
             E in [1 Pa, 1 GPa]) for the ``implausible_value`` quality gate.
+        scenario_parameters: parameters of the scenarios fitted jointly with the material
+            fields: ``{scenario name: ("contact_offset",)}`` (starting at the scenario's start
+            value, 0 for a contact offset) or ``{scenario name: {"contact_offset": start [m]}}``.
+            A scenario declares what it can fit in ``fittable_parameters()`` (the indentation
+            scenarios: ``contact_offset`` [m], added to every depth). The result names them
+            ``"<scenario>.<parameter>"`` after the material fields in ``fields``, ``values``,
+            ``units``, ``standard_errors``, ``covariance`` and ``correlation``;
+            ``result.material`` holds the material fields only. Random starts spread them by
+            ``start_spread`` times their transform's scale; a sequence of starting materials
+            starts them all at their start value. An unknown scenario or parameter raises
+            :class:`~difftissue.errors.FitError`.
 
     Returns:
         A :class:`FitResult`. Identifiability problems are also emitted as
@@ -126,8 +138,8 @@ def fit(
         raise FitError(f"checkpoint_every must be an int >= 1, got {checkpoint_every!r}")
     if resume and checkpoint is None:
         raise FitError("resume=True needs a checkpoint path")
-    problem = FitProblem(scenarios, parameterization, initial, loss=loss, f_scale=f_scale)
-    U = initial_starts(parameterization, initial, starts, seed, start_spread)
+    problem = FitProblem(scenarios, parameterization, initial, loss=loss, f_scale=f_scale, scenario_parameters=scenario_parameters)
+    U = initial_starts(problem.parameterization, initial, starts, seed, start_spread)
     n_starts = int(U.shape[0])
     rtol, atol = tolerances(U.dtype, rtol, atol)
     fingerprint, components = problem.fingerprint(method, n_starts)
@@ -258,8 +270,10 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
     material = problem.material(u_best)
     values_vec = np.asarray(all_values[best])
     J = np.asarray(all_J[best])
-    stats = parameter_statistics(J, np.asarray(values_vec), problem.fields, loss=float(final[best]), absolute_sigma=absolute_sigma)
-    diag = identifiability_diagnostics(stats, np.asarray(values_vec), problem.fields)
+    stats = parameter_statistics(J, np.asarray(values_vec), problem.fields, loss=float(final[best]), absolute_sigma=absolute_sigma,
+                                 floors=getattr(problem, "scale_floors", None))
+    diag = identifiability_diagnostics(stats, np.asarray(values_vec), problem.fields, floors=getattr(problem, "scale_floors", None),
+                                       units=getattr(problem, "units", None))
     if not start_converged[best]:
         diag = [(f, f"{msg} (evaluated where the fit stopped without converging: {reason})") for f, msg in diag]
     for _, msg in diag:
@@ -282,7 +296,7 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
         material=material,
         fields=fields,
         values={f: float(values_vec[i]) for i, f in enumerate(fields)},
-        units={f: UNITS.get(f, "") for f in fields},
+        units={f: getattr(problem, "units", UNITS).get(f, "") for f in fields},
         standard_errors={f: float(stats["standard_errors"][i]) for i, f in enumerate(fields)},
         covariance=stats["covariance"],
         correlation=stats["correlation"],

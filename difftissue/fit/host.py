@@ -52,9 +52,11 @@ _LOW_CUTOFF, _HIGH_CUTOFF, _LOW_CONSTANT, _HIGH_CONSTANT = 0.01, 0.99, 0.25, 3.5
 def host_capable(problem: FitProblem, method: str, loss: str, jac: str, dtype) -> bool:
     """Whether :class:`HostEngine` runs this fit: :data:`HOST_STEPS`, Levenberg--Marquardt
     with the linear loss and forward Jacobians on float64 starts, and every scenario solving
-    on the host (``solves_on_host`` and ``predict_and_tangents_on_host``)."""
+    on the host (``solves_on_host`` and ``predict_and_tangents_on_host``), with no scenario
+    parameters fitted (their tangents are the compiled engine's)."""
     return (HOST_STEPS and method == "levenberg_marquardt" and loss == "linear" and jac == "fwd"
             and np.dtype(dtype) == np.float64
+            and not getattr(problem, "has_scenario_parameters", False)
             and all(getattr(sc, "solves_on_host", False) is True and callable(getattr(sc, "predict_and_tangents_on_host", None))
                     for sc in problem.scenarios))
 

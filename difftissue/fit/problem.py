@@ -7,7 +7,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import Protocol, runtime_checkable
 
 import equinox as eqx
@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ..errors import FitError
-from ..materials import FIELD_UNITS, Material, MaterialParameterization, material_fields
+from ..materials import FIELD_UNITS, Material, MaterialParameterization, Transform, material_fields
 # the structure-key formula (shared with the scenarios' compiled protocols, which must not
 # import fit); its names stay importable from here
 from ..structure_keys import DATA_ATTRIBUTES, data_leaf_indices, hash_scenario_leaves  # noqa: F401
@@ -52,6 +52,14 @@ class Scenario(Protocol):
     Methods:
         predict(material): model prediction, shape ``(n,)``, same unit as ``observed``. Must be
             pure, jittable and differentiable in the material's fields.
+
+    Optional: a scenario with parameters of its own that a fit can fit alongside the material
+    (e.g. an indentation's ``contact_offset``) names them in ``fittable_parameters()``:
+    ``{name: {"unit": str, "transform": Transform, "start": float, "scale": float}}`` (SI;
+    ``scale`` [unit] is the natural size of the parameter, the floor of its relative standard
+    error), and its ``predict(material, **{name: value})`` takes them as keyword arguments
+    (differentiable in them). :func:`~difftissue.fit.fit` fits them where its
+    ``scenario_parameters`` asks for them (:class:`FitParameterization`).
     """
 
     name: str
@@ -62,6 +70,116 @@ class Scenario(Protocol):
     y_label: str
 
     def predict(self, material: Material) -> jax.Array: ...
+
+
+# ============================================================================ parameters
+class FitParameterization(eqx.Module):
+    """The fitted parameters of a problem with scenario parameters: the material's fields
+    (through their transforms, as :class:`~difftissue.materials.MaterialParameterization`)
+    followed by parameters of the scenarios themselves (e.g. ``"indent.contact_offset"``).
+
+    The unconstrained vector ``u`` holds the material fields first (in the order of the
+    material parameterization), then the scenario parameters in the order they were asked for.
+    ``fields``, ``transforms``, :meth:`pack`, :meth:`values` and :meth:`unpack` follow
+    :class:`~difftissue.materials.MaterialParameterization` (``unpack`` gives the material
+    only); :meth:`scenario_values` the scenario parameters' values.
+    """
+
+    fields: tuple[str, ...] = eqx.field(static=True)
+    transforms: tuple[Transform, ...]
+    material_fields: tuple[str, ...] = eqx.field(static=True)
+    #: per scenario parameter: (scenario index, scenario name, parameter name)
+    scenario_keys: tuple[tuple[int, str, str], ...] = eqx.field(static=True)
+    starts: tuple[float, ...] = eqx.field(static=True)
+    units: tuple[str, ...] = eqx.field(static=True)
+    floors: tuple[float, ...] = eqx.field(static=True)
+
+    @property
+    def n_material(self) -> int:
+        return len(self.material_fields)
+
+    def material_parameterization(self) -> MaterialParameterization:
+        """The material part (with the current transforms)."""
+        return MaterialParameterization(self.material_fields, dict(zip(self.material_fields, self.transforms[: self.n_material])))
+
+    def pack(self, material: Material):
+        """``u`` of ``material``'s fitted fields followed by the scenario parameters' starts."""
+        u_m = self.material_parameterization().pack(material)
+        extra = [t.inverse(np.asarray(v, dtype=float)) for t, v in zip(self.transforms[self.n_material:], self.starts)]
+        if isinstance(u_m, np.ndarray) and all(_concrete(e) for e in extra):
+            return np.concatenate([u_m, np.asarray([float(e) for e in extra], dtype=u_m.dtype)])
+        return jnp.concatenate([jnp.asarray(u_m), jnp.stack([jnp.asarray(e, dtype=jnp.asarray(u_m).dtype) for e in extra])])
+
+    def values(self, u) -> dict:
+        """Physical values of every fitted parameter from ``u`` (SI)."""
+        return {f: t.forward(u[i]) for i, (f, t) in enumerate(zip(self.fields, self.transforms))}
+
+    def unpack(self, u, base: Material) -> Material:
+        """``base`` with the fitted MATERIAL fields replaced by their values at ``u``."""
+        return self.material_parameterization().unpack(u[: self.n_material], base)
+
+    def scenario_values(self, vector, n_scenarios: int) -> tuple[dict, ...]:
+        """Per scenario, ``{parameter name: value}`` from the physical value ``vector`` (p,)."""
+        out: list[dict] = [dict() for _ in range(n_scenarios)]
+        for k, (i, _, pname) in enumerate(self.scenario_keys):
+            out[i][pname] = vector[self.n_material + k]
+        return tuple(out)
+
+
+def _concrete(x) -> bool:
+    return isinstance(x, (float, int, np.ndarray, np.generic)) or (isinstance(x, jax.Array) and not isinstance(x, jax.core.Tracer))
+
+
+def scenario_parameterization(scenarios, parameterization: MaterialParameterization, requested) -> FitParameterization:
+    """The :class:`FitParameterization` of ``parameterization`` plus the scenario parameters
+    ``requested``: ``{scenario name: names}`` (each starting at the scenario's start value) or
+    ``{scenario name: {name: start value (SI)}}``.
+
+    Raises:
+        FitError: an unknown scenario name, a scenario that declares no fittable parameters,
+            a parameter it does not declare, a repeated one or a start value that is not a
+            finite number.
+    """
+    if not isinstance(requested, Mapping):
+        raise FitError(f"scenario_parameters must map scenario names to parameter names, e.g. {{'indentation': ('contact_offset',)}}; got {requested!r}")
+    by_name = {getattr(sc, "name", None): i for i, sc in enumerate(scenarios)}
+    keys, transforms, starts, units, floors, names = [], [], [], [], [], []
+    for sname, wanted in requested.items():
+        if sname not in by_name:
+            raise FitError(f"scenario_parameters names scenario {sname!r}, which is not fitted; scenarios: {sorted(n for n in by_name if isinstance(n, str))}")
+        i = by_name[sname]
+        sc = scenarios[i]
+        declare = getattr(sc, "fittable_parameters", None)
+        declared = declare() if callable(declare) else {}
+        if isinstance(wanted, str):
+            wanted = (wanted,)
+        if isinstance(wanted, Mapping):
+            items = list(wanted.items())
+        elif isinstance(wanted, Sequence):
+            items = [(w, None) for w in wanted]
+        else:
+            raise FitError(f"scenario_parameters[{sname!r}] must be parameter names or {{name: start value}}, got {wanted!r}")
+        for pname, start in items:
+            if pname not in declared:
+                have = f"it declares {sorted(declared)}" if declared else f"{type(sc).__name__} declares no fittable parameters"
+                raise FitError(f"scenario {sname!r} has no fittable parameter {pname!r} ({have})")
+            spec = declared[pname]
+            start = spec.get("start", 0.0) if start is None else start
+            if not (isinstance(start, (int, float, np.floating)) and not isinstance(start, bool) and math.isfinite(start)):
+                raise FitError(f"start value of {sname}.{pname} must be a finite number (SI), got {start!r}")
+            field = f"{sname}.{pname}"
+            if field in names:
+                raise FitError(f"scenario parameter {field!r} is asked for twice")
+            names.append(field)
+            keys.append((i, sname, pname))
+            transforms.append(spec["transform"])
+            starts.append(float(start))
+            units.append(str(spec.get("unit", "")))
+            floors.append(float(spec.get("scale", 0.0)))
+    material_floors = tuple(0.0 for _ in parameterization.fields)
+    return FitParameterization(fields=tuple(parameterization.fields) + tuple(names), transforms=tuple(parameterization.transforms) + tuple(transforms),
+                               material_fields=tuple(parameterization.fields), scenario_keys=tuple(keys), starts=tuple(starts),
+                               units=tuple(UNITS.get(f, "") for f in parameterization.fields) + tuple(units), floors=material_floors + tuple(floors))
 
 
 # ============================================================================ problem
@@ -87,10 +205,15 @@ class FitProblem:
         loss: ``"linear"``, ``"soft_l1"`` or ``"huber"``.
         f_scale: residual scale of the robust loss [-] (residuals are already divided by sigma,
             so ``f_scale = 3`` down-weights points more than 3 sigma off).
+        scenario_parameters: scenario parameters fitted with the material fields,
+            ``{scenario name: (parameter name, ...)}`` or ``{scenario name: {parameter name:
+            start value (SI)}}`` (see :func:`scenario_parameterization`); their fields are named
+            ``"<scenario>.<parameter>"`` and follow the material fields in ``u``.
     """
 
-    def __init__(self, scenarios, parameterization: MaterialParameterization, base: Material, *, loss: str = "linear", f_scale: float = 1.0):
-        if not isinstance(parameterization, MaterialParameterization):
+    def __init__(self, scenarios, parameterization: MaterialParameterization, base: Material, *, loss: str = "linear", f_scale: float = 1.0,
+                 scenario_parameters=None):
+        if not isinstance(parameterization, (MaterialParameterization, FitParameterization)):
             raise FitError(f"parameterization must be a MaterialParameterization, got {type(parameterization).__name__}")
         if not isinstance(base, Material):
             raise FitError(f"the initial material must be a Material, got {type(base).__name__}")
@@ -132,8 +255,21 @@ class FitProblem:
             precision.append(float(eps))
         self.scenarios = scenarios
         self.names = tuple(names)
+        if scenario_parameters:
+            if isinstance(parameterization, FitParameterization):
+                raise FitError("give scenario_parameters with a MaterialParameterization, not with a FitParameterization that already holds them")
+            parameterization = scenario_parameterization(scenarios, parameterization, scenario_parameters)
         self.parameterization = parameterization
         self.fields = tuple(parameterization.fields)
+        if isinstance(parameterization, FitParameterization):
+            self.material_fields = parameterization.material_fields
+            self.units = dict(zip(parameterization.fields, parameterization.units))
+            self.scale_floors = {f: v for f, v in zip(parameterization.fields, parameterization.floors) if v > 0}
+        else:
+            self.material_fields = self.fields
+            self.units = {f: UNITS.get(f, "") for f in self.fields}
+            self.scale_floors = {}
+        self.n_material = len(self.material_fields)
         self.base = base
         self.loss_name = loss
         self.f_scale = float(f_scale)
@@ -237,13 +373,31 @@ class FitProblem:
 
     def material_from_values(self, values) -> Material:
         """The material with the fitted fields set to physical ``values`` (shape ``(p,)``, SI)."""
-        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in self.fields), self.base, tuple(values[i] for i in range(self.n_parameters)))
+        return eqx.tree_at(lambda m: tuple(getattr(m, f) for f in self.material_fields), self.base, tuple(values[i] for i in range(self.n_material)))
 
-    def predictions_of(self, material: Material) -> list[jax.Array]:
-        """Each scenario's predictions (its unit), checked against the observed shapes."""
+    @property
+    def has_scenario_parameters(self) -> bool:
+        """Whether scenario parameters (e.g. a contact offset) are fitted with the material."""
+        return isinstance(self.parameterization, FitParameterization) and bool(self.parameterization.scenario_keys)
+
+    def scenario_values_of(self, values) -> tuple[dict, ...] | None:
+        """Per scenario, its fitted parameters ``{name: value}`` from the physical ``values``
+        (p,) (None when none are fitted)."""
+        if not self.has_scenario_parameters:
+            return None
+        return self.parameterization.scenario_values(values, len(self.scenarios))
+
+    def _vector(self, u):
+        vals = self.values(u)
+        return jnp.stack([jnp.asarray(vals[f]) for f in self.fields])
+
+    def predictions_of(self, material: Material, scenario_values=None) -> list[jax.Array]:
+        """Each scenario's predictions (its unit), checked against the observed shapes;
+        ``scenario_values`` (:meth:`scenario_values_of`) the fitted scenario parameters."""
         preds = []
-        for sc, obs in zip(self.scenarios, self._observed):
-            pred = jnp.asarray(sc.predict(material))
+        for k, (sc, obs) in enumerate(zip(self.scenarios, self._observed)):
+            extra = scenario_values[k] if scenario_values is not None else {}
+            pred = jnp.asarray(sc.predict(material, **extra) if extra else sc.predict(material))
             if pred.shape != obs.shape:
                 raise FitError(f"scenario {sc.name!r}: predict returned shape {pred.shape}, observed has {obs.shape}")
             preds.append(pred)
@@ -272,7 +426,7 @@ class FitProblem:
         fit needs at its start and end, compiled once)."""
 
         def res(v):
-            preds = self.predictions_of(self.material_from_values(v))
+            preds = self.predictions_of(self.material_from_values(v), self.scenario_values_of(v))
             r = self.robust(self._scaled(preds))
             return r, (r, preds)
 
@@ -291,17 +445,19 @@ class FitProblem:
     def residuals_and_predictions(self, u) -> tuple[jax.Array, tuple[jax.Array, ...]]:
         """``(residuals(u), predictions)``: the robustified scaled residuals and each
         scenario's predictions (in the residuals' dtype) from one forward evaluation."""
-        preds = self.predictions_of(self.material(u))
+        preds = self.predictions_of(self.material(u), self.scenario_values_of(self._vector(u)) if self.has_scenario_parameters else None)
         r = self.robust(self._scaled(preds))
         return r, tuple(jnp.asarray(p, dtype=r.dtype) for p in preds)
 
     def residuals(self, u) -> jax.Array:
         """Robustified scaled residuals at ``u``, shape ``(n,)`` [-] (plain ones for ``linear``)."""
+        if self.has_scenario_parameters:
+            return self.robust(self._scaled(self.predictions_of(self.material(u), self.scenario_values_of(self._vector(u)))))
         return self.robust(self.scaled_residuals_of(self.material(u)))
 
     def residuals_of_values(self, values) -> jax.Array:
         """Robustified scaled residuals as a function of the PHYSICAL fitted values (SI)."""
-        return self.robust(self.scaled_residuals_of(self.material_from_values(values)))
+        return self.robust(self._scaled(self.predictions_of(self.material_from_values(values), self.scenario_values_of(values))))
 
     def loss(self, u) -> jax.Array:
         """Loss ``0.5 f_scale^2 sum rho((r/f_scale)^2)`` [-] at ``u``."""

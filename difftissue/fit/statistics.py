@@ -35,7 +35,7 @@ _SINGULAR_FRACTION = 1e-13
 
 
 # ============================================================================ statistics
-def parameter_statistics(jacobian, values, fields, *, loss: float, absolute_sigma: bool = False):
+def parameter_statistics(jacobian, values, fields, *, loss: float, absolute_sigma: bool = False, floors: Mapping[str, float] | None = None):
     """Gauss--Newton covariance, standard errors and correlation of physical parameters.
 
     Args:
@@ -45,6 +45,8 @@ def parameter_statistics(jacobian, values, fields, *, loss: float, absolute_sigm
         loss: final loss (``SSE = 2 loss``).
         absolute_sigma: if true, ``cov = (J^T J)^-1`` (the sigmas are the true noise levels);
             otherwise ``cov = s^2 (J^T J)^-1`` with ``s^2 = SSE / (n - p)``.
+        floors: scale floors of parameters that are not material fields (e.g. a scenario's
+            contact offset, which may sit at 0: its natural size), added to the built-in ones.
 
     Returns:
         dict with ``covariance``, ``correlation``, ``standard_errors`` (arrays), ``eigenvalues``,
@@ -58,7 +60,8 @@ def parameter_statistics(jacobian, values, fields, *, loss: float, absolute_sigm
     J = np.asarray(jacobian, dtype=float)
     theta = np.asarray(values, dtype=float)
     n, p = J.shape
-    scales = np.array([max(abs(t), _SCALE_FLOOR.get(f, 0.0)) or 1.0 for t, f in zip(theta, fields)])
+    floor = {**_SCALE_FLOOR, **(floors or {})}
+    scales = np.array([max(abs(t), floor.get(f, 0.0)) or 1.0 for t, f in zip(theta, fields)])
     Js = J * scales
     A = Js.T @ Js
     lam, V = np.linalg.eigh(A)
@@ -108,7 +111,8 @@ def parameter_statistics(jacobian, values, fields, *, loss: float, absolute_sigm
     }
 
 
-def identifiability_diagnostics(stats: Mapping, values, fields) -> list[tuple[str, str]]:
+def identifiability_diagnostics(stats: Mapping, values, fields, *, floors: Mapping[str, float] | None = None,
+                                units: Mapping[str, str] | None = None) -> list[tuple[str, str]]:
     """Which parameters the data do not determine, and why.
 
     Rules (thresholds in :data:`CONDITION_LIMIT`, :data:`RELATIVE_SE_LIMIT`,
@@ -120,9 +124,14 @@ def identifiability_diagnostics(stats: Mapping, values, fields) -> list[tuple[st
     2. relative standard error ``SE / max(|value|, floor)`` > 1 (100 %).
     3. ``|correlation| > 0.99`` between two parameters (both named).
 
+    ``floors`` and ``units``: scale floors and units of parameters that are not material
+    fields (as :func:`parameter_statistics`'s ``floors``).
+
     Returns a list of ``(field, message)``.
     """
     fields = tuple(fields)
+    floor = {**_SCALE_FLOOR, **(floors or {})}
+    unit_of = {**UNITS, **(units or {})}
     out: list[tuple[str, str]] = []
     named: set[tuple[str, str]] = set()
 
@@ -156,8 +165,8 @@ def identifiability_diagnostics(stats: Mapping, values, fields) -> list[tuple[st
     for j, f in enumerate(fields):
         rel = se[j] / scales[j]
         if not np.isfinite(rel) or rel > RELATIVE_SE_LIMIT:
-            se_txt = "infinite" if not np.isfinite(se[j]) else f"{se[j]:.3g} {unit_text(UNITS.get(f, ''))}".strip()
-            of = f"|value| = {scales[j]:.3g}" if scales[j] > _SCALE_FLOOR.get(f, 0.0) else f"the floor scale {scales[j]:g} (|value| is smaller)"
+            se_txt = "infinite" if not np.isfinite(se[j]) else f"{se[j]:.3g} {unit_text(unit_of.get(f, ''))}".strip()
+            of = f"|value| = {scales[j]:.3g}" if scales[j] > floor.get(f, 0.0) else f"the floor scale {scales[j]:g} (|value| is smaller)"
             add(f, "se", f"{f} is not determined by the data: standard error {se_txt} exceeds 100 % of {of}")
     corr = np.asarray(stats["correlation"], dtype=float)
     for i in range(len(fields)):
@@ -287,12 +296,12 @@ def runs_test(r) -> tuple[int, float, float]:
     return runs, mu, math.erfc(abs(z) / math.sqrt(2.0))
 
 
-def _bound_flags(parameterization, u, values) -> list[QualityFlag]:
+def _bound_flags(parameterization, u, values, units=None) -> list[QualityFlag]:
     """``at_bound`` for each field whose transform is saturated (within :data:`BOUND_FRACTION`)."""
     out = []
     for i, (f, t) in enumerate(zip(parameterization.fields, parameterization.transforms)):
         ui = float(u[i])
-        unit = unit_text(UNITS.get(f, ""))
+        unit = unit_text((units or UNITS).get(f, ""))
         if isinstance(t, ScaledLogit):
             frac = 1.0 / (1.0 + math.exp(-ui)) if ui > -700 else 0.0
             for side, dist, b in (("lower", frac, t.lower), ("upper", 1.0 - frac, t.upper)):
@@ -353,7 +362,7 @@ def assess_quality(result: "FitResult", parameterization=None, *, plausible: Map
     if not result.converged:
         flags.append(QualityFlag("not_converged", "error", None, f"the fit did not converge ({result.reason}) after {result.steps} steps", {"steps": result.steps}))
     if parameterization is not None:
-        flags += _bound_flags(parameterization, result.unconstrained, result.values)
+        flags += _bound_flags(parameterization, result.unconstrained, result.values, result.units)
     for f in result.fields:
         v = result.values[f]
         if f in ranges and math.isfinite(v) and not ranges[f][0] <= v <= ranges[f][1]:
