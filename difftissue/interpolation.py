@@ -145,24 +145,26 @@ def node_coordinates(cell_type: str) -> np.ndarray:
 def _quadratic_hex(t: str, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Shape functions ``(n, k)`` and their derivatives ``(n, k, 3)`` of the 20-node
     (serendipity) or 27-node (triquadratic) hexahedron."""
-    x = xi[:, None, :]  # (n, 1, 3)
+    x = xi[:, None, :]  # (n, 1, 3): the 1-D factors at the node coordinates -1, 0, 1 (axis 1)
     if t == "hexahedron27":
-        a = _HEX27_NODES[None]  # (1, 27, 3), entries -1, 0, 1
-        # 1-D quadratic Lagrange polynomials on {-1, 0, 1}: x (x + a) / 2 at a = +-1, 1 - x^2 at 0
-        f = np.where(a == 0, 1.0 - x**2, x * (x + a) / 2.0)
-        df = np.where(a == 0, -2.0 * x, x + a / 2.0)
-        N = np.prod(f, axis=2)
-        G = np.stack([df[:, :, d] * np.prod(np.delete(f, d, axis=2), axis=2) for d in range(3)], axis=2)
-        return N, G
-    a = _HEX20_NODES[None]  # (1, 20, 3)
-    f = np.where(a == 0, 1.0 - x**2, 1.0 + x * a)
-    df = np.where(a == 0, -2.0 * x, a + 0.0 * x)
-    P = np.prod(f, axis=2)  # (n, 20)
-    dP = np.stack([df[:, :, d] * np.prod(np.delete(f, d, axis=2), axis=2) for d in range(3)], axis=2)
-    corner = np.arange(20) < 8
-    s = np.sum(x * a, axis=2) - 2.0  # corners: xi a + eta b + zeta c - 2
-    N = np.where(corner, P * s / 8.0, P / 4.0)
-    G = np.where(corner[None, :, None], (dP * s[:, :, None] + P[:, :, None] * a) / 8.0, dP / 4.0)
+        a = _HEX27_NODES.astype(int) + 1  # (27, 3) indices into the factors
+        # 1-D quadratic Lagrange polynomials on {-1, 0, 1}
+        f = np.concatenate([x * (x - 1.0) / 2.0, 1.0 - x**2, x * (x + 1.0) / 2.0], axis=1)  # (n, 3, 3)
+        df = np.concatenate([x - 0.5, -2.0 * x, x + 0.5], axis=1)
+    else:
+        a = _HEX20_NODES.astype(int) + 1
+        f = np.concatenate([1.0 - x, 1.0 - x**2, 1.0 + x], axis=1)
+        df = np.concatenate([-np.ones_like(x), -2.0 * x, np.ones_like(x)], axis=1)
+    fx, fy, fz = f[:, a[:, 0], 0], f[:, a[:, 1], 1], f[:, a[:, 2], 2]  # (n, k)
+    P = fx * fy * fz
+    dP = np.stack([df[:, a[:, 0], 0] * fy * fz, fx * df[:, a[:, 1], 1] * fz, fx * fy * df[:, a[:, 2], 2]], axis=2)
+    if t == "hexahedron27":
+        return P, dP
+    # serendipity: corners (1 + xi a)(1 + eta b)(1 + zeta c)(xi a + eta b + zeta c - 2) / 8, mid-edge nodes the products / 4
+    c = _HEX_NODES  # the corners' signs
+    s = xi @ c.T - 2.0  # (n, 8)
+    N = np.concatenate([P[:, :8] * s / 8.0, P[:, 8:] / 4.0], axis=1)
+    G = np.concatenate([(dP[:, :8] * s[:, :, None] + P[:, :8, None] * c[None]) / 8.0, dP[:, 8:] / 4.0], axis=1)
     return N, G
 
 
@@ -229,17 +231,20 @@ def _local_coordinates(t: str, X: np.ndarray, q: np.ndarray) -> tuple[np.ndarray
         xi = np.zeros((m, 3))
     scale = np.linalg.norm(X.max(axis=1) - X.min(axis=1), axis=1)
     done = np.zeros(m, dtype=bool)
+    act = np.arange(m)  # the rows still iterated (a converged row keeps its coordinates)
     for _ in range(_NEWTON_STEPS):
-        N = shape_functions(t, xi)
-        r = np.einsum("mk,mkd->md", N, X) - q
-        done = np.linalg.norm(r, axis=1) <= 1e-13 * scale
-        if done.all():
+        Xa, xa = X[act], xi[act]
+        r = np.einsum("mk,mkd->md", shape_functions(t, xa), Xa) - q[act]
+        ok = np.linalg.norm(r, axis=1) <= 1e-13 * scale[act]
+        done[act] = ok
+        act, Xa, xa, r = act[~ok], Xa[~ok], xa[~ok], r[~ok]
+        if act.size == 0:
             break
-        J = np.einsum("mkd,mke->mde", X, shape_gradients(t, xi))
+        J = np.einsum("mkd,mke->mde", Xa, shape_gradients(t, xa))
         with np.errstate(all="ignore"):
             step = np.linalg.solve(J, r[:, :, None])[:, :, 0]
         step = np.where(np.isfinite(step), step, 0.0)
-        xi = np.clip(xi - np.where(done[:, None], 0.0, step), -4.0, 4.0)  # far candidates: keep the iteration bounded
+        xi[act] = np.clip(xa - step, -4.0, 4.0)  # far candidates: keep the iteration bounded
     return xi, done
 
 

@@ -115,7 +115,7 @@ def load_fem_result(
             mismatch between coordinates and displacements).
         MeshError: the file cannot be read as a valid tet mesh (linear tetrahedra), or its
             quadratic / hexahedral elements are degenerate (a quadratic hexahedron also when
-            its Jacobian changes sign between its centre and corners: misplaced or
+            its Jacobian changes sign between its centre and nodes: misplaced or
             misordered mid-side nodes) or index missing nodes.
         UnsupportedMeshError: volume cells other than tetra, tetra10 and the 8-, 20- and
             27-node hexahedra (wedges, pyramids, hexahedron24), Abaqus C3D27 (meshio cannot
@@ -241,7 +241,7 @@ def _higher_order_cells(raw, path, length_unit: str, units: dict):
     """``points [m], cells, point_data`` of a meshio mesh with quadratic tetrahedra or
     hexahedra (any mix with linear tetrahedra): every volume cell checked (indices in range,
     a non-degenerate Jacobian at the element's centre; quadratic hexahedra: the Jacobian of
-    their own map at the centre and the 8 corners, non-degenerate and of one sign)."""
+    their own map at the centre and every node, non-degenerate and of one sign)."""
     if length_unit not in units:
         raise MeshError(f"unknown length unit {length_unit!r}; choose one of {sorted(units)}")
     points = np.asarray(raw.points, dtype=float)
@@ -284,18 +284,18 @@ def _higher_order_cells(raw, path, length_unit: str, units: dict):
 
 def _check_quadratic_hexahedra(path, t: str, X: np.ndarray) -> None:
     """Refuse 20- or 27-node hexahedra ``X`` ``(M, k, 3)`` whose map (their own shape functions)
-    has a (near-)zero Jacobian, or one that changes sign, at the centre or a corner: flat
+    has a (near-)zero Jacobian, or one that changes sign, at the centre or a node: flat
     elements, and mid-side nodes misplaced or given in another node order than VTK's."""
     from ..interpolation import node_coordinates, shape_gradients
 
-    at = np.vstack([[[0.0, 0.0, 0.0]], node_coordinates(t)[:8]])  # centre, corners
-    dN = shape_gradients(t, at)  # (9, k, 3)
-    det = np.linalg.det(np.einsum("mkd,pke->mpde", X, dN))  # (M, 9)
+    at = np.vstack([[[0.0, 0.0, 0.0]], node_coordinates(t)])  # centre, nodes
+    dN = shape_gradients(t, at)  # (1 + k, k, 3)
+    det = np.linalg.det(np.einsum("mkd,pke->mpde", X, dN))  # (M, 1 + k)
     h = np.linalg.norm(X.max(axis=1) - X.min(axis=1), axis=1)
     tiny = 1e-10 * h[:, None] ** 3
     ok = np.all(det > tiny, axis=1) | np.all(det < -tiny, axis=1)
     bad = np.flatnonzero(~ok)
     if bad.size:
         raise DegenerateElementError(f"{path}: {t} cells {_cite(bad)} are degenerate or inverted (the Jacobian of the element's map is zero "
-                                     f"or changes sign between its centre and corners); check that the nodes are in VTK order (corners, "
+                                     f"or changes sign between its centre and nodes); check that the nodes are in VTK order (corners, "
                                      f"then mid-edge nodes{', face centres, body centre' if t == 'hexahedron27' else ''})", bad)
