@@ -13,11 +13,25 @@ Elements (meshio cell names, VTK node order; meshio converts Gmsh and Abaqus ord
   (0,1), (1,2), (0,2), (0,3), (1,3), (2,3)); curved (isoparametric) elements are inverted
   by Newton's method;
 - ``"hexahedron"``: trilinear 8-node hexahedron (nodes 0-3 the bottom face counter-clockwise,
-  4-7 above them), inverted by Newton's method.
+  4-7 above them), inverted by Newton's method;
+- ``"hexahedron20"``: 20-node serendipity hexahedron (VTK_QUADRATIC_HEXAHEDRON; Abaqus C3D20,
+  FEBio hex20): the 8 corners, then the mid-edge nodes of (0,1), (1,2), (2,3), (3,0), (4,5),
+  (5,6), (6,7), (7,4), (0,4), (1,5), (2,6), (3,7);
+- ``"hexahedron27"``: 27-node triquadratic hexahedron (VTK_TRIQUADRATIC_HEXAHEDRON; FEBio
+  hex27): the 20 nodes of ``hexahedron20``, then the centres of the faces xi = -1 (corners
+  0,3,7,4), xi = +1 (1,2,6,5), eta = -1 (0,1,5,4), eta = +1 (3,2,6,7), zeta = -1 (0,1,2,3),
+  zeta = +1 (4,5,6,7) and the body centre.
 
-Interpolation is exact for fields the element reproduces: affine fields in every element,
-quadratic fields in ``tetra10``, and (for an affine-mapped, i.e. parallelepiped, hexahedron)
-trilinear fields in ``hexahedron``.
+The quadratic hexahedra are isoparametric (curved edges allowed) and inverted by Newton's
+method, as the trilinear one.
+
+Interpolation is exact for fields the element reproduces: affine fields in every element
+(curved isoparametric ones included); quadratic fields in ``tetra10`` (straight edges) and in
+``hexahedron20`` and ``hexahedron27`` mapped affinely (parallelepipeds, mid-side nodes at the
+midpoints); on axis-aligned boxes also trilinear fields in ``hexahedron``, the serendipity
+space (quadratics and the cubic and quartic terms ``x^2 y``, ``x y z``, ``x^2 y z``, ...) in
+``hexahedron20`` and triquadratic fields in ``hexahedron27``. On a curved element a quadratic
+field is approximated, not reproduced (the map itself is quadratic).
 
 A query point outside the source mesh by at most ``tolerance`` [m] takes the nearest element's
 shape functions extrapolated to it (still exact for affine fields); farther points raise
@@ -34,14 +48,24 @@ import numpy as np
 
 from .errors import MeshError, PointsOutsideMeshError, UnsupportedMeshError
 
-__all__ = ["ELEMENT_NODES", "InterpolationOperator", "interpolation_operator", "shape_functions", "shape_gradients"]
+__all__ = ["ELEMENT_NODES", "HEX27_FACES", "HEX_EDGES", "InterpolationOperator", "interpolation_operator", "node_coordinates", "shape_functions",
+           "shape_gradients"]
 
 #: Nodes per element of the element types understood (meshio names).
-ELEMENT_NODES = {"tetra": 4, "tetra10": 10, "hexahedron": 8}
+ELEMENT_NODES = {"tetra": 4, "tetra10": 10, "hexahedron": 8, "hexahedron20": 20, "hexahedron27": 27}
+#: The hexahedra (local coordinates in ``[-1, 1]^3``).
+_HEXES = ("hexahedron", "hexahedron20", "hexahedron27")
 #: meshio names that mean the same element (meshio reads Abaqus C3D4H as "tetra4").
 _ALIASES = {"tetra4": "tetra", "hexahedron8": "hexahedron"}
 #: Local coordinates of the hexahedron's nodes (VTK order).
 _HEX_NODES = np.array([[-1, -1, -1], [1, -1, -1], [1, 1, -1], [-1, 1, -1], [-1, -1, 1], [1, -1, 1], [1, 1, 1], [-1, 1, 1]], dtype=float)
+#: Mid-edge nodes of the quadratic hexahedra (VTK order): the corners each joins.
+HEX_EDGES = ((0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7))
+#: Face-centre nodes of the 27-node hexahedron (VTK order): the corners of each face.
+HEX27_FACES = ((0, 3, 7, 4), (1, 2, 6, 5), (0, 1, 5, 4), (3, 2, 6, 7), (0, 1, 2, 3), (4, 5, 6, 7))
+#: Local coordinates of the nodes of the 20- and 27-node hexahedra (VTK order).
+_HEX20_NODES = np.vstack([_HEX_NODES, [(_HEX_NODES[a] + _HEX_NODES[b]) / 2 for a, b in HEX_EDGES]])
+_HEX27_NODES = np.vstack([_HEX20_NODES, [_HEX_NODES[list(f)].mean(axis=0) for f in HEX27_FACES], [[0.0, 0.0, 0.0]]])
 #: Mid-edge nodes of the 10-node tetrahedron (VTK order): the corners each joins.
 _TET10_EDGES = ((0, 1), (1, 2), (0, 2), (0, 3), (1, 3), (2, 3))
 #: A query is inside an element when its local coordinates are inside within this margin.
@@ -63,13 +87,19 @@ def shape_functions(cell_type: str, xi) -> np.ndarray:
     """Shape functions ``(n, k)`` of ``cell_type`` at local coordinates ``xi`` ``(n, 3)``.
 
     Tetrahedra: ``xi = (xi, eta, zeta)`` with the barycentric coordinates
-    ``(1 - xi - eta - zeta, xi, eta, zeta)`` of corners 0-3. Hexahedron: ``xi`` in
-    ``[-1, 1]^3``. Every set sums to 1 at any ``xi``.
+    ``(1 - xi - eta - zeta, xi, eta, zeta)`` of corners 0-3. Hexahedra: ``xi`` in
+    ``[-1, 1]^3`` (node local coordinates: :func:`node_coordinates`); ``hexahedron20`` the
+    serendipity functions (corners ``(1 + xi a)(1 + eta b)(1 + zeta c)(xi a + eta b + zeta c - 2) / 8``,
+    mid-edge nodes ``(1 - xi^2)(1 + eta b)(1 + zeta c) / 4`` and permutations),
+    ``hexahedron27`` the products of the 1-D quadratic Lagrange polynomials. Every set sums to
+    1 at any ``xi``.
     """
     t = _canonical(cell_type)
     xi = np.atleast_2d(np.asarray(xi, dtype=float))
     if t == "hexahedron":
         return np.prod(1.0 + xi[:, None, :] * _HEX_NODES[None], axis=2) / 8.0
+    if t in ("hexahedron20", "hexahedron27"):
+        return _quadratic_hex(t, xi)[0]
     lam = np.concatenate([1.0 - xi.sum(axis=1, keepdims=True), xi], axis=1)
     if t == "tetra":
         return lam
@@ -90,6 +120,8 @@ def shape_gradients(cell_type: str, xi) -> np.ndarray:
             others = [e for e in range(3) if e != d]
             g[:, :, d] = _HEX_NODES[None, :, d] * f[:, :, others[0]] * f[:, :, others[1]] / 8.0
         return g
+    if t in ("hexahedron20", "hexahedron27"):
+        return _quadratic_hex(t, xi)[1]
     dlam = np.array([[-1.0, -1.0, -1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])  # d lambda_i / d xi
     if t == "tetra":
         return np.broadcast_to(dlam, (n, 4, 3)).copy()
@@ -97,6 +129,43 @@ def shape_gradients(cell_type: str, xi) -> np.ndarray:
     corners = (4.0 * lam - 1.0)[:, :, None] * dlam[None]
     edges = np.stack([4.0 * (lam[:, a, None] * dlam[b] + lam[:, b, None] * dlam[a]) for a, b in _TET10_EDGES], axis=1)
     return np.concatenate([corners, edges], axis=1)
+
+
+def node_coordinates(cell_type: str) -> np.ndarray:
+    """Local coordinates ``(k, 3)`` of the nodes of ``cell_type`` in its (VTK) node order."""
+    t = _canonical(cell_type)
+    if t in _HEXES:
+        return {"hexahedron": _HEX_NODES, "hexahedron20": _HEX20_NODES, "hexahedron27": _HEX27_NODES}[t].copy()
+    corners = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
+    if t == "tetra":
+        return corners
+    return np.vstack([corners, [(corners[a] + corners[b]) / 2 for a, b in _TET10_EDGES]])
+
+
+def _quadratic_hex(t: str, xi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shape functions ``(n, k)`` and their derivatives ``(n, k, 3)`` of the 20-node
+    (serendipity) or 27-node (triquadratic) hexahedron."""
+    x = xi[:, None, :]  # (n, 1, 3): the 1-D factors at the node coordinates -1, 0, 1 (axis 1)
+    if t == "hexahedron27":
+        a = _HEX27_NODES.astype(int) + 1  # (27, 3) indices into the factors
+        # 1-D quadratic Lagrange polynomials on {-1, 0, 1}
+        f = np.concatenate([x * (x - 1.0) / 2.0, 1.0 - x**2, x * (x + 1.0) / 2.0], axis=1)  # (n, 3, 3)
+        df = np.concatenate([x - 0.5, -2.0 * x, x + 0.5], axis=1)
+    else:
+        a = _HEX20_NODES.astype(int) + 1
+        f = np.concatenate([1.0 - x, 1.0 - x**2, 1.0 + x], axis=1)
+        df = np.concatenate([-np.ones_like(x), -2.0 * x, np.ones_like(x)], axis=1)
+    fx, fy, fz = f[:, a[:, 0], 0], f[:, a[:, 1], 1], f[:, a[:, 2], 2]  # (n, k)
+    P = fx * fy * fz
+    dP = np.stack([df[:, a[:, 0], 0] * fy * fz, fx * df[:, a[:, 1], 1] * fz, fx * fy * df[:, a[:, 2], 2]], axis=2)
+    if t == "hexahedron27":
+        return P, dP
+    # serendipity: corners (1 + xi a)(1 + eta b)(1 + zeta c)(xi a + eta b + zeta c - 2) / 8, mid-edge nodes the products / 4
+    c = _HEX_NODES  # the corners' signs
+    s = xi @ c.T - 2.0  # (n, 8)
+    N = np.concatenate([P[:, :8] * s / 8.0, P[:, 8:] / 4.0], axis=1)
+    G = np.concatenate([(dP[:, :8] * s[:, :, None] + P[:, :8, None] * c[None]) / 8.0, dP[:, 8:] / 4.0], axis=1)
+    return N, G
 
 
 # ============================================================================ operator
@@ -150,7 +219,8 @@ class InterpolationOperator(eqx.Module):
 def _local_coordinates(t: str, X: np.ndarray, q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Local coordinates of points ``q`` ``(m, 3)`` in elements ``X`` ``(m, k, 3)`` and whether
     the inversion converged ``(m,)``. Tetrahedra: the affine map of the corners (exact for
-    ``tetra``), then Newton on the isoparametric map for ``tetra10`` and ``hexahedron``."""
+    ``tetra``), then Newton on the isoparametric map for ``tetra10`` and the hexahedra (from the
+    element's centre)."""
     m = len(q)
     if t in ("tetra", "tetra10"):
         J = np.stack([X[:, 1] - X[:, 0], X[:, 2] - X[:, 0], X[:, 3] - X[:, 0]], axis=2)  # columns
@@ -161,23 +231,26 @@ def _local_coordinates(t: str, X: np.ndarray, q: np.ndarray) -> tuple[np.ndarray
         xi = np.zeros((m, 3))
     scale = np.linalg.norm(X.max(axis=1) - X.min(axis=1), axis=1)
     done = np.zeros(m, dtype=bool)
+    act = np.arange(m)  # the rows still iterated (a converged row keeps its coordinates)
     for _ in range(_NEWTON_STEPS):
-        N = shape_functions(t, xi)
-        r = np.einsum("mk,mkd->md", N, X) - q
-        done = np.linalg.norm(r, axis=1) <= 1e-13 * scale
-        if done.all():
+        Xa, xa = X[act], xi[act]
+        r = np.einsum("mk,mkd->md", shape_functions(t, xa), Xa) - q[act]
+        ok = np.linalg.norm(r, axis=1) <= 1e-13 * scale[act]
+        done[act] = ok
+        act, Xa, xa, r = act[~ok], Xa[~ok], xa[~ok], r[~ok]
+        if act.size == 0:
             break
-        J = np.einsum("mkd,mke->mde", X, shape_gradients(t, xi))
+        J = np.einsum("mkd,mke->mde", Xa, shape_gradients(t, xa))
         with np.errstate(all="ignore"):
             step = np.linalg.solve(J, r[:, :, None])[:, :, 0]
         step = np.where(np.isfinite(step), step, 0.0)
-        xi = np.clip(xi - np.where(done[:, None], 0.0, step), -4.0, 4.0)  # far candidates: keep the iteration bounded
+        xi[act] = np.clip(xa - step, -4.0, 4.0)  # far candidates: keep the iteration bounded
     return xi, done
 
 
 def _outside(t: str, xi: np.ndarray) -> np.ndarray:
     """How far local coordinates lie outside the reference element (0 inside) [-]."""
-    if t == "hexahedron":
+    if t in _HEXES:
         return np.maximum(np.abs(xi).max(axis=1) - 1.0, 0.0) / 2.0
     lam = np.concatenate([1.0 - xi.sum(axis=1, keepdims=True), xi], axis=1)
     return np.maximum(-lam.min(axis=1), 0.0)
@@ -251,7 +324,8 @@ def interpolation_operator(points, cells: Mapping[str, np.ndarray], queries, *, 
     Args:
         points: ``(N, 3)`` node coordinates of the source mesh [m].
         cells: ``{cell type: (M, k) node indices}`` (``"tetra"``, ``"tetra10"``,
-            ``"hexahedron"``; meshio names and VTK node order).
+            ``"hexahedron"``, ``"hexahedron20"``, ``"hexahedron27"``; meshio names and VTK
+            node order).
         queries: ``(n, 3)`` points [m] at which the field is wanted.
         tolerance: a point at most this far outside the mesh [m] is accepted (the nearest
             element's shape functions, extrapolated); default 1e-6 x the source mesh's
@@ -285,7 +359,8 @@ def interpolation_operator(points, cells: Mapping[str, np.ndarray], queries, *, 
             raise MeshError(f"{name} cells index nodes outside [0, {len(X)})")
         blocks.append((t, conn))
     if not blocks:
-        raise UnsupportedMeshError("the source mesh has no volume cells to interpolate in (tetra, tetra10 or hexahedron)")
+        raise UnsupportedMeshError("the source mesh has no volume cells to interpolate in (tetra, tetra10, hexahedron, hexahedron20 "
+                                   "or hexahedron27)")
     diag = float(np.linalg.norm(X.max(axis=0) - X.min(axis=0)))
     tol = 1e-6 * diag if tolerance is None else float(tolerance)
     if not (np.isfinite(tol) and tol >= 0):

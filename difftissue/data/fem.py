@@ -1,9 +1,10 @@
 """Reference FEM results (any meshio format) with a nodal displacement field.
 
 Linear tetrahedra (``tetra``) give a :class:`~difftissue.mesh.TetMesh` (the model can run on
-the reference's own mesh); quadratic tetrahedra (``tetra10``) and trilinear hexahedra
-(``hexahedron``) are kept as the reference's own elements (``cells``), for interpolation onto a
-model mesh (:mod:`difftissue.interpolation`).
+the reference's own mesh); quadratic tetrahedra (``tetra10``), trilinear hexahedra
+(``hexahedron``) and quadratic hexahedra (``hexahedron20``, ``hexahedron27``) are kept as the
+reference's own elements (``cells``), for interpolation onto a model mesh
+(:mod:`difftissue.interpolation`).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from .units import normalize_unit
 
 #: Volume cell types a reference may hold (meshio names; ``tetra4`` is meshio's name for
 #: Abaqus C3D4H). Other volume cells are refused; surface, line and vertex cells are ignored.
-REFERENCE_CELL_TYPES = ("tetra", "tetra10", "hexahedron")
+REFERENCE_CELL_TYPES = ("tetra", "tetra10", "hexahedron", "hexahedron20", "hexahedron27")
 _CELL_ALIASES = {"tetra4": "tetra", "hexahedron8": "hexahedron"}
 _VOLUME_PREFIXES = ("tetra", "hexahedron", "wedge", "pyramid")
 
@@ -33,13 +34,14 @@ class FEMResult(eqx.Module):
     Attributes:
         mesh: the reference configuration as a :class:`~difftissue.mesh.TetMesh` [m] when the
             file holds linear tetrahedra only, else ``None`` (quadratic tetrahedra,
-            hexahedra: see ``cells``).
+            hexahedra of 8, 20 or 27 nodes: see ``cells``).
         displacement: ``(N, 3)`` nodal displacement [m].
         metadata: ``source``, ``sha256``, ``field`` (the point-data name read),
             ``length_unit``, ``displacement_unit``, ``max_displacement`` [m], ``cell_types``.
         points: ``(N, 3)`` node coordinates [m] (``mesh.points`` when there is a mesh).
         cells: ``{cell type: (M, k) node indices}`` of the volume elements (``"tetra"``,
-            ``"tetra10"``, ``"hexahedron"``; VTK node order).
+            ``"tetra10"``, ``"hexahedron"``, ``"hexahedron20"``, ``"hexahedron27"``; VTK node
+            order).
         point_data: the file's point fields (node-set masks, reaction fields, ...).
     """
 
@@ -88,8 +90,10 @@ def load_fem_result(
 
     Linear tetrahedra give a :class:`~difftissue.mesh.TetMesh` (read and checked by
     :func:`~difftissue.mesh.read_mesh`, as a model mesh would be); a file with quadratic
-    tetrahedra (``tetra10``, Abaqus C3D10, FEBio tet10) or 8-node hexahedra (``hexahedron``,
-    Abaqus C3D8, FEBio hex8), alone or mixed, keeps its elements in ``cells`` and has
+    tetrahedra (``tetra10``, Abaqus C3D10, FEBio tet10) or hexahedra (``hexahedron``: Abaqus
+    C3D8, FEBio hex8; ``hexahedron20``: Abaqus C3D20/C3D20R, FEBio hex20; ``hexahedron27``:
+    FEBio hex27, in VTU/XDMF/VTK files: meshio does not read Abaqus C3D27), alone or mixed,
+    keeps its elements in ``cells`` and has
     ``mesh = None``: such a reference is interpolated onto a model mesh
     (:class:`~difftissue.scenarios.FEMField` with ``specimen``).
 
@@ -110,9 +114,12 @@ def load_fem_result(
         ImplausibleMagnitudeError: displacements larger than 10 x the mesh's size (a unit
             mismatch between coordinates and displacements).
         MeshError: the file cannot be read as a valid tet mesh (linear tetrahedra), or its
-            quadratic / hexahedral elements are degenerate or index missing nodes.
-        UnsupportedMeshError: volume cells other than tetra, tetra10 and hexahedron
-            (hexahedron20, wedges, pyramids), or no volume cells.
+            quadratic / hexahedral elements are degenerate (a quadratic hexahedron also when
+            its Jacobian changes sign between its centre and nodes: misplaced or
+            misordered mid-side nodes) or index missing nodes.
+        UnsupportedMeshError: volume cells other than tetra, tetra10 and the 8-, 20- and
+            27-node hexahedra (wedges, pyramids, hexahedron24), Abaqus C3D27 (meshio cannot
+            read it), or no volume cells.
     """
     from ..mesh import LENGTH_UNITS, _read_meshio, read_mesh  # meshio and the mesh checks, only when a FEM result is read
 
@@ -125,6 +132,9 @@ def load_fem_result(
         if "'tetra4'" in str(err):  # meshio 5.3 maps C3D4H to a cell type it cannot store
             raise UnsupportedMeshError(f"{path}: meshio cannot read Abaqus C3D4H (hybrid linear tetrahedron) elements; write them as C3D4 "
                                        f"(same nodes and geometry) in the .inp") from None
+        if "Element type not available: C3D27" in str(err):
+            raise UnsupportedMeshError(f"{path}: meshio cannot read Abaqus C3D27 (27-node hexahedron) elements; export the result as VTU or "
+                                       f"XDMF (hexahedron27 cells, VTK node order), or mesh with C3D20 / C3D20R") from None
         raise
     types = {c.type for c in raw.cells}
     if not types & (set(REFERENCE_CELL_TYPES) | set(_CELL_ALIASES)) - {"tetra"}:  # linear tets only (meshio's own name)
@@ -230,7 +240,8 @@ def _abaqus_displacement_table(path, table, n_nodes: int) -> np.ndarray:
 def _higher_order_cells(raw, path, length_unit: str, units: dict):
     """``points [m], cells, point_data`` of a meshio mesh with quadratic tetrahedra or
     hexahedra (any mix with linear tetrahedra): every volume cell checked (indices in range,
-    a non-degenerate Jacobian at the element's centre)."""
+    a non-degenerate Jacobian at the element's centre; quadratic hexahedra: the Jacobian of
+    their own map at the centre and every node, non-degenerate and of one sign)."""
     if length_unit not in units:
         raise MeshError(f"unknown length unit {length_unit!r}; choose one of {sorted(units)}")
     points = np.asarray(raw.points, dtype=float)
@@ -241,7 +252,8 @@ def _higher_order_cells(raw, path, length_unit: str, units: dict):
     points = points * units[length_unit]
     others = sorted({c.type for c in raw.cells if c.type.startswith(_VOLUME_PREFIXES)} - set(REFERENCE_CELL_TYPES) - set(_CELL_ALIASES))
     if others:
-        raise UnsupportedMeshError(f"{path} holds {others} cells; a reference may hold tetra (4-node), tetra10 and hexahedron (8-node) cells")
+        raise UnsupportedMeshError(f"{path} holds {others} cells; a reference may hold tetra (4-node), tetra10, hexahedron (8-node), "
+                                   f"hexahedron20 and hexahedron27 cells")
     cells: dict[str, list] = {}
     for c in raw.cells:
         t = _CELL_ALIASES.get(c.type, c.type)
@@ -253,6 +265,9 @@ def _higher_order_cells(raw, path, length_unit: str, units: dict):
         if bad.size:
             raise IndexOutOfRangeError(f"{path}: {t} cells {_cite(bad)} index nodes outside [0, {len(points)})", bad)
         X = points[conn]
+        if t in ("hexahedron20", "hexahedron27"):
+            _check_quadratic_hexahedra(path, t, X)
+            continue
         if t == "hexahedron":  # edge vectors at the centre of the trilinear map
             J = np.stack([(X[:, [1, 2, 5, 6]] - X[:, [0, 3, 4, 7]]).mean(axis=1), (X[:, [3, 2, 7, 6]] - X[:, [0, 1, 4, 5]]).mean(axis=1),
                           (X[:, 4:] - X[:, :4]).mean(axis=1)], axis=2)
@@ -265,3 +280,22 @@ def _higher_order_cells(raw, path, length_unit: str, units: dict):
             raise DegenerateElementError(f"{path}: {t} cells {_cite(bad)} are degenerate (zero volume)", bad)
     point_data = {k: np.asarray(v) for k, v in raw.point_data.items() if k not in ("gmsh:dim_tags", "medit:ref")}
     return points, cells, point_data
+
+
+def _check_quadratic_hexahedra(path, t: str, X: np.ndarray) -> None:
+    """Refuse 20- or 27-node hexahedra ``X`` ``(M, k, 3)`` whose map (their own shape functions)
+    has a (near-)zero Jacobian, or one that changes sign, at the centre or a node: flat
+    elements, and mid-side nodes misplaced or given in another node order than VTK's."""
+    from ..interpolation import node_coordinates, shape_gradients
+
+    at = np.vstack([[[0.0, 0.0, 0.0]], node_coordinates(t)])  # centre, nodes
+    dN = shape_gradients(t, at)  # (1 + k, k, 3)
+    det = np.linalg.det(np.einsum("mkd,pke->mpde", X, dN))  # (M, 1 + k)
+    h = np.linalg.norm(X.max(axis=1) - X.min(axis=1), axis=1)
+    tiny = 1e-10 * h[:, None] ** 3
+    ok = np.all(det > tiny, axis=1) | np.all(det < -tiny, axis=1)
+    bad = np.flatnonzero(~ok)
+    if bad.size:
+        raise DegenerateElementError(f"{path}: {t} cells {_cite(bad)} are degenerate or inverted (the Jacobian of the element's map is zero "
+                                     f"or changes sign between its centre and nodes); check that the nodes are in VTK order (corners, "
+                                     f"then mid-edge nodes{', face centres, body centre' if t == 'hexahedron27' else ''})", bad)
