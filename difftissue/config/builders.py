@@ -1029,7 +1029,10 @@ def _coarse_incision(skin: dict, scalpel, method: str, cut, make, unit):
         try:
             lcut = cut_specimen(layered_skin(layers, size=size, resolution=cells, grading=grading or None), scalpel, method=method)
         except DifftissueError as err:
-            why = f"{mesh} cannot be made: {'; '.join(w for w in (off, str(err)) if w)}"
+            if off is None:  # on its nodes, but the coarser cells are too large for the cut
+                return cells, layers, None, None, (f"{mesh} cannot be made: {err}: the fit's cells are too coarse for a coarser level "
+                                                   "(refine them to get an estimate)")
+            why = f"{mesh} cannot be made: {off}; {err}"
         else:
             geo = _cut_geometry(lcut)
             why = "; ".join(w for w in (off, _same_cut(fine_geo, geo, cell)) if w) or None
@@ -1037,7 +1040,7 @@ def _coarse_incision(skin: dict, scalpel, method: str, cut, make, unit):
                 why = f"{mesh} is not the fit's cut: {why}"
         if why is not None:
             depths = ", ".join(f"{d / f:.4g}" for d in _node_depths(layers, grading))
-            why += (f" (its ends or depth do not fall on that mesh's nodes, or it is too short for it), so the change would not be the mesh's "
+            why += (f" (its ends or depth do not fall on that mesh's nodes), so the change would not be the mesh's "
                     f"alone; give the cut's ends on multiples of the coarser cell size ({size[0] / cells[0] / f:.4g} {u} in x, "
                     f"{size[1] / cells[1] / f:.4g} {u} in y) and its depth on one of its node depths ({depths} {u}), or cells that halve onto the cut")
         return cells, layers, lcut, geo, why
