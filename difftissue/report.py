@@ -498,8 +498,10 @@ def _discretisation_md(rec: Mapping | None) -> list[str]:
     if rec.get("status") == "estimated":
         lines += ["| parameter | estimate (fit - mesh-converged) | relative | standard error | estimate / SE | mesh-converged value |", "|---|---|---|---|---|---|"]
         for f, d in rec["estimate"].items():
-            lines.append(f"| {f} | {d:+.4g} | {100 * rec['relative'][f]:+.3g} % | {rec['standard_error'][f]:.4g} | "
-                         f"{rec['ratio_to_standard_error'][f]:.3g} | {rec['corrected'][f]:.6g} |")
+            se, ratio = rec["standard_error"][f], rec["ratio_to_standard_error"][f]
+            se_txt = "none (no residual degrees of freedom)" if math.isnan(se) else f"{se:.4g}"
+            lines.append(f"| {f} | {d:+.4g} | {100 * rec['relative'][f]:+.3g} % | {se_txt} | "
+                         f"{ratio:.3g} | {rec['corrected'][f]:.6g} |".replace("| nan |", "| - |"))
         lines.append("")
     lines.append("| scenario | status | cells (fit / coarse) | prediction change | order | reason |")
     lines.append("|---|---|---|---|---|---|")

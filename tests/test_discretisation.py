@@ -87,14 +87,22 @@ def test_skipped_scenarios_say_why(hertz_fit, tmp_path):
     write_fit_outputs(out, tmp_path, config={"title": "t"})
     report = (tmp_path / "report.md").read_text()
     assert "## Discretisation error" in report and "| sphere | not estimated | - | - | - | the specimen is a mesh file |" in report
-    # the example configs: fem_field and incision cannot be coarsened and say why
+    # the example configs: fem_field cannot be coarsened and says why; the incision's cut ends
+    # (x = 3 and 9 mm on 1 mm cells) are off the nodes of the 2 mm coarser mesh, and it says so
+    # before any evaluation (issue 19: an incision on a layered specimen is coarsened where the
+    # coarser mesh carries the same cut)
     root = Path(__file__).resolve().parents[1] / "experiments" / "configs"
     from difftissue.config import load_config
 
-    for name, why in (("fem_field_punch.toml", "observed on the nodes of the given mesh"), ("incision_skin.toml", "the cut is snapped to this mesh")):
-        cfg = load_config(root / name)
-        assert all(e.coarsen is None and why in e.coarsen_skip for e in cfg.experiments)
-        assert all(why in r for r in cfg.coarse_predictions(None)[1].values())
+    cfg = load_config(root / "fem_field_punch.toml")
+    why = "observed on the nodes of the given mesh"
+    assert all(e.coarsen is None and why in e.coarsen_skip for e in cfg.experiments)
+    assert all(why in r for r in cfg.coarse_predictions(None)[1].values())
+    cfg = load_config(root / "incision_skin.toml")
+    reasons = cfg.coarse_predictions(None)[1]
+    assert list(reasons) == ["incision"]
+    assert "the point(s) [3, 6], [9, 6] lie between its nodes" in reasons["incision"]
+    assert "give the cut's ends on multiples of the coarser cell size (2 mm in x, 2 mm in y)" in reasons["incision"]
 
 
 def test_discretisation_check_off(tmp_path):

@@ -870,6 +870,7 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
             specimen = layered_skin(layers, size=size, resolution=cells, grading=grading or None, **lateral)
         except DifftissueError as err:
             _reraise(p, err)
+        skin = {"size": size, "cells": cells, "layers": layers, "grading": grading, "refined": "refine" in spec}
     # the cut
     cp = _join(path, "cut")
     if "cut" not in e:
@@ -907,5 +908,173 @@ def _incision(e, path, name, base_dir, material) -> Experiment:
     except DifftissueError as err:
         _reraise(path, err)
     notes = (f"{path}: {cut.quality}",)
-    return Experiment(name, "incision", model, sc, tuple(files), notes,
-                      coarsen_skip="the cut is snapped to this mesh's nodes: a coarser mesh makes a different cut, so the change would not be the mesh's alone")
+
+    def make(level_cut):
+        return Incision(level_cut, model=model, quantity=quantity, positions=positions, observed=observed, sigma=sigma, fitted_regions=fitted,
+                        lateral=lateral, base=base, rollers=rollers, options=options, name=name)
+
+    coarsen, skip = None, _MESH_FILE_SKIP
+    if "mesh" not in spec:
+        coarsen, skip = _coarse_incision(skin, scalpel, method, cut, make, unit)
+    return Experiment(name, "incision", model, sc, tuple(files), notes, coarsen=coarsen, coarsen_skip=skip)
+
+
+#: Tolerance of the coarse cut's realised geometry against the fine cut's [-]: the opened area
+#: may differ by this fraction of the ideal cutting surface, a node may move (snap) or lie off
+#: the ideal surface by this fraction of the coarser mesh's lateral cell. Tight: a coarser mesh
+#: whose nodes do not carry the same cut makes a different cut, and the change in the opening
+#: would not be the mesh's alone.
+CUT_GEOMETRY_TOLERANCE = 1e-6
+
+
+def _skin_level(skin: dict, k: int) -> tuple[tuple[int, int], list, dict]:
+    """The layered specimen with its lateral cells and each layer's cells halved ``k`` times
+    (at least one cell; a graded layer of ratio ``r`` gets ``r^2`` per halving, so its merged
+    cells are the fine ones taken in pairs, and loses the grading at one cell)."""
+    cells, layers, grading = tuple(skin["cells"]), list(skin["layers"]), dict(skin["grading"])
+    for _ in range(k):
+        cells = _halved(cells)[0]
+        layers = [(n, t, m, max(1, nc // 2)) for n, t, m, nc in layers]
+        grading = {n: r * r for n, r in grading.items() if dict((ln, nc) for ln, _, _, nc in layers)[n] >= 2}
+    return cells, layers, grading
+
+
+def _skin_cells(cells, layers) -> dict:
+    return {"lateral": [int(c) for c in cells], "layers": [int(nc) for _, _, _, nc in layers]}
+
+
+def _cut_geometry(cut) -> dict:
+    """The realised geometry of a cut (compared between the discretisation check's levels): the
+    nominal length and depth [m], the opened area and the ideal cutting surface's [m^2], the
+    largest distance of an opened node from the ideal surface and the largest snap [m]."""
+    q = cut.quality
+    return {"cut_length": float(cut.length), "cut_depth": float(cut.depth), "cut_area": q.cut_area, "ideal_area": q.ideal_area,
+            "max_normal_distance": q.max_normal_distance, "max_snap_distance": float(q.max_snap_distance), "n_snapped": int(q.n_snapped)}
+
+
+def _same_cut(fine: dict, coarse: dict, cell: float) -> str | None:
+    """Why the coarse cut's realised geometry differs from the fine cut's (None: the same cut
+    within :data:`CUT_GEOMETRY_TOLERANCE`; ``cell``: the coarser mesh's smallest lateral cell [m])."""
+    tol = CUT_GEOMETRY_TOLERANCE
+    why = []
+    for k in ("cut_length", "cut_depth"):
+        if abs(coarse[k] - fine[k]) > tol * cell:
+            why.append(f"its {k.replace('_', ' ')} is {coarse[k]:.4g} m, not {fine[k]:.4g} m")
+    if coarse["max_snap_distance"] > tol * cell:
+        why.append(f"{coarse['n_snapped']} node(s) had to be moved onto it, up to {coarse['max_snap_distance']:.3g} m")
+    a_f, a_c, ideal = fine["cut_area"], coarse["cut_area"], fine["ideal_area"] or 0.0
+    if a_f is not None and a_c is not None and abs(a_c - a_f) > tol * max(ideal, a_f):
+        why.append(f"it opens {a_c:.4g} m^2, the fine cut {a_f:.4g} m^2")
+    d_f, d_c = fine["max_normal_distance"], coarse["max_normal_distance"]
+    if d_f is not None and d_c is not None and abs(d_c - d_f) > tol * cell:
+        why.append(f"its opened faces lie up to {d_c:.3g} m off the ideal surface (the fine cut's {d_f:.3g} m)")
+    return "; ".join(why) or None
+
+
+def _off_nodes(scalpel, size, cells, layers, grading, cell: float, f: float) -> str | None:
+    """Which of the cut's points inside the top surface (its ends and corners) and its depth do
+    not lie on the nodes of the uniform layered mesh (``cells`` lateral, ``layers`` with their
+    cell counts) within :data:`CUT_GEOMETRY_TOLERANCE` of ``cell`` [m] (None: all do). A cut
+    ending between nodes is not snapped where the move would ruin a tet, so its opened faces
+    end at a different place on each mesh. ``f``: metres per length unit, for the message."""
+    tol = CUT_GEOMETRY_TOLERANCE * cell
+    xs, ys = np.linspace(0.0, size[0], cells[0] + 1), np.linspace(0.0, size[1], cells[1] + 1)
+    off = []
+    for pt in np.asarray(scalpel.points, dtype=float):
+        x, y = pt[0], pt[1]
+        if not (-tol <= x <= size[0] + tol and -tol <= y <= size[1] + tol):
+            continue  # outside the outline: the cut ends on the specimen's side, on nodes
+        if np.min(np.abs(xs - x)) > tol or np.min(np.abs(ys - y)) > tol:
+            off.append(f"[{x / f:.4g}, {y / f:.4g}]")
+    why = [f"the point(s) {', '.join(off)} lie between its nodes"] if off else []
+    if scalpel.depth is not None and not scalpel.through:
+        if np.min(np.abs(np.asarray(_node_depths(layers, grading)) - float(scalpel.depth))) > tol:
+            why.append(f"the depth {float(scalpel.depth) / f:.4g} lies between its node planes")
+    return "; ".join(why) or None
+
+
+def _node_depths(layers, grading) -> list[float]:
+    """Depths [m] below the surface of the node planes of a layered specimen (surface first)."""
+    z, out = 0.0, [0.0]
+    for n, t, _, nc in layers:
+        r = grading.get(n, 1.0)
+        h = np.array([r**k for k in range(nc)])
+        for dh in np.cumsum(h / h.sum() * t):
+            out.append(z + float(dh))
+        z += t
+    return out
+
+
+def _coarse_incision(skin: dict, scalpel, method: str, cut, make, unit):
+    """``(builder, None)`` of the discretisation check of an incision on a layered specimen, or
+    ``(None, reason)``. The builder returns ``(scenario, info)`` on the specimen with every cell
+    count halved (:func:`_skin_level`) and the same cut (the same :class:`ScalpelPath` and
+    method), with a third level (halved again) where that mesh carries the same cut too, so the
+    order is observed; or ``(None, reason)`` when the coarser mesh's cut is not the fine one
+    (:func:`_same_cut`: its ends or depth do not fall on the coarser mesh's nodes)."""
+    if method == "remove":
+        return None, ("the cut removes a slab of elements one cell wide: a coarser mesh removes a wider slab, so the change would not be the "
+                      "mesh's alone (use method = \"snap\" or \"staircase\" to get the estimate)")
+    if skin["refined"]:
+        return None, ("the specimen is refined laterally (refine): its graded cells do not halve onto the same cut; give uniform cells "
+                      "(no refine) to get the estimate")
+    c1, l1, g1 = _skin_level(skin, 1)
+    if c1 == tuple(skin["cells"]) and all(a[3] == b[3] for a, b in zip(l1, skin["layers"])):
+        return None, f"the specimen has one cell in each direction ({_skin_cells(c1, l1)}): there is no coarser mesh"
+    fine_geo = _cut_geometry(cut)
+    size = skin["size"]
+    u, f = unit
+
+    def level(k):
+        cells, layers, grading = _skin_level(skin, k)
+        cell = min(size[0] / cells[0], size[1] / cells[1])
+        mesh = f"the cut on the coarser mesh (cells {_skin_cells(cells, layers)})"
+        off = _off_nodes(scalpel, size, cells, layers, grading, cell, f)
+        lcut = geo = None
+        try:
+            lcut = cut_specimen(layered_skin(layers, size=size, resolution=cells, grading=grading or None), scalpel, method=method)
+        except DifftissueError as err:
+            if off is None:  # on its nodes, but the coarser cells are too large for the cut
+                return cells, layers, None, None, (f"{mesh} cannot be made: {err}: the fit's cells are too coarse for a coarser level "
+                                                   "(refine them to get an estimate)")
+            why = f"{mesh} cannot be made: {off}; {err}"
+        else:
+            geo = _cut_geometry(lcut)
+            why = "; ".join(w for w in (off, _same_cut(fine_geo, geo, cell)) if w) or None
+            if why is not None:
+                why = f"{mesh} is not the fit's cut: {why}"
+        if why is not None:
+            depths = ", ".join(f"{d / f:.4g}" for d in _node_depths(layers, grading))
+            why += (f" (its ends or depth do not fall on that mesh's nodes), so the change would not be the mesh's "
+                    f"alone; give the cut's ends on multiples of the coarser cell size ({size[0] / cells[0] / f:.4g} {u} in x, "
+                    f"{size[1] / cells[1] / f:.4g} {u} in y) and its depth on one of its node depths ({depths} {u}), or cells that halve onto the cut")
+        return cells, layers, lcut, geo, why
+
+    def ratio(a_cells, a_layers, b_cells, b_layers):
+        return _size_ratio((a_cells[0] / b_cells[0], a_cells[1] / b_cells[1], sum(x[3] for x in a_layers) / sum(x[3] for x in b_layers)))
+
+    def coarsen():
+        cells1, layers1, cut1, geo1, why = level(1)
+        if why is not None:
+            return None, why
+        fine = (tuple(skin["cells"]), skin["layers"])
+        r = ratio(*fine, cells1, layers1)
+        info = {"fine_cells": _skin_cells(*fine), "coarse_cells": _skin_cells(cells1, layers1), "refinement_ratio": r,
+                "geometry": {"fine": fine_geo, "coarse": geo1}}
+        c2, l2, _ = _skin_level(skin, 2)
+        if c2 == cells1 and all(a[3] == b[3] for a, b in zip(l2, layers1)):
+            info["geometry"]["third_level"] = "none: the coarse mesh has one cell in each direction"
+        else:
+            cells2, layers2, cut2, geo2, why2 = level(2)
+            r2 = ratio(cells1, layers1, cells2, layers2)
+            if why2 is not None:
+                info["geometry"]["third_level"] = f"none (first order assumed): {why2}"
+            elif abs(r2 - r) > 1e-9 * r:
+                info["geometry"]["third_level"] = (f"none (first order assumed): its cell size ratio {r2:.4g} differs from the coarse mesh's "
+                                                   f"{r:.4g} (a layer with one cell keeps it)")
+            else:
+                info["geometry"]["coarser"] = geo2
+                info["coarser"] = lambda: (make(cut2), _skin_cells(cells2, layers2))
+        return make(cut1), info
+
+    return coarsen, None

@@ -32,7 +32,9 @@ class Experiment:
     #: builds the same experiment on a coarser mesh (about half the cells in each direction,
     #: same geometry and protocol) for the discretisation estimate: a callable returning
     #: ``(scenario, info)``, info ``{"fine_cells", "coarse_cells", "refinement_ratio"}``
-    #: (ratio: coarse / fine cell size [-]); None when it cannot be coarsened
+    #: (ratio: coarse / fine cell size [-]), or ``(None, reason)`` where the coarser mesh turns
+    #: out unusable when built (an incision whose cut it cannot carry unchanged); None when it
+    #: cannot be coarsened
     coarsen: Any = None
     #: why the experiment has no discretisation estimate (None when :attr:`coarsen` is given)
     coarsen_skip: str | None = None

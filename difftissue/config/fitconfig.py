@@ -147,7 +147,9 @@ class FitConfig:
         ``"coarser_cells"`` where the experiment's coarsening gives a third level, ``info["coarser"]``:
         a callable returning ``(scenario, cells)``) and ``{name: reason}`` for the experiments
         without an estimate (no mesh, a mesh file, observed on given nodes, or a coarse
-        evaluation that failed: its message is the reason)."""
+        evaluation that failed: its message is the reason). ``Experiment.coarsen`` may itself
+        refuse, returning ``(None, reason)`` (an incision whose cut the coarser mesh cannot
+        carry unchanged)."""
         coarse, skipped = {}, {}
         for e in self.experiments:
             if e.coarsen is None:
@@ -158,6 +160,9 @@ class FitConfig:
                 continue
             try:
                 sc, info = e.coarsen()
+                if sc is None:  # the experiment's own check refused the coarser mesh: info is the reason
+                    skipped[e.name] = str(info)
+                    continue
                 info = dict(info)
                 coarser = info.pop("coarser", None)
                 levels = [(sc, info["coarse_cells"], "prediction")]

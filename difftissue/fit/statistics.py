@@ -479,6 +479,8 @@ def _fine_mesh_error(s: "ScenarioFit", c: Mapping, J_s: np.ndarray | None = None
             "prediction_change_relative": float(np.linalg.norm(pc - pf) / norm) if norm > 0 else float("nan")}
     if "specimen" in c:  # an automatically chosen specimen: its rule's record (resolution, tabulated force error)
         base["specimen"] = dict(c["specimen"])
+    if "geometry" in c:  # an incision: the cut's realised geometry on each level (the same cut)
+        base["geometry"] = dict(c["geometry"])
     if "prediction_coarser" in c:
         q, levels, why = _observed_order(pf, pc, np.asarray(c["prediction_coarser"], dtype=float), sigma, r, J_s)
         base.update(coarser_cells=c.get("coarser_cells"), order_source="observed (three levels)", **levels)
@@ -491,7 +493,9 @@ def _fine_mesh_error(s: "ScenarioFit", c: Mapping, J_s: np.ndarray | None = None
         q = float(c.get("order", DISCRETISATION_ORDER))
         base["order_source"] = "assumed"
     e = (pc - pf) / (r**q - 1.0)
-    info = {"status": "estimated", **base, "order": q, "rms_error_over_sigma": float(np.sqrt(np.mean((e / sigma) ** 2)))}
+    rms_f = float(np.sqrt(np.mean(pf**2)))
+    info = {"status": "estimated", **base, "order": q, "rms_error_over_sigma": float(np.sqrt(np.mean((e / sigma) ** 2))),
+            "relative_error": float(np.sqrt(np.mean(e**2))) / rms_f if rms_f > 0 else float("nan")}
     return e, info
 
 
@@ -530,20 +534,41 @@ def _observed_order(pf, pc, pcc, sigma, r, J_s=None) -> tuple[float, dict, str |
     return q, rec, None
 
 
+#: Without a statistical error to compare with (a standard error of NaN or 0: no residual
+#: degrees of freedom, as a one-datum incision fit, or an exact fit), the ``discretisation_error``
+#: flag is raised where the mesh's estimated error of a prediction exceeds this fraction of it
+#: (rms over the experiment's points) [-]: 2 %, about the precision of a measured width or force.
+DISCRETISATION_FLAG_RELATIVE = 0.02
+
+
 def _discretisation_flags(rec: Mapping, units: Mapping[str, str]) -> list[QualityFlag]:
-    """``discretisation_error`` (a warning) for each field whose estimate exceeds its standard error."""
+    """``discretisation_error`` (a warning) for each field whose estimate exceeds its standard
+    error; where the standard error is NaN or 0 (no residual degrees of freedom: the data are
+    matched exactly, so there is no statistical error to compare with), for each field with a
+    non-zero estimate when an experiment's prediction carries an estimated mesh error above
+    :data:`DISCRETISATION_FLAG_RELATIVE` of it. A standard error of ``inf`` (the data do not
+    determine the field) raises no flag."""
     if rec.get("status") != "estimated":
         return []
+    worst = max((v["relative_error"] for v in rec["scenarios"].values() if v.get("status") == "estimated" and math.isfinite(v.get("relative_error", math.nan))), default=0.0)
     out = []
     for f, d in rec["estimate"].items():
         se, ratio = rec["standard_error"][f], rec["ratio_to_standard_error"][f]
+        unit = unit_text(units.get(f, ""))
         if math.isfinite(ratio) and ratio > 1.0:
-            unit = unit_text(units.get(f, ""))
             out.append(QualityFlag("discretisation_error", "warning", f,
                                    f"{f}: the mesh's estimated share of the error {d:+.3g} {unit} ({100 * rec['relative'][f]:+.2g} %) exceeds its "
                                    f"standard error {se:.3g} {unit} ({ratio:.3g} x): refine the specimen's cells; the mesh-converged "
                                    f"value is about {rec['corrected'][f]:.4g} {unit}".replace("  ", " "),
                                    {"estimate": d, "relative": rec["relative"][f], "standard_error": se, "ratio": ratio}))
+        elif (math.isnan(se) or se == 0.0) and d != 0.0 and math.isfinite(d) and worst > DISCRETISATION_FLAG_RELATIVE:
+            out.append(QualityFlag("discretisation_error", "warning", f,
+                                   f"{f}: the mesh's estimated share of the error is {d:+.3g} {unit} ({100 * rec['relative'][f]:+.2g} %): the mesh "
+                                   f"changes the fitted prediction by about {100 * worst:.2g} % (above {100 * DISCRETISATION_FLAG_RELATIVE:g} %), and "
+                                   f"the fit has no standard error to compare it with (no residual degrees of freedom: the data are matched "
+                                   f"exactly): refine the specimen's cells; the mesh-converged value is about {rec['corrected'][f]:.4g} {unit}".replace("  ", " "),
+                                   {"estimate": d, "relative": rec["relative"][f], "standard_error": se, "ratio": ratio,
+                                    "prediction_error_relative": worst, "limit": DISCRETISATION_FLAG_RELATIVE}))
     return out
 
 
@@ -566,7 +591,10 @@ def discretisation_line(rec: Mapping) -> str:
         return f"discretisation error: not applicable ({rec.get('reason', '')})"
     if rec.get("status") != "estimated":
         return f"discretisation error: not estimated ({rec.get('reason', '')})"
-    parts = [f"{f} {100 * rec['relative'][f]:+.3g} % ({rec['ratio_to_standard_error'][f]:.3g} x its standard error)" for f in rec["estimate"]]
+    def vs_se(f):
+        ratio = rec["ratio_to_standard_error"][f]
+        return f"{ratio:.3g} x its standard error" if math.isfinite(ratio) else "no standard error to compare with"
+    parts = [f"{f} {100 * rec['relative'][f]:+.3g} % ({vs_se(f)})" for f in rec["estimate"]]
     est = {k: v for k, v in rec["scenarios"].items() if v["status"] == "estimated"}
     orders = {float(v.get("order", DISCRETISATION_ORDER)) for v in est.values()}
     if orders == {1.0}:
