@@ -15,12 +15,21 @@ tet) and with the nodal volumetric term (``fem_linear_nodal`` / ``fem_neo_hookea
     opening width. Cells per cut length: 4, 8, 16 (through the thickness: 1, 2, 4).
     One row with ``stable_neo_hookean`` (the XPBD model's energy: per-tet volume term) shows how
     it behaves at the same nu.
+(c) Sphere indentation (``fem_linear``): a rigid frictionless sphere R = 1 mm (penalty contact,
+    ``difftissue.scenarios.Indentation``) pressed 0.1 mm (d/R = 0.1) into a block, E = 10 kPa,
+    bonded base, quarter model (rollers on x = 0 and y = 0). The block is the library's
+    automatic specimen (``indentation_specimen_for``) with ``m`` cells per Hertz contact radius
+    ``a = sqrt(R d)`` (uniform core of 1.5 a, cells growing by 1.3 beyond) and half-width =
+    thickness = 6 a (a finite block: Hertz is a half-space). Observable: the force at the deepest
+    depth (the force at 0.05 mm is kept too). Levels m: 2, 4, 8.
 
 Observed order from three successive meshes ``p = log2((f1 - f2) / (f2 - f3))`` and Richardson
 extrapolation ``f3 + (f3 - f2) / (2^p - 1)`` (with p = 1 when the sequence is not monotone).
 
 Writes experiments/results/locking_free.json (refused if it exists unless --force).
-Run: python experiments/locking_free.py [--part a|b|all] [--force]
+Run: python experiments/locking_free.py [--part a|b|c|all] [--force]
+Part (c) one level per process: --part c --kinds fem_linear_nodal --levels 8 --nus 0.499 --tag _nodal_0.499_8,
+then --merge experiments/results/locking_free_c.json experiments/results/locking_free_c_*.json
 Tables: python experiments/locking_free.py --table experiments/results/locking_free_a.json experiments/results/locking_free_b.json
 """
 
@@ -45,6 +54,7 @@ from difftissue.incision import Incision, IncisionOptions  # noqa: E402
 from difftissue.materials import Material  # noqa: E402
 from difftissue.mesh import Specimen, block  # noqa: E402
 from difftissue.models import make_model  # noqa: E402
+from difftissue.scenarios import Indentation, SolverOptions, indentation_specimen_for  # noqa: E402
 from difftissue.solvers.static import solve_static  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -56,6 +66,10 @@ LEVELS_A = (2, 4, 8, 16)
 # (b) membrane incision
 L, T, C, E_B, PRE = 8e-3, 1e-3, 4e-3, 1e5, 1.1
 LEVELS_B = (4, 8, 16)
+# (c) sphere indentation, quarter model of the automatic specimen
+R_C, E_C, EXTENT_C = 1e-3, 1e4, 6.0
+DEPTHS_C = (5e-5, 1e-4)
+LEVELS_C = (2, 4, 8)
 
 
 def richardson(values):
@@ -80,16 +94,17 @@ def table(paths):
         res = json.loads(Path(path).read_text())
         for name, part in res.items():
             rows = part["rows"]
-            levels = rows[0]["levels"]
-            scale = 1e3 if "opening" in part["observable"] else 1.0
-            unit = " [mm]" if scale == 1e3 else ""
+            levels = sorted({m for r in rows for m in r["levels"]})  # a row without a level shows "–" there
+            scale = 1e3 if ("opening" in part["observable"] or "force" in part["observable"]) else 1.0
+            unit = " (in mN)" if "force" in part["observable"] else " [mm]" if scale == 1e3 else ""
             print(f"\n{name}: {part['observable']}{unit}; levels = {part['levels']}\n")
             print("| model | nu | " + " | ".join(str(m) for m in levels) + " | observed order | Richardson | finest vs Richardson |")
             print("|---" * (len(levels) + 5) + "|")
             for r in rows:
                 p, ext = richardson(r["values"])
                 dev = "" if ext is None else f"{100 * (r['values'][-1] / ext - 1):+.1f} %"
-                print(f"| {r['model']} | {r['poisson_ratio']} | " + " | ".join(f"{scale * v:.4g}" for v in r["values"])
+                by_level = dict(zip(r["levels"], r["values"]))
+                print(f"| {r['model']} | {r['poisson_ratio']} | " + " | ".join("–" if m not in by_level else f"{scale * by_level[m]:.4g}" for m in levels)
                       + f" | {'n/a' if p is None else f'{p:.2f}'} | {'none' if ext is None else f'{scale * ext:.4g}'} | {dev} |")
 
 
@@ -116,30 +131,94 @@ def opening(kind, n, nu):
     return float(inc.solve(Material(E_B, nu, pre_stretch=PRE)).opening.max_width)
 
 
+def indentation_specimen(m):
+    """The automatic sphere-indentation specimen of part (c) with ``m`` cells per contact radius."""
+    return indentation_specimen_for("sphere", radius=R_C, max_depth=DEPTHS_C[-1], model="fem_linear", cells_per_contact_radius=m, extent=EXTENT_C)
+
+
+def indentation_curve(kind, m, nu):
+    """Force [N] of the whole specimen at each depth of ``DEPTHS_C`` (quarter model x 4), with
+    ``m`` cells per contact radius; ``fem_linear`` is solved condensed onto the surface, the
+    others by Newton on the whole block (sparse direct solver): the same equilibrium."""
+    sc = Indentation(indentation_specimen(m).block(), DEPTHS_C, model=kind, indenter="sphere", radius=R_C, base="bonded", symmetry="quarter",
+                     options=SolverOptions(linear_solver="sparse"))
+    return [float(f) for f in np.asarray(sc.predict(Material(E_C, nu)))]
+
+
+def indentation_force(kind, m, nu):
+    """Force [N] at the deepest depth and the force-depth curve (see :func:`indentation_curve`)."""
+    curve = indentation_curve(kind, m, nu)
+    return curve[-1], {"depths": list(DEPTHS_C), "forces": curve}
+
+
+def hertz(d, nu):
+    """Hertz force [N] of the sphere on a half-space: ``4/3 E/(1-nu^2) R^1/2 d^3/2``."""
+    return 4.0 / 3.0 * E_C / (1.0 - nu**2) * math.sqrt(R_C) * d**1.5
+
+
+PARTS = {
+    "a": ("bonded_compression", apparent_modulus, "apparent modulus F / (A eps E) [-]", "cells through the height", LEVELS_A),
+    "b": ("membrane_incision", opening, "largest surface opening [m]", "cells along the cut", LEVELS_B),
+    "c": ("sphere_indentation", indentation_force, "force at the deepest depth (0.1 mm) [N]", "cells per contact radius", LEVELS_C),
+}
+
+
 def study(fn, kinds, levels, nus=NUS):
     rows = []
     for kind in kinds:
         for nu in nus:
             t = time.process_time()
-            vals = [fn(kind, m, nu) for m in levels]
+            vals, extra = [], []
+            for m in levels:
+                v = fn(kind, m, nu)
+                if isinstance(v, tuple):  # (value, per-level details)
+                    v, info = v
+                    extra.append(info)
+                vals.append(v)
             p, ext = richardson(vals)
             ext = float("nan") if ext is None else ext
             rows.append({"model": kind, "poisson_ratio": nu, "levels": list(levels), "values": vals, "observed_order": p, "richardson": ext,
-                         "cpu_seconds": time.process_time() - t})
+                         "cpu_seconds": time.process_time() - t, **({"curves": extra} if extra else {})})
             print(kind, nu, " ".join(f"{v:.5g}" for v in vals), "p =", None if p is None else round(p, 2), "ext =", ext, flush=True)
     return rows
 
 
+def merge(out, paths, force=False):
+    """One result file from runs of single levels (``--kinds ... --levels m``): the rows of
+    each (part, model, nu) joined in level order, order and extrapolation recomputed."""
+    out = Path(out)
+    if out.exists() and not force:
+        raise SystemExit(f"{out} exists; pass --force to overwrite")
+    res = {}
+    for path in paths:
+        for name, part in json.loads(Path(path).read_text()).items():
+            dst = res.setdefault(name, {"observable": part["observable"], "levels": part["levels"], "rows": {}})
+            for r in part["rows"]:
+                row = dst["rows"].setdefault((r["model"], r["poisson_ratio"]), {"model": r["model"], "poisson_ratio": r["poisson_ratio"], "by_level": {}})
+                for i, m in enumerate(r["levels"]):
+                    row["by_level"][m] = (r["values"][i], r["curves"][i] if "curves" in r else None, r["cpu_seconds"] if len(r["levels"]) == 1 else None)
+    for name, part in res.items():
+        rows = []
+        for row in part["rows"].values():
+            ms = sorted(row["by_level"])
+            vals = [row["by_level"][m][0] for m in ms]
+            p, ext = richardson(vals)
+            rows.append({"model": row["model"], "poisson_ratio": row["poisson_ratio"], "levels": ms, "values": vals, "observed_order": p,
+                         "richardson": float("nan") if ext is None else ext, "cpu_seconds_per_level": [row["by_level"][m][2] for m in ms],
+                         **({"curves": [row["by_level"][m][1] for m in ms]} if row["by_level"][ms[0]][1] is not None else {})})
+        part["rows"] = sorted(rows, key=lambda r: (r["model"], r["poisson_ratio"]))
+    out.write_text(json.dumps(res, indent=1))
+    print("wrote", out)
+
+
 def main(part="all", force=False, kinds=None, levels=None, nus=None, tag=""):
-    if kinds:  # one part, chosen models / levels / nu (a rerun of rows that ran out of memory)
-        fn = apparent_modulus if part == "a" else opening
-        rows = study(fn, tuple(kinds), tuple(levels or (LEVELS_A if part == "a" else LEVELS_B)), tuple(nus or NUS))
+    if kinds:  # one part, chosen models / levels / nu (a rerun of rows that ran out of memory; one level per process)
+        name, fn, observable, level_name, default_levels = PARTS[part]
+        rows = study(fn, tuple(kinds), tuple(levels or default_levels), tuple(nus or NUS))
         out = RESULTS / f"locking_free_{part}{tag}.json"
         if out.exists() and not force:
             raise SystemExit(f"{out} exists; pass --force to overwrite")
-        out.write_text(json.dumps({"bonded_compression" if part == "a" else "membrane_incision": {
-            "observable": "apparent modulus F / (A eps E) [-]" if part == "a" else "largest surface opening [m]",
-            "levels": "cells through the height" if part == "a" else "cells along the cut", "rows": rows}}, indent=1))
+        out.write_text(json.dumps({name: {"observable": observable, "levels": level_name, "rows": rows}}, indent=1))
         print("wrote", out)
         return
     out = RESULTS / "locking_free.json"
@@ -153,6 +232,9 @@ def main(part="all", force=False, kinds=None, levels=None, nus=None, tag=""):
         res["membrane_incision"] = {"observable": "largest surface opening [m]", "levels": "cells along the cut",
                                     "rows": study(opening, ("fem_neo_hookean", "fem_neo_hookean_nodal"), LEVELS_B)
                                     + study(opening, ("stable_neo_hookean",), LEVELS_B, nus=(0.499,))}
+    if part in ("c", "all"):  # the nodal model's finest level needs its own process (memory): see the docstring
+        res["sphere_indentation"] = {"observable": PARTS["c"][2], "levels": PARTS["c"][3],
+                                     "rows": study(indentation_force, ("fem_linear", "fem_linear_nodal"), LEVELS_C)}
     RESULTS.mkdir(exist_ok=True)
     name = out if part == "all" else out.with_name(f"locking_free_{part}.json")
     name.write_text(json.dumps(res, indent=1))
@@ -161,15 +243,18 @@ def main(part="all", force=False, kinds=None, levels=None, nus=None, tag=""):
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--part", default="all", choices=("a", "b", "all"))
+    ap.add_argument("--part", default="all", choices=("a", "b", "c", "all"))
     ap.add_argument("--force", action="store_true")
-    ap.add_argument("--kinds", nargs="+", help="only these models (with --part a or b)")
+    ap.add_argument("--kinds", nargs="+", help="only these models (with --part a, b or c)")
     ap.add_argument("--levels", nargs="+", type=int, help="mesh levels for --kinds")
     ap.add_argument("--nus", nargs="+", type=float, help="Poisson ratios for --kinds")
     ap.add_argument("--tag", default="", help="suffix of the result file for --kinds")
     ap.add_argument("--table", nargs="+", metavar="JSON", help="print the Markdown tables of result files and exit")
+    ap.add_argument("--merge", nargs="+", metavar="JSON", help="OUT IN...: join single-level result files into OUT and exit")
     a = ap.parse_args()
-    if a.table:
+    if a.merge:
+        merge(a.merge[0], a.merge[1:], a.force)
+    elif a.table:
         table(a.table)
     else:
         main(a.part, a.force, a.kinds, a.levels, a.nus, a.tag)

@@ -225,3 +225,49 @@ def test_bonded_block_does_not_lock_at_nu_0_499(bonded_moduli, kind, locks):
     the mesh-converged ratio (Richardson, experiments/locking_free.py) is 3.51 / 2.97 = 1.18."""
     ratio = bonded_moduli[kind, 0.499] / bonded_moduli[kind, 0.49]
     assert (ratio > 2.5) if locks else (ratio < 1.5)
+
+
+def _locking_free_experiment():
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    import locking_free
+
+    return locking_free
+
+
+def test_indentation_study_coarsest_level_locks_with_standard_tets_only():
+    """Part (c) of experiments/locking_free.py at its coarsest level (2 cells per contact
+    radius, nu = 0.499): the automatic quarter specimen, and the force at d/R = 0.1 against
+    Hertz. The finite block (half-width = thickness = 6 a) is stiffer than the half-space
+    (bonded-layer factor 1.24 at chi = 1/6): measured 1.18 x Hertz for the nodal model, 2.78 x
+    for the standard tets (locking)."""
+    lf = _locking_free_experiment()
+    spec = lf.indentation_specimen(2)
+    assert spec.symmetry == "quarter" and spec.cells == (8, 8, 8)
+    assert spec.size[0] == pytest.approx(2 * 6 * np.sqrt(1e-3 * 1e-4))
+    ratio = {kind: lf.indentation_force(kind, 2, 0.499)[0] / lf.hertz(lf.DEPTHS_C[-1], 0.499) for kind in ("fem_linear", "fem_linear_nodal")}
+    assert ratio["fem_linear"] > 2.0
+    assert 1.0 < ratio["fem_linear_nodal"] < 1.35
+
+
+def test_indentation_study_merges_single_level_runs(tmp_path):
+    """Single-level result files (one process per level) join into one row per model and nu,
+    in level order, with the observed order and Richardson value of the joined values."""
+    import json
+
+    lf = _locking_free_experiment()
+    files = []
+    for m, v in ((8, 1.125), (2, 2.0), (4, 1.25)):
+        f = tmp_path / f"c_{m}.json"
+        f.write_text(json.dumps({"sphere_indentation": {"observable": "force", "levels": "cells per contact radius", "rows": [
+            {"model": "fem_linear_nodal", "poisson_ratio": 0.499, "levels": [m], "values": [v], "cpu_seconds": 1.0,
+             "curves": [{"depths": [1.0], "forces": [v]}]}]}}))
+        files.append(f)
+    lf.merge(tmp_path / "c.json", files)
+    (row,) = json.loads((tmp_path / "c.json").read_text())["sphere_indentation"]["rows"]
+    assert row["levels"] == [2, 4, 8] and row["values"] == [2.0, 1.25, 1.125]
+    assert row["observed_order"] == pytest.approx(np.log2(0.75 / 0.125))
+    assert row["richardson"] == pytest.approx(1.125 - 0.125 / (2 ** row["observed_order"] - 1))
+    assert [c["forces"][0] for c in row["curves"]] == [2.0, 1.25, 1.125]
