@@ -1100,7 +1100,16 @@ def calibrate_for_load_set(
     E_card, nu_card = program.card(jnp.asarray(values), data)
     E_card = np.asarray(E_card)
     nu_card = float(nu_card)
-    F_cal, s_cal, ok = ls.response(E_card, settings, nu_card if effective_poisson else None)
+    # The forces and sensitivities at the card from the fit's own evaluation there (its
+    # predictions are the budgeted forces, its Jacobian d r / d factor = d F / d factor / norm;
+    # every load's modulus is a stiffness node, so d log E_i / d log factor_k is 1 for its own
+    # node and 0 for the others): no second budgeted solve of the set. A load that did not come
+    # to rest has a NaN residual there.
+    F_cal = np.asarray(fit.predictions, dtype=float)
+    dF = np.asarray(fit.jacobian, dtype=float)[:, :n_f] * np.asarray(data["norm"])[:, None] * values[None, :n_f]
+    ok = np.isfinite(np.asarray(fit.residuals))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s_cal = np.where(ok & (F_cal != 0), np.sum(dF, axis=1) / F_cal, np.nan)
     if not all(ok):
         raise ConvergenceError("the budgeted XPBD solve at the card's moduli did not come to rest on "
                                + ", ".join(ls.loads[i].label() for i in range(n) if not ok[i]) + "; raise max_frames")

@@ -105,9 +105,23 @@ def _energy_density(kind, shape, material: Material, F):
     """Energy of the cell deformed affinely by ``F`` (3, 3) from the mesh, per unit mesh volume
     [Pa]. With ``material.pre_stretch = lambda0`` the mesh is the pre-stretched state (the
     model's convention): the elastic deformation is ``F diag(lambda0, lambda0, 1)``."""
+    return _density_function(kind, shape, material)(F)
+
+
+def _density_function(kind, shape, material: Material):
+    """``F -> _energy_density(kind, shape, material, F)`` with the model's element terms built
+    once from ``material``: a solve that derives from the material alone (the matched lattice's
+    design, :func:`~difftissue.models.matched_lattice_design`) is traced and run once per
+    function, not again in every gradient and Hessian of the density inside a Newton loop."""
     model, X, V = _unit_cell(kind, shape)
-    x = jnp.asarray(X) @ jnp.swapaxes(F, 0, 1)
-    return model.energy(x, material) / V
+    terms = model.terms(material)
+    X = jnp.asarray(X)
+
+    def density(F):
+        x = X @ jnp.swapaxes(F, 0, 1)
+        return sum(t.total(x) for t in terms) / V
+
+    return density
 
 
 def _scalar_material(material: Material) -> Material:
@@ -202,9 +216,11 @@ def _membrane_state(kind, shape, mat) -> MembraneState:
     lam0 = mat.pre_stretch
     nu = mat.poisson_ratio
 
+    density = _density_function(kind, shape, mat)
+
     def psi(s, lz):  # per unit mesh volume; s stretches x about the mesh
         F = jnp.diag(jnp.stack([s, jnp.ones_like(s), lz]))
-        return _energy_density(kind, shape, mat, F)
+        return density(F)
 
     one = jnp.ones_like(lam0)
     g = jax.grad(lambda y: psi(one, y[0]))
@@ -253,9 +269,11 @@ def _biaxial_membrane_state(kind, shape, mat) -> BiaxialMembraneState:
     lx, ly = mat.pre_stretch, mat.pre_stretch_y
     nu = mat.poisson_ratio
 
+    density = _density_function(kind, shape, mat)
+
     def psi(sx, sy, lz):  # per unit mesh volume; (sx, sy) stretch x and y about the mesh
         F = jnp.diag(jnp.stack([sx, sy, lz]))
-        return _energy_density(kind, shape, mat, F)
+        return density(F)
 
     one = jnp.ones_like(lx)
     g = jax.grad(lambda y: psi(one, one, y[0]))
@@ -356,11 +374,11 @@ def _pre_stretch_for(kind, shape, mat, target):
     one nested in another (the nested form compiled for ~15 s, its gradient ~25 s)."""
 
     def residual(y):
-        m = eqx.tree_at(lambda m: m.pre_stretch, mat, y[0])
+        density = _density_function(kind, shape, eqx.tree_at(lambda m: m.pre_stretch, mat, y[0]))
 
         def psi(s, lz):  # per unit mesh volume; s stretches x about the mesh (as in _membrane_state)
             F = jnp.diag(jnp.stack([s, jnp.ones_like(s), lz]))
-            return _energy_density(kind, shape, m, F)
+            return density(F)
 
         one = jnp.ones_like(y[0])
         return jnp.stack([jax.grad(psi, argnums=1)(one, y[1]), jax.grad(psi, argnums=0)(one, y[1]) - target])
@@ -449,10 +467,11 @@ def _bar_material(kind, shape, material: Material) -> Material:
 def _uniaxial_stress(kind, shape, Q, mat, eps):
     """Nominal stress along ``Q[:, 0]`` at the strains ``eps`` (one program for every direction)."""
     nu = mat.poisson_ratio
+    density = _density_function(kind, shape, mat)
 
     def psi(lam, y):
         S = jnp.stack([jnp.stack([lam, y[0], y[1]]), jnp.stack([y[0], y[2], y[3]]), jnp.stack([y[1], y[3], y[4]])])
-        return _energy_density(kind, shape, mat, Q @ S @ Q.T)
+        return density(Q @ S @ Q.T)
 
     def one(e):
         lam = 1.0 + e
