@@ -276,3 +276,16 @@ def test_newton_step_below_the_energys_round_off_is_taken_by_its_residual():
     F = float(m.reaction_force(jnp.asarray(m.rest_points) + u, material))
     # about 3 cells of contact at 3 um: within 10 % of Hertz
     assert F == pytest.approx(0.8 * float(_hertz(depths[-1])), rel=0.1)
+
+
+def test_a_failed_axisymmetric_solve_gives_nan_values_and_derivatives_in_both_modes():
+    """SolverOptions(max_steps=1, failure="nan") on a finite-strain sphere indentation: the
+    forces and both Jacobians are NaN (never a finite, silently wrong derivative). One compiled
+    program for the value and both Jacobians."""
+    from difftissue.scenarios import SolverOptions
+
+    sc = AxisymmetricIndentation(D * np.array([0.25, 0.5, 1.0]), indenter="sphere", radius=R, cells_per_contact_radius=3,
+                                 model="fem_neo_hookean", options=SolverOptions(max_steps=1, failure="nan"))
+    f = lambda p: sc.predict(Material(p[0], p[1]))  # noqa: E731
+    value, jr, jf = (np.asarray(a) for a in jax.jit(lambda p: (f(p), jax.jacrev(f)(p), jax.jacfwd(f)(p)))(jnp.array([E, NU])))
+    assert np.all(np.isnan(value)) and np.all(np.isnan(jr)) and np.all(np.isnan(jf))

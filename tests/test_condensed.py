@@ -299,3 +299,17 @@ def test_a_stall_within_the_claimed_precision_is_finished_by_the_last_newton_ste
         assert bool(ok) == converges, off
         if converges:
             np.testing.assert_allclose(np.asarray(u)[0, 2], exact, rtol=1e-12)
+
+
+def test_a_failed_condensed_solve_gives_nan_values_and_derivatives_in_both_modes(quarter):
+    """SolverOptions(max_steps=1, failure="nan"): the depths whose condensed Newton did not
+    converge in one step have NaN forces and NaN rows in the forward- and reverse-mode
+    Jacobians (never a finite, silently wrong derivative); the depths it did solve keep finite
+    forward-mode rows. One compiled program for the value and both Jacobians."""
+    cond = _sphere(quarter, "condensed", options=SolverOptions(max_steps=1, failure="nan"))
+    f = lambda p: cond.predict(Material(p[0], p[1]))  # noqa: E731
+    value, jr, jf = (np.asarray(a) for a in jax.jit(lambda p: (f(p), jax.jacrev(f)(p), jax.jacfwd(f)(p)))(jnp.array([12e3, 0.42])))
+    failed = np.isnan(value)
+    assert failed.any() and not failed.all()  # measured: the two shallowest depths converge in one step
+    assert np.all(np.isnan(jr[failed])) and np.all(np.isnan(jf[failed]))
+    assert np.all(np.isfinite(jf[~failed])) and np.all(value[~failed] > 0)
