@@ -955,6 +955,14 @@ def _raising_named_errors(fn):
     return functools.wraps(fn)(functools.partial(_call_raising_named_errors, fn))
 
 
+def _shallowest_depth(abscissa, dtype):
+    """The smallest positive depth of a protocol's ``abscissa`` [m] (a data leaf: traced in the
+    compiled protocol), where a depth at or above the surface solves instead, discarding the
+    result (the indentation protocols' ``step``)."""
+    abscissa = jnp.asarray(abscissa, dtype=dtype)
+    return jnp.min(jnp.where(abscissa > 0, abscissa, jnp.max(abscissa)))
+
+
 def _history(u0):
     """The start of a protocol's equilibrium history for :func:`_extrapolate`: the zero state at
     load 0, twice (the unloaded specimen)."""
@@ -1434,10 +1442,20 @@ class Indentation(eqx.Module):
             forces, us = self.condensation.solve_protocol(material, depths, self.options)
             return self.force_multiplier * forces, us
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
+        shallowest = _shallowest_depth(self.abscissa, u0.dtype)
 
+        # A depth at or above the surface (depth + contact_offset <= 0: a fitted offset that
+        # lifts the indenter) touches nothing: force 0, the specimen at rest, the history
+        # started again. Its solve is replaced by one at the protocol's shallowest positive
+        # depth from rest, whose result is discarded (a branch-free select: forward-mode,
+        # vmapped derivatives get finite values from both sides).
         def step(history, depth):
-            f, u_new = self._force_at(material, depth, _extrapolate(history, depth))
-            return _advance(history, u_new, depth), (f, u_new)
+            touching = depth > 0
+            start = jnp.where(touching, _extrapolate(history, depth), u0)
+            f, u_new = self._force_at(material, jnp.where(touching, depth, shallowest), start)
+            f, u_new = jnp.where(touching, f, jnp.zeros_like(f)), jnp.where(touching, u_new, u0)
+            history = jax.tree_util.tree_map(lambda a, b: jnp.where(touching, a, b), _advance(history, u_new, depth), _history(u0))
+            return history, (f, u_new)
 
         _, (forces, us) = jax.lax.scan(step, _history(u0), jnp.asarray(depths, dtype=u0.dtype))
         return forces, us
@@ -1786,11 +1804,21 @@ class AxisymmetricIndentation(eqx.Module):
         depths = jnp.asarray(self.abscissa) + contact_offset
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
 
+        # A depth at or above the surface (depth + contact_offset <= 0: a fitted offset that
+        # lifts the indenter) touches nothing: force 0, the specimen at rest. Its solve (whose
+        # Newton has no load to converge on) is replaced by one at the protocol's shallowest
+        # positive depth from rest, whose result is discarded: a branch-free select, so that
+        # forward-mode (vmapped) derivatives get finite values from both sides.
+        shallowest = _shallowest_depth(self.abscissa, u0.dtype)
+
         # Each depth starts from the previous equilibrium, not from the secant extrapolation
         # of Indentation (_extrapolate): under a cone the extrapolated state made the line
         # search fail at the second depth (measured, 4 cells per contact radius, 70 deg).
         def step(u_prev, depth):
-            f, u_new = self._force_at(material, depth, u_prev)
+            touching = depth > 0
+            f, u_new = self._force_at(material, jnp.where(touching, depth, shallowest), jnp.where(touching, u_prev, jnp.zeros_like(u_prev)))
+            f = jnp.where(touching, f, jnp.zeros_like(f))
+            u_new = jnp.where(touching, u_new, jnp.zeros_like(u_new))
             return u_new, (f, u_new)
 
         _, (forces, us) = jax.lax.scan(step, u0, jnp.asarray(depths, dtype=u0.dtype))

@@ -189,3 +189,29 @@ def test_outputs_show_the_offset_and_the_material_card_does_not(tmp_path):
     assert rec["unit"] == "m" and abs(rec["value"] - OFFSET) < 1e-9 and np.isfinite(rec["standard_error"])
     assert "contact_offset" not in (tmp_path / "out" / "material.json").read_text()
     assert f"| {FIELD} |" in (tmp_path / "out" / "report.md").read_text()
+
+
+@pytest.mark.parametrize("geometry", ["axisymmetric", "3d"])
+def test_a_simulated_depth_lifted_above_the_surface_has_zero_force_and_finite_derivatives(geometry):
+    """depth + offset <= 0 in a simulated indentation: force 0 there (no contact), the other
+    depths the unshifted scenario's forces at depth + offset, and finite forward- and
+    reverse-mode derivatives in the offset (0 at the lifted depth). Before, its solve at or
+    above the surface did not converge, so a fit could not reach a negative offset past the
+    first depth. One compiled program for the forces and both derivatives."""
+    from difftissue.scenarios import Indentation, indentation_block
+
+    depths = np.array([2e-5, 5e-5, 1e-4])
+    if geometry == "axisymmetric":
+        sc = AxisymmetricIndentation(depths, indenter="sphere", radius=RADIUS, cells_per_contact_radius=3)
+    else:
+        block = indentation_block((4e-3, 4e-3, 1.6e-3), (6, 6, 5), symmetry="quarter")
+        sc = Indentation(block, depths, model="fem_linear", indenter="sphere", radius=RADIUS, symmetry="quarter", solver="full")
+    m = Material(E_TRUE, NU)
+    f = lambda c: sc.predict(m, c)  # noqa: E731
+    program = jax.jit(lambda c: (f(c), jax.jacfwd(f)(c), jax.jacrev(f)(c)))
+    lifted, dfwd, drev = (np.asarray(a) for a in program(-3e-5))
+    unshifted = np.asarray(program(0.0)[0])
+    assert lifted[0] == 0.0 and dfwd[0] == 0.0 and drev[0] == 0.0
+    np.testing.assert_allclose(lifted[1], unshifted[0], rtol=1e-7)  # 5e-5 - 3e-5 = the first depth
+    assert np.all(np.isfinite(dfwd)) and np.all(dfwd[1:] > 0)
+    np.testing.assert_allclose(drev, dfwd, rtol=1e-8)
