@@ -34,6 +34,7 @@ from .export.fitted import fitted_specimen, specimen_file_name, specimen_record,
 from .fit.problem import UNITS, unit_text
 from .fit.result import FitResult, ScenarioFit
 from .incision import Incision
+from .mesh import unique_edges
 from .models import LATTICE_MODELS
 from .fit.statistics import (
     AUTOCORRELATION_LIMIT,
@@ -483,7 +484,7 @@ def _mesh_record(rec: Mapping, model) -> dict | None:
     if points is None or tets is None:
         return None
     points, tets = np.asarray(points, dtype=float), np.asarray(tets, dtype=np.int64)
-    edges = np.unique(np.sort(tets[:, [[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]]].reshape(-1, 2), axis=1), axis=0)
+    edges = unique_edges(tets)
     h = float(np.median(np.linalg.norm(points[edges[:, 1]] - points[edges[:, 0]], axis=1)))
     n, m = int(points.shape[0]), int(tets.shape[0])
     return {"name": rec.get("name"), "model": rec.get("model"), "geometry": "3d", "nodes": n, "tets": m, "median_edge": h,

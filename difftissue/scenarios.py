@@ -51,7 +51,7 @@ from .contact import (ConeIndenter, ContactModel, FlatPunch, Platens, SphereInde
                       top_surface_nodes)
 from .energies.volume import tet_signed_volume
 from .errors import BoundaryConditionError, ConfigError, ConvergenceError, DataError, ModelError, ReactionSignError, SelectorError, ThinSpecimenWarning, UnderResolvedContactWarning
-from .materials import Material
+from .materials import Linear, Material
 from .mesh import TetMesh, graded_axis, graded_cells as _graded_cells, structured_grid
 from .interpolation import interpolation_operator
 from .models import LATTICE_MODELS, ElasticModel, make_model
@@ -124,8 +124,6 @@ def contact_offset_parameter(depths) -> dict:
     every depth (the indenter at ``depth + contact_offset``: a contact point picked
     ``contact_offset`` too late), start 0, transform ``Linear`` with the scale
     :data:`CONTACT_OFFSET_SCALE` times the largest depth (1 um where the depths are all 0)."""
-    from .materials import Linear
-
     d = np.asarray(depths, dtype=float)
     top = float(np.max(np.abs(d))) if d.size and np.all(np.isfinite(d)) else 0.0
     scale = CONTACT_OFFSET_SCALE * top if top > 0 else 1e-6

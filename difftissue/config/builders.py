@@ -22,7 +22,7 @@ from ..cutting import ScalpelPath, cut_specimen
 from ..errors import DifftissueError
 from ..incision import Incision, IncisionOptions
 from ..materials import Material
-from ..mesh import Specimen, block, layered_skin, read_mesh
+from ..mesh import Specimen, block, layer_node_heights, layered_skin, read_mesh
 from ..models import LATTICE_MODELS, LATTICE_VARIANTS, MODELS, NODAL_FEM_MODELS
 from ..axisymmetric import AXISYMMETRIC_MODELS
 from ..scenarios import (AXISYMMETRIC_CELLS_PER_CONTACT_RADIUS, MIN_CELLS_PER_CONTACT_RADIUS, AnalyticIndentation, AxisymmetricIndentation, Compression, FEMField, Indentation, SolverOptions,
@@ -997,10 +997,8 @@ def _node_depths(layers, grading) -> list[float]:
     """Depths [m] below the surface of the node planes of a layered specimen (surface first)."""
     z, out = 0.0, [0.0]
     for n, t, _, nc in layers:
-        r = grading.get(n, 1.0)
-        h = np.array([r**k for k in range(nc)])
-        for dh in np.cumsum(h / h.sum() * t):
-            out.append(z + float(dh))
+        heights = layer_node_heights(t, nc, grading.get(n, 1.0))  # from the layer's base up
+        out.extend(float(z + d) for d in (t - heights[::-1])[1:])
         z += t
     return out
 

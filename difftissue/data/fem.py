@@ -18,6 +18,7 @@ import numpy as np
 
 from ..errors import (DegenerateElementError, ImplausibleMagnitudeError, IndexOutOfRangeError, MeshError, MissingFieldError, NonFiniteDataError,
                       UnitError, UnsupportedMeshError, _cite)
+from ..interpolation import node_coordinates, shape_gradients
 from .units import normalize_unit
 
 
@@ -286,8 +287,6 @@ def _check_quadratic_hexahedra(path, t: str, X: np.ndarray) -> None:
     """Refuse 20- or 27-node hexahedra ``X`` ``(M, k, 3)`` whose map (their own shape functions)
     has a (near-)zero Jacobian, or one that changes sign, at the centre or a node: flat
     elements, and mid-side nodes misplaced or given in another node order than VTK's."""
-    from ..interpolation import node_coordinates, shape_gradients
-
     at = np.vstack([[[0.0, 0.0, 0.0]], node_coordinates(t)])  # centre, nodes
     dN = shape_gradients(t, at)  # (1 + k, k, 3)
     det = np.linalg.det(np.einsum("mkd,pke->mpde", X, dN))  # (M, 1 + k)

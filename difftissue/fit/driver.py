@@ -19,7 +19,7 @@ from ..materials import Material, MaterialParameterization
 from .checkpoint import load_checkpoint, save_checkpoint
 from .host import HostEngine, host_capable
 from .engine import Engine, LoopState, METHODS, cached_engine, final_evaluation, progress_bar, run_steps, tolerances
-from .problem import FitProblem, UNITS
+from .problem import FitProblem
 from .result import plot_layout, FitProgress, FitResult, ScenarioFit
 from .statistics import assess_quality, effective_modulus, identifiability_diagnostics, parameter_statistics
 
@@ -271,9 +271,9 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
     values_vec = np.asarray(all_values[best])
     J = np.asarray(all_J[best])
     stats = parameter_statistics(J, np.asarray(values_vec), problem.fields, loss=float(final[best]), absolute_sigma=absolute_sigma,
-                                 floors=getattr(problem, "scale_floors", None))
-    diag = identifiability_diagnostics(stats, np.asarray(values_vec), problem.fields, floors=getattr(problem, "scale_floors", None),
-                                       units=getattr(problem, "units", None))
+                                 floors=problem.scale_floors)
+    diag = identifiability_diagnostics(stats, np.asarray(values_vec), problem.fields, floors=problem.scale_floors,
+                                       units=problem.units)
     if not start_converged[best]:
         diag = [(f, f"{msg} (evaluated where the fit stopped without converging: {reason})") for f, msg in diag]
     for _, msg in diag:
@@ -296,7 +296,7 @@ def build_result(problem: FitProblem, engine: Engine, U, all_values, final, all_
         material=material,
         fields=fields,
         values={f: float(values_vec[i]) for i, f in enumerate(fields)},
-        units={f: getattr(problem, "units", UNITS).get(f, "") for f in fields},
+        units={f: problem.units.get(f, "") for f in fields},
         standard_errors={f: float(stats["standard_errors"][i]) for i, f in enumerate(fields)},
         covariance=stats["covariance"],
         correlation=stats["correlation"],

@@ -56,7 +56,7 @@ def host_capable(problem: FitProblem, method: str, loss: str, jac: str, dtype) -
     parameters fitted (their tangents are the compiled engine's)."""
     return (HOST_STEPS and method == "levenberg_marquardt" and loss == "linear" and jac == "fwd"
             and np.dtype(dtype) == np.float64
-            and not getattr(problem, "has_scenario_parameters", False)
+            and not problem.has_scenario_parameters
             and all(getattr(sc, "solves_on_host", False) is True and callable(getattr(sc, "predict_and_tangents_on_host", None))
                     for sc in problem.scenarios))
 

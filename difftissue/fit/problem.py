@@ -387,9 +387,12 @@ class FitProblem:
             return None
         return self.parameterization.scenario_values(values, len(self.scenarios))
 
-    def _vector(self, u):
+    def _scenario_values_at(self, u) -> tuple[dict, ...] | None:
+        """:meth:`scenario_values_of` at the unconstrained ``u`` (None when none are fitted)."""
+        if not self.has_scenario_parameters:
+            return None
         vals = self.values(u)
-        return jnp.stack([jnp.asarray(vals[f]) for f in self.fields])
+        return self.scenario_values_of(jnp.stack([jnp.asarray(vals[f]) for f in self.fields]))
 
     def predictions_of(self, material: Material, scenario_values=None) -> list[jax.Array]:
         """Each scenario's predictions (its unit), checked against the observed shapes;
@@ -445,15 +448,13 @@ class FitProblem:
     def residuals_and_predictions(self, u) -> tuple[jax.Array, tuple[jax.Array, ...]]:
         """``(residuals(u), predictions)``: the robustified scaled residuals and each
         scenario's predictions (in the residuals' dtype) from one forward evaluation."""
-        preds = self.predictions_of(self.material(u), self.scenario_values_of(self._vector(u)) if self.has_scenario_parameters else None)
+        preds = self.predictions_of(self.material(u), self._scenario_values_at(u))
         r = self.robust(self._scaled(preds))
         return r, tuple(jnp.asarray(p, dtype=r.dtype) for p in preds)
 
     def residuals(self, u) -> jax.Array:
         """Robustified scaled residuals at ``u``, shape ``(n,)`` [-] (plain ones for ``linear``)."""
-        if self.has_scenario_parameters:
-            return self.robust(self._scaled(self.predictions_of(self.material(u), self.scenario_values_of(self._vector(u)))))
-        return self.robust(self.scaled_residuals_of(self.material(u)))
+        return self.robust(self._scaled(self.predictions_of(self.material(u), self._scenario_values_at(u))))
 
     def residuals_of_values(self, values) -> jax.Array:
         """Robustified scaled residuals as a function of the PHYSICAL fitted values (SI)."""
