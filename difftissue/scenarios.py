@@ -961,6 +961,23 @@ def _shallowest_depth(abscissa, dtype):
     return jnp.min(jnp.where(abscissa > 0, abscissa, jnp.max(abscissa)))
 
 
+def _force_where_touching(force_at, depth, start, rest, shallowest):
+    """``force_at(depth, start) -> (force, u)`` of an indentation protocol's step where the
+    indenter touches the specimen (``depth`` [m] > 0); where it does not (depth + contact_offset
+    <= 0: a fitted offset that lifts the indenter), force 0 and the specimen at ``rest``. The
+    solve there is replaced by one at the protocol's ``shallowest`` positive depth from rest
+    (:func:`_shallowest_depth`), whose result is discarded: a branch-free select, so that
+    forward-mode (vmapped) and reverse-mode derivatives get finite values from both sides (a
+    solve with no load has nothing for its Newton loop to converge on).
+
+    Returns:
+        ``(touching, force, u)``.
+    """
+    touching = depth > 0
+    f, u = force_at(jnp.where(touching, depth, shallowest), jnp.where(touching, start, rest))
+    return touching, jnp.where(touching, f, jnp.zeros_like(f)), jnp.where(touching, u, rest)
+
+
 def _history(u0):
     """The start of a protocol's equilibrium history for :func:`_extrapolate`: the zero state at
     load 0, twice (the unloaded specimen)."""
@@ -1442,16 +1459,10 @@ class Indentation(eqx.Module):
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
         shallowest = _shallowest_depth(self.abscissa, u0.dtype)
 
-        # A depth at or above the surface (depth + contact_offset <= 0: a fitted offset that
-        # lifts the indenter) touches nothing: force 0, the specimen at rest, the history
-        # started again. Its solve is replaced by one at the protocol's shallowest positive
-        # depth from rest, whose result is discarded (a branch-free select: forward-mode,
-        # vmapped derivatives get finite values from both sides).
+        # A depth at or above the surface has force 0 (_force_where_touching); the history
+        # starts again from rest after it.
         def step(history, depth):
-            touching = depth > 0
-            start = jnp.where(touching, _extrapolate(history, depth), u0)
-            f, u_new = self._force_at(material, jnp.where(touching, depth, shallowest), start)
-            f, u_new = jnp.where(touching, f, jnp.zeros_like(f)), jnp.where(touching, u_new, u0)
+            touching, f, u_new = _force_where_touching(functools.partial(self._force_at, material), depth, _extrapolate(history, depth), u0, shallowest)
             history = jax.tree_util.tree_map(lambda a, b: jnp.where(touching, a, b), _advance(history, u_new, depth), _history(u0))
             return history, (f, u_new)
 
@@ -1802,21 +1813,15 @@ class AxisymmetricIndentation(eqx.Module):
         depths = jnp.asarray(self.abscissa) + contact_offset
         u0 = jnp.zeros(self.bc.displacement.shape, dtype=jnp.result_type(float))
 
-        # A depth at or above the surface (depth + contact_offset <= 0: a fitted offset that
-        # lifts the indenter) touches nothing: force 0, the specimen at rest. Its solve (whose
-        # Newton has no load to converge on) is replaced by one at the protocol's shallowest
-        # positive depth from rest, whose result is discarded: a branch-free select, so that
-        # forward-mode (vmapped) derivatives get finite values from both sides.
+        # A depth at or above the surface has force 0 and leaves the specimen at rest
+        # (_force_where_touching).
         shallowest = _shallowest_depth(self.abscissa, u0.dtype)
 
         # Each depth starts from the previous equilibrium, not from the secant extrapolation
         # of Indentation (_extrapolate): under a cone the extrapolated state made the line
         # search fail at the second depth (measured, 4 cells per contact radius, 70 deg).
         def step(u_prev, depth):
-            touching = depth > 0
-            f, u_new = self._force_at(material, jnp.where(touching, depth, shallowest), jnp.where(touching, u_prev, jnp.zeros_like(u_prev)))
-            f = jnp.where(touching, f, jnp.zeros_like(f))
-            u_new = jnp.where(touching, u_new, jnp.zeros_like(u_new))
+            _, f, u_new = _force_where_touching(functools.partial(self._force_at, material), depth, u_prev, u0, shallowest)
             return u_new, (f, u_new)
 
         _, (forces, us) = jax.lax.scan(step, u0, jnp.asarray(depths, dtype=u0.dtype))

@@ -191,7 +191,7 @@ def test_outputs_show_the_offset_and_the_material_card_does_not(tmp_path):
     assert f"| {FIELD} |" in (tmp_path / "out" / "report.md").read_text()
 
 
-@pytest.mark.parametrize("geometry", ["axisymmetric", "3d"])
+@pytest.mark.parametrize("geometry", ["axisymmetric", "3d", "3d_condensed"])
 def test_a_simulated_depth_lifted_above_the_surface_has_zero_force_and_finite_derivatives(geometry):
     """depth + offset <= 0 in a simulated indentation: force 0 there (no contact), the other
     depths the unshifted scenario's forces at depth + offset, and finite forward- and
@@ -205,7 +205,8 @@ def test_a_simulated_depth_lifted_above_the_surface_has_zero_force_and_finite_de
         sc = AxisymmetricIndentation(depths, indenter="sphere", radius=RADIUS, cells_per_contact_radius=3)
     else:
         block = indentation_block((4e-3, 4e-3, 1.6e-3), (6, 6, 5), symmetry="quarter")
-        sc = Indentation(block, depths, model="fem_linear", indenter="sphere", radius=RADIUS, symmetry="quarter", solver="full")
+        solver = "condensed" if geometry == "3d_condensed" else "full"
+        sc = Indentation(block, depths, model="fem_linear", indenter="sphere", radius=RADIUS, symmetry="quarter", solver=solver)
     m = Material(E_TRUE, NU)
     f = lambda c: sc.predict(m, c)  # noqa: E731
     program = jax.jit(lambda c: (f(c), jax.jacfwd(f)(c), jax.jacrev(f)(c)))
