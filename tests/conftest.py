@@ -18,6 +18,7 @@ from pathlib import Path
 os.environ.setdefault("MPLBACKEND", "Agg")
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
+import callback_cache  # noqa: E402
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
@@ -35,6 +36,12 @@ def _cache_dir() -> Path | None:
 
 
 _CACHE = _cache_dir()
+# Programs with host callbacks (every eqx.error_if, pure_callback, jax.debug.callback) are cached
+# too: tests/callback_cache.py, a backport of upstream JAX's support. Their entries go to a
+# directory of their own, which a process without the backport never reads: it would load such
+# a program without its callbacks (a crash).
+if _CACHE is not None and callback_cache.install() == "installed":
+    _CACHE = _CACHE / "with-host-callbacks"
 if _CACHE is not None:
     try:
         _CACHE.mkdir(parents=True, exist_ok=True)
