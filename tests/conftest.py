@@ -49,8 +49,9 @@ if _CACHE is not None:
         _CACHE = None
 if _CACHE is not None:
     jax.config.update("jax_compilation_cache_dir", str(_CACHE))
-    # Cache every program that took over half a second to compile, however small.
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+    # Cache every program, however short its compilation: a warm run reads the thousands of
+    # small programs (op-by-op dispatch, helpers) instead of compiling them again.
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
