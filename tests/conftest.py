@@ -40,7 +40,7 @@ _CACHE = _cache_dir()
 # too: tests/callback_cache.py, a backport of upstream JAX's support. Their entries go to a
 # directory of their own, which a process without the backport never reads: it would load such
 # a program without its callbacks (a crash).
-if _CACHE is not None and callback_cache.install() == "installed":
+if callback_cache.install() == "installed" and _CACHE is not None:
     _CACHE = _CACHE / "with-host-callbacks"
 if _CACHE is not None:
     try:
