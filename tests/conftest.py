@@ -3,7 +3,10 @@ persistent compilation cache, so that a second run of the suite (or a test file 
 subprocesses compile the same programs) loads compiled programs instead of compiling again.
 
 The cache lives in ``$DIFFTISSUE_TEST_JAX_CACHE`` or ``~/.cache/difftissue-tests/jax``
-(``$XDG_CACHE_HOME`` respected); ``DIFFTISSUE_TEST_JAX_CACHE=off`` disables it.
+(``$XDG_CACHE_HOME`` respected); ``DIFFTISSUE_TEST_JAX_CACHE=off`` disables it. Every program is
+written, however short its compilation, and so are the programs with host callbacks (every
+``eqx.error_if``), which JAX itself never writes (tests/callback_cache.py; their cache is the
+subdirectory ``with-host-callbacks``): a second run of the suite compiles almost nothing.
 
 One OpenBLAS thread (``OPENBLAS_NUM_THREADS=1`` unless set): jaxlib's CPU LAPACK kernels (the
 dense Cholesky of every small static solve) run in SciPy's OpenBLAS, whose worker threads
