@@ -58,6 +58,10 @@ if _CACHE is not None:
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
 
 
+def pytest_report_header(config):
+    return f"JAX persistent compilation cache: {_CACHE or 'off'}; programs with host callbacks cached: {callback_cache.STATUS}"
+
+
 # --- A crashed xdist worker must never hang or fail the run (docs/dev/test-suite.md) ---------
 #
 # A worker that dies (a SIGSEGV inside XLA-compiled code, seen once late in a full run) is
