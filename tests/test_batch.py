@@ -117,7 +117,7 @@ def assert_same_fits(batch, serial, rtol=1e-7, steps_tol=0):
     assert len(batch) == len(serial)
     for b, (a, s) in enumerate(zip(batch.fits, serial)):
         for f in s.fields:
-            assert a.values[f] == pytest.approx(s.values[f], rel=rtol), (b, f)
+            assert a.values[f] == pytest.approx(s.values[f], rel=rtol), (b, f, a.values[f], s.values[f])
             assert a.standard_errors[f] == pytest.approx(s.standard_errors[f], rel=1e-5), (b, f)
         assert a.loss == pytest.approx(s.loss, rel=1e-6, abs=1e-12)
         assert a.converged == s.converged and abs(a.steps - s.steps) <= steps_tol and a.best_start == s.best_start, b
