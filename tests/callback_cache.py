@@ -82,7 +82,7 @@ def install() -> str:
     if getattr(compile_or_get, "_difftissue_callbacks", False):
         return STATUS
     try:
-        refuses = "host_callbacks" in inspect.getsource(write) and "because it uses host" in inspect.getsource(write)
+        refuses = "because it uses host" in inspect.getsource(write)  # its log message
     except (OSError, TypeError):
         refuses = False
     if not refuses:
